@@ -1,0 +1,3 @@
+from obliq_colmap.cli import main
+
+raise SystemExit(main())
