@@ -74,8 +74,7 @@ class Block:
                 im.camera_id,
                 Pose(
                     im.cam_from_world.rotation,
-                    im.cam_from_world.translation
-                    + im.cam_from_world.rotation @ origin,
+                    im.cam_from_world.translation + im.cam_from_world.rotation @ origin,
                 ),
             )
             for i, im in self.images.items()
@@ -197,7 +196,9 @@ def read_priors(input_path: str | Path, image_path: str | Path | None = None) ->
         if not image_path.is_dir():
             raise InputError(image_path, "image folder does not exist")
         missing = [
-            im.name for im in block.images.values() if not (image_path / im.name).is_file()
+            im.name
+            for im in block.images.values()
+            if not (image_path / im.name).is_file()
         ]
         if missing:
             shown = ", ".join(missing[:5]) + (" ..." if len(missing) > 5 else "")
@@ -255,7 +256,7 @@ def to_reconstruction(block: Block, points3D: list[Point3D] | None = None):
             [pycolmap.Point2D(xy) for xy in obs_per_image[image.image_id]]
         )
         rec.add_image_with_trivial_frame(im, image.cam_from_world.to_rigid3d())
-    for point, elements in zip(points3D, track_elements):
+    for point, elements in zip(points3D, track_elements, strict=False):
         if len(elements) == 0:
             continue
         track = pycolmap.Track()
@@ -271,10 +272,13 @@ def _check_output_path(output_path: Path) -> None:
             raise InputError(output_path, "output path exists and is not a folder")
         if any(output_path.iterdir()):
             raise InputError(
-                output_path, "output folder exists and is not empty; refusing to overwrite"
+                output_path,
+                "output folder exists and is not empty; refusing to overwrite",
             )
     if not output_path.parent.exists():
-        raise InputError(output_path.parent, "parent folder of --output_path does not exist")
+        raise InputError(
+            output_path.parent, "parent folder of --output_path does not exist"
+        )
 
 
 class AtomicFolder:

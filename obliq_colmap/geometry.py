@@ -99,8 +99,12 @@ def quat_xyzw_from_rotation(R: np.ndarray) -> np.ndarray:
     tr = np.trace(R)
     if tr > 0:
         s = 2.0 * np.sqrt(tr + 1.0)
-        q = [(R[2, 1] - R[1, 2]) / s, (R[0, 2] - R[2, 0]) / s,
-             (R[1, 0] - R[0, 1]) / s, 0.25 * s]
+        q = [
+            (R[2, 1] - R[1, 2]) / s,
+            (R[0, 2] - R[2, 0]) / s,
+            (R[1, 0] - R[0, 1]) / s,
+            0.25 * s,
+        ]
     else:
         i = int(np.argmax(np.diag(R)))
         j, k = (i + 1) % 3, (i + 2) % 3
@@ -126,10 +130,35 @@ def rotation_from_quat_xyzw(q: np.ndarray) -> np.ndarray:
     )
 
 
-def rotation_angle_deg(R_a: np.ndarray, R_b: np.ndarray) -> float:
-    """Angle in degrees of the relative rotation ``R_a @ R_b.T``."""
-    c = (np.trace(np.asarray(R_a) @ np.asarray(R_b).T) - 1.0) / 2.0
-    return float(np.degrees(np.arccos(np.clip(c, -1.0, 1.0))))
+def rotation_angle_deg(R_a: np.ndarray, R_b: np.ndarray) -> np.ndarray | float:
+    """Angle in degrees of the relative rotation(s) ``R_a @ R_b.T``.
+
+    ``arctan2(|sin|, cos)`` of the relative rotation rather than ``arccos`` of
+    its trace, which keeps full precision for small angles: identical
+    rotations give exactly 0 and 1e-6 deg is still resolved.
+
+    Parameters
+    ----------
+    R_a, R_b : (3, 3) or (N, 3, 3) arrays of rotations.
+
+    Returns
+    -------
+    float or (N,) array, degrees in [0, 180].
+    """
+    R_rel = np.asarray(R_a, float) @ np.swapaxes(np.asarray(R_b, float), -1, -2)
+    cos = (np.trace(R_rel, axis1=-2, axis2=-1) - 1.0) / 2.0
+    # The skew-symmetric part of R_rel is sin(angle) [axis]_x.
+    w = np.stack(
+        [
+            R_rel[..., 2, 1] - R_rel[..., 1, 2],
+            R_rel[..., 0, 2] - R_rel[..., 2, 0],
+            R_rel[..., 1, 0] - R_rel[..., 0, 1],
+        ],
+        axis=-1,
+    )
+    sin = np.linalg.norm(w, axis=-1) / 2.0
+    angle = np.degrees(np.arctan2(sin, cos))
+    return float(angle) if angle.ndim == 0 else angle
 
 
 @dataclass

@@ -45,7 +45,9 @@ def test_write_read_round_trip(tmp_path):
     }
     for i, im in block.images.items():
         np.testing.assert_allclose(
-            back.images[i].cam_from_world.rotation, im.cam_from_world.rotation, atol=1e-12
+            back.images[i].cam_from_world.rotation,
+            im.cam_from_world.rotation,
+            atol=1e-12,
         )
         np.testing.assert_allclose(
             back.images[i].cam_from_world.translation,
@@ -136,8 +138,11 @@ def test_read_errors_name_the_path(tmp_path):
 def test_non_perspective_camera_rejected(tmp_path):
     rec = pycolmap.Reconstruction()
     cam = pycolmap.Camera(
-        model="OPENCV_FISHEYE", width=100, height=100,
-        params=[50, 50, 50, 50, 0, 0, 0, 0], camera_id=1,
+        model="OPENCV_FISHEYE",
+        width=100,
+        height=100,
+        params=[50, 50, 50, 50, 0, 0, 0, 0],
+        camera_id=1,
     )
     rec.add_camera_with_trivial_rig(cam)
     im = pycolmap.Image(name="a.jpg", camera_id=1, image_id=1)
@@ -162,15 +167,21 @@ def test_priors_need_image_files(tmp_path):
 
 
 @pytest.mark.colmap
-@pytest.mark.skipif(shutil.which("colmap") is None, reason="COLMAP's command line "
-                    "(Debian package colmap) is not installed")
+@pytest.mark.skipif(
+    shutil.which("colmap") is None,
+    reason="COLMAP's command line (Debian package colmap) is not installed",
+)
 def test_colmap_reads_the_output(tmp_path):
     block = make_block("OPENCV", (1500, 1500, 1000, 670, -0.01, 0.001, 0.0, 0.0))
     out = tmp_path / "model"
-    io.write_result(out.resolve(), block.shifted(ORIGIN), io.Georef(ORIGIN), make_points(block))
+    io.write_result(
+        out.resolve(), block.shifted(ORIGIN), io.Georef(ORIGIN), make_points(block)
+    )
     res = subprocess.run(
         ["colmap", "model_analyzer", "--path", str(out)],
-        capture_output=True, text=True, timeout=60,
+        capture_output=True,
+        text=True,
+        timeout=60,
     )
     assert res.returncode == 0, res.stderr
     text = res.stdout + res.stderr
@@ -179,9 +190,19 @@ def test_colmap_reads_the_output(tmp_path):
     conv = tmp_path / "txt"
     conv.mkdir()
     res = subprocess.run(
-        ["colmap", "model_converter", "--input_path", str(out),
-         "--output_path", str(conv), "--output_type", "TXT"],
-        capture_output=True, text=True, timeout=60,
+        [
+            "colmap",
+            "model_converter",
+            "--input_path",
+            str(out),
+            "--output_path",
+            str(conv),
+            "--output_type",
+            "TXT",
+        ],
+        capture_output=True,
+        text=True,
+        timeout=60,
     )
     assert res.returncode == 0, res.stderr
     assert "dir/img_0.jpg" in (conv / "images.txt").read_text()

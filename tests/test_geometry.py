@@ -84,10 +84,14 @@ def test_rotation_aligning_and_angle():
     for _ in range(20):
         a, b = rng.normal(size=3), rng.normal(size=3)
         R = g.rotation_aligning(a, b)
-        np.testing.assert_allclose(R @ (a / np.linalg.norm(a)), b / np.linalg.norm(b), atol=1e-12)
+        np.testing.assert_allclose(
+            R @ (a / np.linalg.norm(a)), b / np.linalg.norm(b), atol=1e-12
+        )
     R = g.rotation_aligning([0, 0, 1.0], [0, 0, -1.0])
     np.testing.assert_allclose(R @ [0, 0, 1.0], [0, 0, -1.0], atol=1e-12)
-    assert g.rotation_angle_deg(g.rotation_z(np.radians(3.0)), np.eye(3)) == pytest.approx(3.0)
+    assert g.rotation_angle_deg(
+        g.rotation_z(np.radians(3.0)), np.eye(3)
+    ) == pytest.approx(3.0)
 
 
 def test_pose_center_inverse_and_rigid3d():
@@ -96,7 +100,9 @@ def test_pose_center_inverse_and_rigid3d():
     np.testing.assert_allclose(pose.center, [10.0, -5.0, 100.0], atol=1e-12)
     np.testing.assert_allclose(pose.transform(pose.center[None]), 0.0, atol=1e-12)
     X = np.array([[1.0, 2.0, 3.0]])
-    np.testing.assert_allclose(pose.inverse().transform(pose.transform(X)), X, atol=1e-12)
+    np.testing.assert_allclose(
+        pose.inverse().transform(pose.transform(X)), X, atol=1e-12
+    )
     back = g.Pose.from_rigid3d(pose.to_rigid3d())
     np.testing.assert_allclose(back.rotation, R, atol=1e-12)
     np.testing.assert_allclose(back.translation, pose.translation, atol=1e-9)
@@ -104,7 +110,9 @@ def test_pose_center_inverse_and_rigid3d():
 
 def test_project_matches_pycolmap_image():
     cam = g.Camera("RADIAL", 1000, 800, MODELS["RADIAL"])
-    pose = g.Pose.from_center(g.rotation_from_axis_angle([0.1, 0.2, 0.3]), [0, 0, -30.0])
+    pose = g.Pose.from_center(
+        g.rotation_from_axis_angle([0.1, 0.2, 0.3]), [0, 0, -30.0]
+    )
     X = np.array([[1.0, 2.0, 3.0], [-4.0, 1.0, 0.5]])
     xy, depth = g.project(cam, pose, X)
     expected = cam.to_pycolmap().img_from_cam(pose.transform(X))
@@ -119,3 +127,19 @@ def test_lines_and_distances():
     np.testing.assert_allclose(np.linalg.norm(lines[:, :2], axis=1), 1.0)
     d = g.point_line_distance(np.array([[3.0, 2.0], [3.0, 2.0]]), lines)
     np.testing.assert_allclose(np.abs(d), [2.0, 3.0])
+
+
+def test_rotation_angle_is_exact_and_vectorised():
+    rng = np.random.default_rng(4)
+    axes = rng.normal(size=(20, 3))
+    axes /= np.linalg.norm(axes, axis=1, keepdims=True)
+    angles = rng.uniform(0.0, np.pi, size=20)
+    Rs = np.stack(
+        [g.rotation_from_axis_angle(a * t) for a, t in zip(axes, angles, strict=False)]
+    )
+    out = g.rotation_angle_deg(Rs, np.broadcast_to(np.eye(3), Rs.shape))
+    np.testing.assert_allclose(out, np.degrees(angles), atol=1e-9)
+    # Small angles keep their precision (arccos of the trace would not).
+    tiny = g.rotation_from_axis_angle([np.radians(1e-7), 0.0, 0.0])
+    assert g.rotation_angle_deg(tiny, np.eye(3)) == pytest.approx(1e-7, rel=1e-6)
+    assert g.rotation_angle_deg(Rs[0], Rs[0]) == 0.0

@@ -1,0 +1,113 @@
+"""``obliq-colmap evaluate``: measure a result model against a synthetic scene's truth.
+
+    obliq-colmap evaluate --input_path RESULT_MODEL --gt_path SCENE
+                          [--baseline] [--across_vertical]
+                          [--registered_threshold_px 2] [--output_path report.json]
+
+With ``--baseline`` the scene's ``priors/`` model is evaluated; ``--input_path``
+is then optional, and when given both are evaluated (the JSON report holds the
+baseline under the key ``"baseline"``).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import tempfile
+from pathlib import Path
+
+from obliq_colmap.errors import InputError
+from obliq_colmap.evaluate import EvaluateOptions, evaluate_baseline, evaluate_model
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument(
+        "--input_path",
+        help="result model folder (local frame with georef.json, or absolute); "
+        "optional with --baseline",
+    )
+    parser.add_argument(
+        "--gt_path",
+        required=True,
+        help="synthetic scene folder with gt/, priors/ and gt_buildings.json",
+    )
+    parser.add_argument(
+        "--baseline",
+        action="store_true",
+        help="evaluate the scene's rough priors (SCENE/priors) the same way",
+    )
+    parser.add_argument(
+        "--across_vertical",
+        action="store_true",
+        help="measure only the deviation across the projected world vertical "
+        "(for per-image stages, which cannot observe heights)",
+    )
+    parser.add_argument(
+        "--registered_threshold_px",
+        type=float,
+        default=EvaluateOptions().registered_threshold_px,
+        help="an image is registered when its mean corner deviation is below "
+        "this (px, default %(default)s)",
+    )
+    parser.add_argument(
+        "--keep_vertical_offset",
+        action="store_true",
+        help="do not remove the median vertical offset of the camera centres",
+    )
+    parser.add_argument("--output_path", help="write the report as JSON to this file")
+
+
+def _write_json(path: Path, data: dict) -> None:
+    if not path.parent.is_dir():
+        raise InputError(path.parent, "parent folder of --output_path does not exist")
+    if path.is_dir():
+        raise InputError(path, "--output_path is a folder; expected a JSON file name")
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", dir=path.parent)
+    try:
+        with os.fdopen(fd, "w") as f:
+            json.dump(data, f, indent=2, allow_nan=False)
+            f.write("\n")
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+
+
+def run(args: argparse.Namespace) -> int:
+    if args.input_path is None and not args.baseline:
+        raise InputError(None, "--input_path is required unless --baseline is given")
+    try:
+        options = EvaluateOptions(
+            registered_threshold_px=args.registered_threshold_px,
+            across_vertical=args.across_vertical,
+            remove_vertical_offset=not args.keep_vertical_offset,
+        )
+    except ValueError as exc:
+        raise InputError(None, str(exc)) from None
+    if args.output_path is not None:
+        out = Path(args.output_path)
+        if not out.parent.is_dir():  # fail before the work
+            raise InputError(
+                out.parent, "parent folder of --output_path does not exist"
+            )
+
+    report: dict | None = None
+    if args.input_path is not None:
+        result = evaluate_model(args.input_path, args.gt_path, options)
+        print(f"# {result.result_path}")
+        print(result.format_table())
+        report = result.to_json()
+    if args.baseline:
+        base = evaluate_baseline(args.gt_path, options)
+        if report is not None:
+            print()
+        print(f"# baseline: {base.result_path}")
+        print(base.format_table())
+        if report is None:
+            report = base.to_json()
+        else:
+            report["baseline"] = base.to_json()
+    if args.output_path is not None:
+        _write_json(Path(args.output_path), report)
+    return 0
