@@ -1,0 +1,1140 @@
+"""The vertical vanishing point of an image and the segments through it.
+
+Stage 1b of the pipeline (Habbecke & Kobbelt, section 2.1):
+
+1. Line segments (:mod:`obliq_colmap.lines`), at reduced resolution for big
+   images, with lens distortion removed from the endpoints.
+2. RANSAC over segment pairs: the intersection of two segments' lines is a
+   hypothesis, kept only where the prior (:class:`VPPrior`) allows it, and
+   scored by the segments whose line through their midpoint and the
+   hypothesis passes near their endpoints (length-weighted MSAC). All
+   hypotheses of a batch are evaluated at once.
+3. Maximum-likelihood refinement over the inliers: the VP minimising the sum
+   of squared endpoint distances to the best line through the VP of each
+   segment (the per-segment line is eliminated in closed form), with its
+   covariance.
+4. Second pass (:func:`vertical_segments`): the derivative perpendicular to
+   the line from the VP through each pixel, non-maximum suppression and
+   hysteresis on it, chains fitted as lines constrained through the VP. The VP
+   is then refined once more on these full-resolution edge points.
+
+Everything is homogeneous (a VP at infinity, ``w = 0``, is legal); internally
+pixel coordinates are centred and scaled (``T``) for conditioning. The
+vertical direction ``n = +-normalise(K^-1 v)`` is oriented down the world:
+``n . d_prior > 0`` with the INS prior's predicted down direction, otherwise
+``n_y > 0`` (DESIGN.md, conventions).
+
+Significance: the best hypothesis is judged a contrario: the number of
+segments consistent with it is compared with the number expected if the
+segment orientations were random (Poisson tail, times the number of pair
+hypotheses). An image without vertical structure (water, fields, sky, noise)
+gives a "no_vp" result instead of a confident wrong VP.
+
+References
+----------
+M. Habbecke, L. Kobbelt, "Automatic registration of oblique aerial images with
+cadastral maps", ECCV workshops 2010, section 2.1.
+A. Klaus et al., "MetropoGIS: a semi-automatic city documentation system",
+PCV 2002, section 3.1.
+A. Almansa, A. Desolneux, S. Vamech, "Vanishing point detection without any a
+priori information", PAMI 25, 2003 (the a contrario significance test).
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy.stats import poisson
+
+from obliq_colmap.geometry import Camera
+from obliq_colmap.lines import (
+    EdgePoints,
+    LineOptions,
+    Segments,
+    as_gray_u8,
+    connected_pairs,
+    detect_segments,
+    edge_points,
+    gradients,
+    scatter_matrices,
+    split_at_gaps,
+)
+
+logger = logging.getLogger(__name__)
+
+PRIOR_KINDS = ("none", "aerial", "ins")
+STATUSES = ("ok", "low_confidence", "no_vp")
+
+
+# --------------------------------------------------------------------------
+# Prior, options, result
+# --------------------------------------------------------------------------
+
+
+@dataclass(kw_only=True, frozen=True)
+class VPPrior:
+    """Where the vertical vanishing point may lie.
+
+    Attributes
+    ----------
+    kind : str
+        "none": anywhere within ``max_angle_deg`` of the image's vertical axis,
+        above or below the image, at least ``min_distance_h`` image heights from
+        the centre. "aerial": the paper's prior, y >= ``min_y_h`` image heights
+        (at least one image height below the image for the default 2), within
+        ``max_angle_deg`` of the vertical axis (which excludes horizontal
+        directions at infinity that satisfy y >= 2h only in the limit). "ins":
+        the vertical direction within ``cone_deg`` of ``down_cam`` (needs
+        intrinsics); covers near-nadir images whose VP is inside the frame.
+    down_cam : (3,) array or None
+        ins: predicted direction of the world's down axis in the camera frame,
+        ``R_prior @ (0, 0, -1)``.
+    cone_deg : float
+        ins: half-angle of the cone of allowed vertical directions, degrees.
+    max_angle_deg : float
+        none/aerial: largest angle between the image's y axis and the direction
+        from the image centre to the VP, degrees.
+    min_distance_h : float
+        none: least |y| distance of the VP from the image centre, image heights
+        (0.5: outside the image's vertical extent).
+    min_y_h : float
+        aerial: least y coordinate of the VP, image heights.
+    """
+
+    kind: str = "none"
+    down_cam: np.ndarray | None = None
+    cone_deg: float = 5.0
+    max_angle_deg: float = 30.0
+    min_distance_h: float = 0.5
+    min_y_h: float = 2.0
+
+    def __post_init__(self) -> None:
+        if self.kind not in PRIOR_KINDS:
+            raise ValueError(
+                f"unknown prior kind {self.kind!r}; allowed: {', '.join(PRIOR_KINDS)}"
+            )
+        if self.kind == "ins":
+            if self.down_cam is None:
+                raise ValueError("an 'ins' prior needs down_cam")
+            d = np.asarray(self.down_cam, float).reshape(3)
+            object.__setattr__(self, "down_cam", d / np.linalg.norm(d))
+
+    @classmethod
+    def none(cls, max_angle_deg: float = 30.0) -> VPPrior:
+        """No prior knowledge: within +-``max_angle_deg`` of the vertical axis."""
+        return cls(kind="none", max_angle_deg=max_angle_deg)
+
+    @classmethod
+    def aerial(cls, min_y_h: float = 2.0, max_angle_deg: float = 45.0) -> VPPrior:
+        """The paper's oblique-aerial prior: VP far below the image."""
+        return cls(kind="aerial", min_y_h=min_y_h, max_angle_deg=max_angle_deg)
+
+    @classmethod
+    def from_rotation(cls, cam_from_world_rotation: np.ndarray, cone_deg: float = 5.0):
+        """INS prior from a rough ``cam_from_world`` rotation (3, 3)."""
+        R = np.asarray(cam_from_world_rotation, float).reshape(3, 3)
+        return cls(
+            kind="ins", down_cam=R @ np.array([0.0, 0.0, -1.0]), cone_deg=cone_deg
+        )
+
+
+@dataclass(kw_only=True)
+class SecondPassOptions:
+    """Options of :func:`vertical_segments` (pixels of the full image)."""
+
+    #: Gaussian smoothing before the derivative, pixels.
+    sigma_px: float = 1.0
+    #: hysteresis thresholds on the directional derivative, grey levels/px.
+    low: float = 2.0
+    high: float = 6.0
+    #: largest angle between the gradient and the direction perpendicular to
+    #: the line towards the VP, degrees.
+    max_gradient_angle_deg: float = 20.0
+    #: edge points farther than this from their chain's line are dropped, px.
+    max_point_distance_px: float = 1.5
+    #: largest RMS distance of a segment's edge points to its line, px.
+    max_rms_px: float = 0.6
+    #: chains are cut where consecutive points are farther apart, px.
+    max_gap_px: float = 4.0
+    #: shortest segment kept, px.
+    min_length_px: float = 15.0
+    #: least number of edge points per pixel of segment length.
+    min_density: float = 0.6
+    #: merge pieces of one line (same side brighter) across gaps up to
+    #: ``merge_max_gap_px`` when both lie within ``merge_max_distance_px``.
+    merge: bool = True
+    merge_max_distance_px: float = 1.0
+    merge_max_gap_px: float = 12.0
+
+
+@dataclass(kw_only=True)
+class VanishingOptions:
+    """Options of :func:`detect_vertical_vp`."""
+
+    #: segment detection (first pass).
+    lines: LineOptions = field(default_factory=LineOptions)
+    #: second pass (:func:`vertical_segments`); skipped when None.
+    second_pass: SecondPassOptions | None = field(default_factory=SecondPassOptions)
+    #: refine the VP once more on the second pass's edge points.
+    refine_with_second_pass: bool = True
+    #: RANSAC: largest distance of a segment endpoint to the line through the
+    #: segment's midpoint and the hypothesis, pixels of the detection image.
+    inlier_threshold_px: float = 1.0
+    #: RANSAC: shortest segment used, pixels of the detection image.
+    min_length_px: float = 12.0
+    #: none/aerial priors: segments further than this from the image's
+    #: vertical direction are not considered, degrees.
+    candidate_max_angle_deg: float = 60.0
+    #: RANSAC: a segment's weight in sampling and scoring is length**power;
+    #: 0.5 balances long edges (precise) against many short ones (a few long
+    #: street edges that pass near the VP must not outvote the buildings).
+    score_length_power: float = 0.5
+    #: RANSAC: hypotheses per batch, least and most hypotheses, confidence.
+    batch_size: int = 512
+    min_trials: int = 256
+    max_trials: int = 4096
+    confidence: float = 0.999
+    #: random seed (or pass a numpy Generator to the function).
+    seed: int = 0
+    #: ML refinement: re-selection rounds of the inliers.
+    refine_rounds: int = 3
+    #: fewer inlier segments than this: no VP at all.
+    min_inliers: int = 4
+    #: status "ok" needs this many inliers ...
+    ok_min_inliers: int = 10
+    #: ... a significance of at least this (-log10 of the number of false
+    #: alarms) ...
+    ok_min_significance: float = 3.0
+    #: ... and a 1-sigma angular uncertainty of the vertical direction of at
+    #: most this (nominal focal max(W, H) when the intrinsics are unknown), deg.
+    ok_max_std_deg: float = 1.0
+
+
+@dataclass
+class VanishingResult:
+    """The vertical vanishing point of one image (failure is a value).
+
+    Attributes
+    ----------
+    status : str, "ok", "low_confidence" or "no_vp".
+    message : str, why, in words.
+    vp : (3,) float array or None
+        Homogeneous unit vector (x, y, w), COLMAP pixels of the distortion-free
+        image (K's image when a camera with distortion was given); w >= 0 and
+        w = 0 for a VP at infinity.
+    covariance : (3, 3) float array or None, of ``vp`` (rank 2).
+    vertical_direction : (3,) float array or None
+        Unit vertical direction in the camera frame, pointing down the world;
+        only with intrinsics.
+    direction_std_deg : float, 1-sigma angular uncertainty of the vertical
+        direction (nominal focal max(W, H) when the intrinsics are unknown).
+    significance : float, -log10 of the number of false alarms (> 0: the VP is
+        unlikely to be chance).
+    segments : Segments, first-pass segments (undistorted, full resolution).
+    inliers : (N,) bool array, the first-pass inliers of ``vp``.
+    vertical_segments : Segments or None, second-pass segments.
+    n_hypotheses : int, RANSAC hypotheses evaluated.
+    time_s : dict, wall time per step, seconds.
+    """
+
+    status: str
+    message: str = ""
+    vp: np.ndarray | None = None
+    covariance: np.ndarray | None = None
+    vertical_direction: np.ndarray | None = None
+    direction_std_deg: float = float("inf")
+    significance: float = 0.0
+    segments: Segments = field(default_factory=Segments)
+    inliers: np.ndarray = field(default_factory=lambda: np.zeros(0, bool))
+    vertical_segments: Segments | None = None
+    n_hypotheses: int = 0
+    time_s: dict = field(default_factory=dict)
+
+    def __bool__(self) -> bool:
+        return self.status != "no_vp"
+
+    @property
+    def n_inliers(self) -> int:
+        return int(np.count_nonzero(self.inliers))
+
+    @property
+    def vp_pixel(self) -> np.ndarray | None:
+        """(2,) pixel position of the VP, or None (no VP, or at infinity)."""
+        if self.vp is None or abs(self.vp[2]) < 1e-12:
+            return None
+        return self.vp[:2] / self.vp[2]
+
+
+# --------------------------------------------------------------------------
+# Homogeneous helpers
+# --------------------------------------------------------------------------
+
+
+def _normaliser(width: int, height: int) -> tuple[np.ndarray, float]:
+    """T mapping pixels to centred coordinates scaled by half the longer side."""
+    s = max(width, height) / 2.0
+    T = np.array([[1 / s, 0, -width / 2 / s], [0, 1 / s, -height / 2 / s], [0, 0, 1.0]])
+    return T, s
+
+
+def _canonical_sign(v: np.ndarray) -> np.ndarray:
+    """Flip homogeneous vectors (..., 3) so that w >= 0 (y >= 0 at infinity)."""
+    w = v[..., 2]
+    key = np.where(np.abs(w) > 1e-12 * np.linalg.norm(v, axis=-1), w, v[..., 1])
+    return v * np.where(key < 0, -1.0, 1.0)[..., None]
+
+
+def _tangent_basis(v: np.ndarray) -> np.ndarray:
+    """(..., 3, 2) orthonormal bases of the planes perpendicular to unit v (..., 3).
+
+    Smooth in v within each of three regions (chosen by v's smallest |component|);
+    the quantities computed from it do not depend on the choice of basis.
+    """
+    v = np.asarray(v, float)
+    k = np.argmin(np.abs(v), axis=-1)
+    e = np.zeros(v.shape)
+    np.put_along_axis(e, k[..., None], 1.0, axis=-1)
+    u1 = _cross(v, e)
+    u1 /= np.linalg.norm(u1, axis=-1, keepdims=True)
+    return np.stack([u1, _cross(v, u1)], axis=-1)
+
+
+def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Cross product over the last axis (np.cross has a large call overhead)."""
+    a0, a1, a2 = a[..., 0], a[..., 1], a[..., 2]
+    b0, b1, b2 = b[..., 0], b[..., 1], b[..., 2]
+    return np.stack([a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0], -1)
+
+
+def _pencil_costs(S: np.ndarray, V: np.ndarray) -> np.ndarray:
+    """Total cost ``sum_c lambda_c(v)`` of :func:`_pencil_fit` for each of (P, 3) V.
+
+    Uses ``A_c = U^T S_c U`` with the 6 distinct entries of the symmetric S.
+    """
+    U = _tangent_basis(V)  # (P, 3, 2)
+    # A_ij = sum_kl U_ki S_kl U_lj, vectorised over (P, G) with a (G, 9) S.
+    W = np.einsum("pki,plj->pijkl", U, U).reshape(len(V), 4, 9)
+    A = np.einsum("gm,pam->pga", S.reshape(len(S), 9), W)  # (P, G, 4)
+    a00, a01, a11 = A[..., 0], A[..., 1], A[..., 3]
+    B = np.einsum("pki,pkj->pij", U[:, :2], U[:, :2])  # (P, 2, 2)
+    b00, b01, b11 = B[:, 0, 0, None], B[:, 0, 1, None], B[:, 1, 1, None]
+    qa = b00 * b11 - b01 * b01
+    qb = a00 * b11 + a11 * b00 - 2 * a01 * b01
+    qc = a00 * a11 - a01 * a01
+    disc = np.sqrt(np.maximum(qb * qb - 4 * qa * qc, 0.0))
+    lam = np.maximum(2 * qc / np.maximum(qb + disc, 1e-300), 0.0)
+    return lam.sum(axis=1)
+
+
+def _pencil_fit(S: np.ndarray, v: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Best line through v for each group of points, in closed form.
+
+    Minimises ``l^T S_c l / (a^2 + b^2)`` over lines ``l = U x`` of the pencil
+    through v (a 2x2 generalised eigenproblem; valid for v at infinity).
+
+    Parameters
+    ----------
+    S : (G, 3, 3) scatter matrices (:func:`lines.scatter_matrices`).
+    v : (3,) unit homogeneous point.
+
+    Returns
+    -------
+    cost : (G,) sum of squared point-to-line distances of each group.
+    lines : (G, 3) the lines, unit normal (a, b).
+    """
+    U = _tangent_basis(v)  # (3, 2)
+    A = np.einsum("ki,gkl,lj->gij", U, S, U)  # (G, 2, 2)
+    B = U[:2].T @ U[:2]  # (2, 2): a^2 + b^2 as a form in x
+    qa = B[0, 0] * B[1, 1] - B[0, 1] ** 2
+    qb = A[:, 0, 0] * B[1, 1] + A[:, 1, 1] * B[0, 0] - 2 * A[:, 0, 1] * B[0, 1]
+    qc = A[:, 0, 0] * A[:, 1, 1] - A[:, 0, 1] ** 2
+    disc = np.sqrt(np.maximum(qb * qb - 4 * qa * qc, 0.0))
+    # Smaller root of qa l^2 - qb l + qc = 0 in the cancellation-free form.
+    lam = 2 * qc / np.maximum(qb + disc, 1e-300)
+    lam = np.maximum(lam, 0.0)
+    # Eigenvector: a row of (A - lam B), rotated; use the larger row.
+    M = A - lam[:, None, None] * B
+    r0 = np.stack([-M[:, 0, 1], M[:, 0, 0]], axis=1)
+    r1 = np.stack([-M[:, 1, 1], M[:, 1, 0]], axis=1)
+    use0 = np.sum(r0 * r0, 1) >= np.sum(r1 * r1, 1)
+    x = np.where(use0[:, None], r0, r1)
+    lines = x @ U.T
+    nab = np.linalg.norm(lines[:, :2], axis=1, keepdims=True)
+    lines = lines / np.where(nab > 0, nab, 1.0)
+    return lam, lines
+
+
+def refine_vp(
+    S: np.ndarray, v0: np.ndarray, max_iterations: int = 20
+) -> tuple[np.ndarray, np.ndarray, float, int]:
+    """Maximum-likelihood VP from groups of points whose lines pass through it.
+
+    Minimises ``f(v) = sum_c min_{l through v} sum_i d(p_ci, l)^2`` (the line of
+    each group eliminated in closed form, :func:`_pencil_fit`) by Newton steps
+    on the unit sphere (2 parameters; gradient and Hessian by central
+    differences, the 9 stencil points evaluated in one vectorised call).
+
+    Parameters
+    ----------
+    S : (G, 3, 3) scatter matrices in normalised coordinates.
+    v0 : (3,) starting point, homogeneous.
+
+    Returns
+    -------
+    v : (3,) unit homogeneous VP.
+    covariance : (3, 3) covariance of v (rank 2): ``2 sigma^2 H^-1`` with
+        sigma^2 = f / (n_points - G - 2), n_points the summed weights.
+    cost : float, f(v).
+    dof : int, degrees of freedom of the residual.
+    """
+    v = np.asarray(v0, float) / np.linalg.norm(v0)
+    h = 1e-5
+    grid = np.array([(a, b) for a in (-h, 0.0, h) for b in (-h, 0.0, h)])  # (9, 2)
+
+    def derivatives(v_):
+        B = _tangent_basis(v_)
+        P = v_ + grid @ B.T
+        vals = _pencil_costs(S, P / np.linalg.norm(P, axis=1, keepdims=True))
+        vals = vals.reshape(3, 3)
+        g = np.array([vals[2, 1] - vals[0, 1], vals[1, 2] - vals[1, 0]]) / (2 * h)
+        hxx = (vals[2, 1] - 2 * vals[1, 1] + vals[0, 1]) / h**2
+        hyy = (vals[1, 2] - 2 * vals[1, 1] + vals[1, 0]) / h**2
+        hxy = (vals[2, 2] - vals[2, 0] - vals[0, 2] + vals[0, 0]) / (4 * h * h)
+        return B, vals[1, 1], g, np.array([[hxx, hxy], [hxy, hyy]])
+
+    B, f0, g, H = derivatives(v)
+    for _ in range(max_iterations):
+        w, Q = np.linalg.eigh(H)
+        w = np.maximum(w, 1e-9 * max(w.max(), 1e-300) + 1e-300)
+        step = -(Q @ ((Q.T @ g) / w))
+        # Predicted decrease below rounding noise: converged.
+        if 0.5 * float(g @ -step) <= 1e-12 * max(f0, 1e-300) + 1e-300:
+            break
+        # Newton steps can be large far from the optimum: cap, then try a few
+        # step lengths at once.
+        norm = np.linalg.norm(step)
+        if norm > 0.2:
+            step *= 0.2 / norm
+        ts = 0.5 ** np.arange(6)
+        P = v + (ts[:, None] * step) @ B.T
+        P /= np.linalg.norm(P, axis=1, keepdims=True)
+        vals = _pencil_costs(S, P)
+        k = int(np.argmin(vals))
+        if vals[k] > f0:
+            break
+        v = P[k]
+        B, f0, g, H = derivatives(v)
+    n_points = float(np.sum(S[:, 2, 2]))
+    G = len(S)
+    dof = int(round(n_points)) - G - 2
+    sigma2 = f0 / dof if dof > 0 else np.inf
+    try:
+        cov_t = 2.0 * sigma2 * np.linalg.inv(H)
+    except np.linalg.LinAlgError:
+        cov_t = np.full((2, 2), np.inf)
+    return v, B @ cov_t @ B.T, f0, dof
+
+
+def _endpoint_scatter(ends_n: np.ndarray) -> np.ndarray:
+    """(G, 3, 3) scatter matrices of segments' two endpoints (normalised)."""
+    G = len(ends_n)
+    return scatter_matrices(ends_n.reshape(-1, 2), np.repeat(np.arange(G), 2), G)
+
+
+def _midpoint_distance(v: np.ndarray, mid: np.ndarray, half: np.ndarray) -> np.ndarray:
+    """Endpoint distances to the lines through midpoints and VPs.
+
+    Parameters
+    ----------
+    v : (H, 3) homogeneous VPs; mid : (S, 2) midpoints; half : (S, 2) the
+        vectors from the midpoints to endpoint 1. All normalised coordinates.
+
+    Returns
+    -------
+    (H, S) distances, normalised units.
+    """
+    a, b, c = v[:, 0:1], v[:, 1:2], v[:, 2:3]
+    # l = (mx, my, 1) x (a, b, c); its normal (lx, ly):
+    lx = mid[None, :, 1] * c - b
+    ly = a - mid[None, :, 0] * c
+    num = np.abs(lx * half[None, :, 0] + ly * half[None, :, 1])
+    return num / np.maximum(np.sqrt(lx * lx + ly * ly), 1e-300)
+
+
+# --------------------------------------------------------------------------
+# Prior
+# --------------------------------------------------------------------------
+
+
+class _PriorTest:
+    """Vectorised test of hypotheses (normalised homogeneous) against a prior."""
+
+    def __init__(
+        self,
+        prior: VPPrior,
+        width: int,
+        height: int,
+        T: np.ndarray,
+        K: np.ndarray | None,
+    ) -> None:
+        self.prior, self.W, self.H = prior, width, height
+        self.Tinv = np.linalg.inv(T)
+        self.K = K
+        if prior.kind == "ins":
+            if K is None:
+                raise ValueError("the 'ins' prior needs intrinsics (a camera)")
+            self.Kinv = np.linalg.inv(K)
+            self.cos_cone = np.cos(np.radians(prior.cone_deg))
+
+    def __call__(self, v_n: np.ndarray) -> np.ndarray:
+        v = v_n @ self.Tinv.T  # (H, 3) pixel homogeneous
+        p = self.prior
+        if p.kind == "ins":
+            d = v @ self.Kinv.T
+            d /= np.linalg.norm(d, axis=1, keepdims=True)
+            return np.abs(d @ p.down_cam) >= self.cos_cone
+        v = _canonical_sign(v)
+        x, y, w = v[:, 0], v[:, 1], v[:, 2]
+        dx, dy = x - 0.5 * self.W * w, y - 0.5 * self.H * w
+        in_cone = np.abs(dx) <= np.tan(np.radians(p.max_angle_deg)) * np.abs(dy)
+        if p.kind == "aerial":
+            below = y >= p.min_y_h * self.H * w
+            return in_cone & below & (dy > 0)
+        return in_cone & (np.abs(dy) >= p.min_distance_h * self.H * w)
+
+
+def _candidates(
+    segs: Segments, prior: VPPrior, K: np.ndarray | None, options: VanishingOptions
+) -> tuple[np.ndarray, np.ndarray]:
+    """Which segments can point to a VP the prior allows, and their tolerance.
+
+    Returns
+    -------
+    mask : (N,) bool.
+    half_range : (N,) float, half the range of orientations (rad) a candidate
+        may have; used for the chance probability of the significance test.
+    """
+    d = segs.directions
+    if prior.kind != "ins":
+        # Angle from the image's vertical axis, 0..pi/2.
+        ang = np.arctan2(np.abs(d[:, 0]), np.abs(d[:, 1]))
+        lim = np.radians(options.candidate_max_angle_deg)
+        return ang <= lim, np.full(len(d), lim)
+    # INS: the predicted VP and 8 directions on its cone, projected.
+    Kinv = np.linalg.inv(K)
+    c = prior.down_cam
+    B = _tangent_basis(c)
+    t = np.tan(np.radians(prior.cone_deg))
+    phi = np.linspace(0, 2 * np.pi, 8, endpoint=False)
+    dirs = c[None] + t * (
+        np.cos(phi)[:, None] * B[:, 0] + np.sin(phi)[:, None] * B[:, 1]
+    )
+    vps = np.vstack([c, dirs]) @ K.T  # (9, 3) pixel homogeneous
+    m = segs.midpoints
+    # Directions from the midpoints to the 9 points (homogeneous-safe).
+    u = vps[None, :, :2] - m[:, None, :] * vps[None, :, 2:3]  # (N, 9, 2)
+    ang_u = np.arctan2(u[..., 1], u[..., 0])
+    dev = np.abs((ang_u[:, 1:] - ang_u[:, :1] + np.pi / 2) % np.pi - np.pi / 2)
+    half_range = dev.max(axis=1) + np.radians(2.0)
+    # Midpoints inside the cone's image: any orientation.
+    rays = np.hstack([m, np.ones((len(m), 1))]) @ Kinv.T
+    rays /= np.linalg.norm(rays, axis=1, keepdims=True)
+    inside = np.abs(rays @ c) >= np.cos(np.radians(prior.cone_deg))
+    half_range = np.where(inside, np.pi / 2, np.minimum(half_range, np.pi / 2))
+    a = np.arctan2(d[:, 1], d[:, 0])
+    seg_dev = np.abs((a - ang_u[:, 0] + np.pi / 2) % np.pi - np.pi / 2)
+    return seg_dev <= half_range, half_range
+
+
+# --------------------------------------------------------------------------
+# RANSAC
+# --------------------------------------------------------------------------
+
+
+def _ransac(
+    lines_n: np.ndarray,
+    mid_n: np.ndarray,
+    half_n: np.ndarray,
+    length: np.ndarray,
+    thr_n: float,
+    prior_ok,
+    options: VanishingOptions,
+    rng: np.random.Generator,
+) -> tuple[np.ndarray | None, np.ndarray, int]:
+    """Best VP hypothesis from pairs of segments (length-weighted MSAC).
+
+    Pairs are drawn with probabilities proportional to the segment weights,
+    in batches; every hypothesis of a batch is scored against every segment
+    at once. The number of batches adapts to the best inlier fraction by
+    weight (a pair is all-inlier with probability ~ w^2).
+
+    Returns
+    -------
+    vp_n : (3,) unit homogeneous VP (normalised coordinates) or None.
+    inliers : (S,) bool.
+    n_hypotheses : int, hypotheses that passed the prior and were scored.
+    """
+    S = len(lines_n)
+    if S < 2:
+        return None, np.zeros(S, bool), 0
+    p = length / length.sum()
+    best_score, best_v, n_hyp, trials = -1.0, None, 0, 0
+    needed = options.max_trials
+    chunk = max(1, 2_000_000 // S)
+    while trials < min(needed, options.max_trials) or trials < options.min_trials:
+        if trials >= options.max_trials:
+            break
+        i = rng.choice(S, options.batch_size, p=p)
+        j = rng.choice(S, options.batch_size, p=p)
+        trials += options.batch_size
+        keep = i != j
+        v = np.cross(lines_n[i[keep]], lines_n[j[keep]])
+        nv = np.linalg.norm(v, axis=1)
+        v = v[nv > 1e-12] / nv[nv > 1e-12, None]
+        v = v[prior_ok(v)]
+        n_hyp += len(v)
+        for k in range(0, len(v), chunk):
+            d = _midpoint_distance(v[k : k + chunk], mid_n, half_n)
+            score = (np.maximum(0.0, 1.0 - (d / thr_n) ** 2) * length).sum(axis=1)
+            h = int(np.argmax(score))
+            if score[h] > best_score:
+                best_score, best_v = float(score[h]), v[k + h]
+        if best_v is not None:
+            inl = _midpoint_distance(best_v[None], mid_n, half_n)[0] <= thr_n
+            w = float(length[inl].sum() / length.sum())
+            pw = min(max(w * w, 1e-12), 1 - 1e-12)
+            needed = int(np.ceil(np.log(1 - options.confidence) / np.log1p(-pw)))
+    if best_v is None:
+        return None, np.zeros(S, bool), n_hyp
+    inl = _midpoint_distance(best_v[None], mid_n, half_n)[0] <= thr_n
+    return best_v, inl, n_hyp
+
+
+def _significance(k: int, p_chance: np.ndarray, n_tests: float) -> float:
+    """-log10 NFA of k consistent segments among candidates (Poisson tail).
+
+    ``p_chance`` are the probabilities that each candidate is consistent by
+    chance; the two segments defining a hypothesis are discounted.
+    """
+    mu = float(np.sum(p_chance)) * max(len(p_chance) - 2, 0) / max(len(p_chance), 1)
+    kk = k - 2
+    if kk <= 0:
+        return -np.log10(max(n_tests, 1.0))
+    log_tail = poisson.logsf(kk - 1, max(mu, 1e-12)) / np.log(10)
+    return float(-(np.log10(max(n_tests, 1.0)) + log_tail))
+
+
+# --------------------------------------------------------------------------
+# Vertical direction
+# --------------------------------------------------------------------------
+
+
+def vertical_direction(
+    vp: np.ndarray, K: np.ndarray, down_cam: np.ndarray | None = None
+) -> np.ndarray:
+    """Unit vertical direction (3,) in the camera frame, pointing down the world.
+
+    ``n = +-normalise(K^-1 vp)``, with ``n . down_cam > 0`` when a predicted down
+    direction is known, otherwise ``n_y > 0``.
+    """
+    n = np.linalg.solve(K, np.asarray(vp, float))
+    n /= np.linalg.norm(n)
+    ref = n @ down_cam if down_cam is not None else n[1]
+    return -n if ref < 0 else n
+
+
+def _direction_std_deg(vp: np.ndarray, cov: np.ndarray, K: np.ndarray) -> float:
+    """1-sigma angle (deg) of normalise(K^-1 vp) from the covariance of vp."""
+    Kinv = np.linalg.inv(K)
+    m = Kinv @ vp
+    nm = np.linalg.norm(m)
+    J = (np.eye(3) - np.outer(m, m) / nm**2) / nm @ Kinv
+    c = J @ cov @ J.T
+    tr = float(np.trace(c))
+    return float(np.degrees(np.sqrt(tr))) if np.isfinite(tr) and tr >= 0 else np.inf
+
+
+# --------------------------------------------------------------------------
+# Second pass
+# --------------------------------------------------------------------------
+
+
+@dataclass
+class _SecondPass:
+    """Second-pass segments with their edge points' scatter (normalised)."""
+
+    segments: Segments
+    scatter: np.ndarray  # (G, 3, 3)
+
+    def through(self, vp: np.ndarray, T: np.ndarray) -> Segments:
+        """The same segments refitted through another (nearby) VP."""
+        if len(self.scatter) == 0:
+            return self.segments
+        vn = T @ vp
+        _, lines = _pencil_fit(self.scatter, vn / np.linalg.norm(vn))
+        ends_n = self.segments.endpoints @ T[:2, :2].T + T[:2, 2]
+        G = len(lines)
+        ends_n = _extents_on(
+            ends_n.reshape(-1, 2), np.repeat(np.arange(G), 2), lines, G
+        )
+        Tinv = np.linalg.inv(T)
+        ends = ends_n @ Tinv[:2, :2].T + Tinv[:2, 2]
+        return Segments(ends, self.segments.normal, self.segments.strength)
+
+
+def _second_pass(
+    image: np.ndarray,
+    vp: np.ndarray,
+    options: SecondPassOptions,
+    camera: Camera | None,
+    T: np.ndarray,
+) -> _SecondPass:
+    img = as_gray_u8(image)
+    H, W = img.shape
+    gx, gy = gradients(img, options.sigma_px)
+    # The derivative is taken in the image as seen; with lens distortion the
+    # local direction to the VP is approximated with the distorted position
+    # (tolerated by max_gradient_angle_deg); the fit below is undistorted.
+    vx, vy, vw = (float(c) for c in vp / np.abs(vp).max())
+
+    def across_vp_line(x, y, gxi, gyi):
+        # float32 is enough for a direction; v scaled so nothing overflows.
+        ux = np.float32(vx) - x * np.float32(vw)
+        uy = np.float32(vy) - y * np.float32(vw)
+        inv = 1.0 / np.maximum(np.sqrt(ux * ux + uy * uy), np.float32(1e-30))
+        return -uy * inv, ux * inv
+
+    pts: EdgePoints = edge_points(
+        gx,
+        gy,
+        across_vp_line,
+        options.low,
+        options.high,
+        options.max_gradient_angle_deg,
+    )
+    empty = _SecondPass(Segments(), np.zeros((0, 3, 3)))
+    if len(pts.xy) == 0:
+        return empty
+    xy_px = pts.xy
+    if camera is not None and camera.has_distortion:
+        xy_px = camera.undistort_pixels(xy_px)
+    s = 1.0 / T[0, 0]
+    xy = xy_px @ T[:2, :2].T + T[:2, 2]  # normalised
+    vn = T @ np.asarray(vp, float)
+    vn /= np.linalg.norm(vn)
+    group = pts.group
+    d_sign = np.sign(pts.derivative)
+
+    # Fit each chain through the VP, drop far points, cut at gaps, refit.
+    G = pts.n_groups
+    _, lines = _pencil_fit(scatter_matrices(xy, group, G), vn)
+    r = np.abs(np.sum(xy * lines[group, :2], axis=1) + lines[group, 2]) * s
+    good = r <= options.max_point_distance_px
+    xy, group, xy_px = xy[good], group[good], xy_px[good]
+    absd, d_sign = np.abs(pts.derivative[good]), d_sign[good]
+    tangent = np.stack([-lines[:, 1], lines[:, 0]], axis=1)
+    group, order = split_at_gaps(xy, group, tangent, options.max_gap_px / s)
+    xy, absd, d_sign = xy[order], absd[order], d_sign[order]
+    G = int(group.max()) + 1 if len(group) else 0
+    if G == 0:
+        return empty
+    Sc = scatter_matrices(xy, group, G)
+    cost, lines = _pencil_fit(Sc, vn)
+    count = Sc[:, 2, 2]
+    ends = _extents_on(xy, group, lines, G)
+    length = np.linalg.norm(ends[:, 1] - ends[:, 0], axis=1) * s
+    rms = np.sqrt(cost / np.maximum(count, 1)) * s
+    sign = np.bincount(group, weights=d_sign, minlength=G)
+    strength = np.bincount(group, weights=absd, minlength=G) / np.maximum(count, 1)
+    # Fragments shorter than a quarter of the minimum length (at most 3 px)
+    # are noise far more often than pieces of a broken edge.
+    keep = (
+        (rms <= options.max_rms_px)
+        & (count >= 3)
+        & (length >= min(3.0, 0.25 * options.min_length_px))
+    )
+    # Merge pieces of one line through the VP before the length test.
+    if options.merge:
+        Sc, ends, sign, strength, count, lines = _merge_pencil(
+            Sc[keep],
+            ends[keep],
+            sign[keep],
+            strength[keep],
+            count[keep],
+            lines[keep],
+            vn,
+            options.merge_max_distance_px / s,
+            options.merge_max_gap_px / s,
+        )
+        keep = np.ones(len(Sc), bool)
+    length = np.linalg.norm(ends[:, 1] - ends[:, 0], axis=1) * s
+    keep &= (length >= options.min_length_px) & (count >= options.min_density * length)
+    ends, lines, sign, strength, Sc = (
+        ends[keep],
+        lines[keep],
+        sign[keep],
+        strength[keep],
+        Sc[keep],
+    )
+    Tinv = np.linalg.inv(T)
+    ends_px = ends @ Tinv[:2, :2].T + Tinv[:2, 2]
+    # Edge normal n was (-uy, ux) with u towards the VP; D > 0: brighter on +n.
+    mid = ends_px.mean(axis=1)
+    ux = vx - mid[:, 0] * vw
+    uy = vy - mid[:, 1] * vw
+    nrm = np.sqrt(ux * ux + uy * uy)
+    nrm = np.where(nrm > 0, nrm, 1.0)
+    normal = (
+        np.stack([-uy / nrm, ux / nrm], axis=1) * np.where(sign >= 0, 1, -1)[:, None]
+    )
+    return _SecondPass(Segments(ends_px, normal, strength), Sc)
+
+
+def _extents_on(xy, group, lines, G):
+    from obliq_colmap.lines import _extents
+
+    return _extents(xy, group, lines, G)
+
+
+def _merge_pencil(Sc, ends, sign, strength, count, lines, vn, max_dist, max_gap):
+    """Merge segments on (nearly) the same line through the VP, same polarity.
+
+    Segments are ordered by their line's angle in the pencil; neighbours whose
+    endpoints lie within ``max_dist`` of each other's line and whose gap along
+    the line is at most ``max_gap`` are merged (transitively), and the merged
+    groups refitted through the VP from the summed scatter matrices.
+    """
+    n = len(Sc)
+    if n < 2:
+        return Sc, ends, sign, strength, count, lines
+    U = _tangent_basis(vn)
+    x = lines @ U  # (n, 2) pencil coordinates of each line
+    ang = np.arctan2(x[:, 1], x[:, 0]) % np.pi
+    order = np.argsort(ang)
+    tangent = np.stack([-lines[:, 1], lines[:, 0]], axis=1)
+    pi, pj = [], []
+    for w in range(1, min(6, n - 1) + 1):
+        i = order
+        j = np.roll(order, -w)
+        same = (sign[i] >= 0) == (sign[j] >= 0)
+        # Distances of j's endpoints to i's line and vice versa.
+        dj = np.abs(np.einsum("nkd,nd->nk", ends[j], lines[i, :2]) + lines[i, 2:3]).max(
+            1
+        )
+        di = np.abs(np.einsum("nkd,nd->nk", ends[i], lines[j, :2]) + lines[j, 2:3]).max(
+            1
+        )
+        t = tangent[i]
+        si = np.einsum("nkd,nd->nk", ends[i], t)
+        sj = np.einsum("nkd,nd->nk", ends[j], t)
+        gap = np.maximum(sj.min(1) - si.max(1), si.min(1) - sj.max(1))
+        ok = same & (np.maximum(di, dj) <= max_dist) & (gap <= max_gap)
+        pi.append(i[ok])
+        pj.append(j[ok])
+    G, grp = connected_pairs(n, np.concatenate(pi), np.concatenate(pj))
+    if n == G:
+        return Sc, ends, sign, strength, count, lines
+    S2 = np.zeros((G, 3, 3))
+    np.add.at(S2, grp, Sc)
+    _, lines2 = _pencil_fit(S2, vn)
+    pts = ends.reshape(-1, 2)
+    ends2 = _extents_on(pts, np.repeat(grp, 2), lines2, G)
+    count2 = np.bincount(grp, weights=count, minlength=G)
+    sign2 = np.bincount(grp, weights=sign, minlength=G)
+    strength2 = np.bincount(grp, weights=strength * count, minlength=G) / count2
+    return S2, ends2, sign2, strength2, count2, lines2
+
+
+def vertical_segments(
+    image_gray: np.ndarray,
+    vp: np.ndarray,
+    options: SecondPassOptions | None = None,
+    camera: Camera | None = None,
+) -> Segments:
+    """Segments through a known vanishing point (the paper's second pass).
+
+    1. The derivative D perpendicular to the line from ``vp`` through each
+       pixel (pixels whose gradient points elsewhere are suppressed).
+    2. Non-maximum suppression and hysteresis on D (:func:`lines.edge_points`).
+    3. Each chain of edge points is fitted by the line through ``vp`` that
+       minimises the squared point distances (ML under the constraint), cut at
+       gaps, and pieces of one line are merged.
+
+    Parameters
+    ----------
+    image_gray : (H, W) uint8 array, full resolution.
+    vp : (3,) homogeneous VP, COLMAP pixels of the distortion-free image.
+    options : SecondPassOptions or None.
+    camera : Camera or None; with distortion the edge points are undistorted
+        before fitting.
+
+    Returns
+    -------
+    Segments
+        Through ``vp`` exactly, in undistorted COLMAP pixels; normals point to
+        the brighter side; strength is the mean |D|, grey levels/px.
+    """
+    options = options or SecondPassOptions()
+    H, W = np.asarray(image_gray).shape[:2]
+    T, _ = _normaliser(W, H)
+    return _second_pass(image_gray, np.asarray(vp, float), options, camera, T).segments
+
+
+# --------------------------------------------------------------------------
+# The stage
+# --------------------------------------------------------------------------
+
+
+def _refine_segments(
+    ends_n: np.ndarray, v: np.ndarray, inl: np.ndarray, thr_n: float, rounds: int
+):
+    """ML refinement on the inlier segments, re-selecting the inliers."""
+    S_all = _endpoint_scatter(ends_n)
+    cov = np.full((3, 3), np.inf)
+    for _ in range(max(rounds, 1)):
+        if inl.sum() < 3:
+            break
+        v, cov, _, _ = refine_vp(S_all[inl], v)
+        cost, _ = _pencil_fit(S_all, v)
+        new = np.sqrt(cost / 2.0) <= thr_n
+        if np.array_equal(new, inl):
+            break
+        inl = new
+    return v, cov, inl
+
+
+def estimate_vertical_vp(
+    segments: Segments,
+    image_size: tuple[int, int],
+    options: VanishingOptions | None = None,
+    camera: Camera | None = None,
+    prior: VPPrior | None = None,
+    rng: np.random.Generator | int | None = None,
+) -> VanishingResult:
+    """Vertical VP from segments (steps 2 and 3 of the module docstring).
+
+    Parameters
+    ----------
+    segments : Segments, undistorted COLMAP pixels of the full image.
+    image_size : (width, height) in pixels.
+    options, camera, prior : as :func:`detect_vertical_vp`.
+    rng : Generator, seed or None (then ``options.seed``).
+
+    Returns
+    -------
+    VanishingResult (without second-pass segments).
+    """
+    options = options or VanishingOptions()
+    prior = prior or VPPrior.none()
+    if prior.kind == "ins" and camera is None:
+        raise ValueError("the 'ins' prior needs intrinsics (a camera)")
+    rng = np.random.default_rng(options.seed if rng is None else rng)
+    W, H = image_size
+    T, s = _normaliser(W, H)
+    K = camera.K if camera is not None else None
+    Knom = (
+        K
+        if K is not None
+        else np.array([[max(W, H), 0, W / 2], [0, max(W, H), H / 2], [0, 0, 1.0]])
+    )
+    limit = options.lines.max_image_size_px
+    factor = max(1.0, max(W, H) / limit) if limit else 1.0
+    thr_px = options.inlier_threshold_px * factor
+    thr_n = thr_px / s
+    t0 = time.perf_counter()
+
+    use = segments.lengths >= options.min_length_px * factor
+    cand, half_range = _candidates(segments, prior, K, options)
+    use &= cand
+    idx = np.flatnonzero(use)
+    result = VanishingResult(
+        status="no_vp", segments=segments, inliers=np.zeros(len(segments), bool)
+    )
+    if len(idx) < options.min_inliers:
+        result.message = (
+            f"no vertical structure: {len(idx)} candidate segments "
+            f"(need {options.min_inliers})"
+        )
+        return result
+    ends_n = segments.endpoints[idx] @ T[:2, :2].T + T[:2, 2]  # (S, 2, 2)
+    mid_n = ends_n.mean(axis=1)
+    half_n = 0.5 * (ends_n[:, 1] - ends_n[:, 0])
+    lines_n = np.cross(
+        np.concatenate([ends_n[:, 0], np.ones((len(idx), 1))], 1),
+        np.concatenate([ends_n[:, 1], np.ones((len(idx), 1))], 1),
+    )
+    lines_n /= np.linalg.norm(lines_n, axis=1, keepdims=True)
+    length = segments.lengths[idx]
+    prior_ok = _PriorTest(prior, W, H, T, K)
+    weight = length**options.score_length_power
+    v, inl, n_hyp = _ransac(
+        lines_n, mid_n, half_n, weight, thr_n, prior_ok, options, rng
+    )
+    result.n_hypotheses = n_hyp
+    result.time_s["ransac"] = time.perf_counter() - t0
+    if v is None:
+        result.message = "no pair of segments meets where the prior allows a VP"
+        return result
+
+    t0 = time.perf_counter()
+    v, cov, inl = _refine_segments(ends_n, v, inl, thr_n, options.refine_rounds)
+    result.time_s["refine"] = time.perf_counter() - t0
+    if not prior_ok(v[None])[0]:
+        # The structure converges where the prior says the VP cannot be (e.g.
+        # nearly parallel verticals whose refinement crosses infinity to the
+        # other side): by the prior's definition there is no vertical VP.
+        vpx = _canonical_sign(np.linalg.inv(T) @ v)
+        result.message = (
+            "the vertical structure converges outside the prior's region "
+            f"(homogeneous VP {np.round(vpx / np.linalg.norm(vpx), 5).tolist()})"
+        )
+        return result
+    k = int(inl.sum())
+    p_chance = np.minimum(
+        1.0, np.arcsin(np.minimum(1.0, thr_px / (0.5 * length))) / half_range[idx]
+    )
+    sig = _significance(k, p_chance, len(idx) * (len(idx) - 1) / 2)
+
+    result.inliers[idx[inl]] = True
+    _set_vp(result, v, cov, T, K, Knom, prior)
+    result.significance = sig
+    _set_status(result, options)
+    return result
+
+
+def _set_vp(result, v_n, cov_n, T, K, Knom, prior) -> None:
+    """Store the VP (pixels, canonical sign), its covariance and direction.
+
+    ``Knom`` (intrinsics or a nominal camera) gives the direction's angular
+    uncertainty; None keeps the result's current one.
+    """
+    Tinv = np.linalg.inv(T)
+    v = Tinv @ v_n
+    nv = np.linalg.norm(v)
+    J = (np.eye(3) - np.outer(v, v) / nv**2) / nv @ Tinv
+    v = v / nv
+    cov = J @ cov_n @ J.T
+    flip = _canonical_sign(v)
+    result.vp = flip
+    result.covariance = cov
+    if Knom is not None:
+        result.direction_std_deg = _direction_std_deg(flip, cov, Knom)
+    if K is not None:
+        result.vertical_direction = vertical_direction(
+            flip, K, prior.down_cam if prior.kind == "ins" else None
+        )
+
+
+def _set_status(result: VanishingResult, options: VanishingOptions) -> None:
+    k, sig, std = result.n_inliers, result.significance, result.direction_std_deg
+    if k < options.min_inliers or sig <= 0:
+        result.status = "no_vp"
+        result.message = (
+            f"no vertical structure: best VP has {k} consistent segments, "
+            f"not more than chance (significance {sig:.1f})"
+        )
+        result.vp = result.covariance = result.vertical_direction = None
+        return
+    reasons = []
+    if k < options.ok_min_inliers:
+        reasons.append(f"{k} inlier segments < {options.ok_min_inliers}")
+    if sig < options.ok_min_significance:
+        reasons.append(f"significance {sig:.1f} < {options.ok_min_significance}")
+    if not std <= options.ok_max_std_deg:
+        reasons.append(f"direction std {std:.2f} deg > {options.ok_max_std_deg}")
+    result.status = "low_confidence" if reasons else "ok"
+    result.message = (
+        "; ".join(reasons)
+        if reasons
+        else (f"{k} inlier segments, direction std {std:.3f} deg")
+    )
+
+
+def detect_vertical_vp(
+    image_gray: np.ndarray,
+    options: VanishingOptions | None = None,
+    camera: Camera | None = None,
+    prior: VPPrior | None = None,
+    rng: np.random.Generator | int | None = None,
+) -> VanishingResult:
+    """The vertical vanishing point of one image, and the vertical segments.
+
+    A pure function of its arguments (safe to run in a process pool).
+
+    Parameters
+    ----------
+    image_gray : (H, W) uint8 array (or (H, W, 3) BGR).
+    options : VanishingOptions or None for the defaults.
+    camera : Camera or None
+        Intrinsics: with them the vertical direction is returned, the INS prior
+        is possible, and lens distortion is removed from the segments first.
+    prior : VPPrior or None (``VPPrior.none()``).
+    rng : numpy Generator, seed, or None (``options.seed``).
+
+    Returns
+    -------
+    VanishingResult
+        ``status`` "no_vp" (with a message) instead of an exception when the
+        image has no usable vertical structure.
+    """
+    options = options or VanishingOptions()
+    prior = prior or VPPrior.none()
+    img = as_gray_u8(image_gray)
+    H, W = img.shape
+    if camera is not None and (camera.width, camera.height) != (W, H):
+        raise ValueError(
+            f"camera is {camera.width}x{camera.height} but the image is {W}x{H}"
+        )
+    t_start = time.perf_counter()
+    t0 = time.perf_counter()
+    segs = detect_segments(img, options.lines).undistorted(camera)
+    t_lines = time.perf_counter() - t0
+    result = estimate_vertical_vp(segs, (W, H), options, camera, prior, rng)
+    result.time_s["lines"] = t_lines
+    if result.vp is not None and options.second_pass is not None:
+        t0 = time.perf_counter()
+        T, s_px = _normaliser(W, H)
+        sp = _second_pass(img, result.vp, options.second_pass, camera, T)
+        result.time_s["second_pass"] = time.perf_counter() - t0
+        if options.refine_with_second_pass and len(sp.scatter) >= 3:
+            t0 = time.perf_counter()
+            v_n = T @ result.vp
+            v_n = v_n / np.linalg.norm(v_n)
+            # Re-select the segments with each refined VP: a few long
+            # non-vertical edges that passed near the first-pass VP (streets
+            # receding towards the horizon) drop out as the VP improves.
+            max_cost = (options.second_pass.max_rms_px / s_px) ** 2
+            use = np.ones(len(sp.scatter), bool)
+            for _ in range(max(options.refine_rounds, 1)):
+                v_n, _, _, _ = refine_vp(sp.scatter[use], v_n)
+                cost, _ = _pencil_fit(sp.scatter, v_n)
+                new = cost / np.maximum(sp.scatter[:, 2, 2], 1) <= max_cost
+                if np.array_equal(new, use) or new.sum() < 3:
+                    break
+                use = new
+            sp = _SecondPass(sp.segments.subset(use), sp.scatter[use])
+            # The edge points of a chain are correlated (smoothing, optics), so
+            # their formal covariance is ~10x too optimistic; the first pass's
+            # (calibrated on independent segments) is kept as a conservative
+            # figure for the refined VP.
+            cov_px = result.covariance
+            _set_vp(
+                result,
+                v_n,
+                np.zeros((3, 3)),
+                T,
+                camera.K if camera is not None else None,
+                None,
+                prior,
+            )
+            result.covariance = cov_px
+            result.time_s["refine_second"] = time.perf_counter() - t0
+        result.vertical_segments = (
+            sp.through(result.vp, T) if result.vp is not None else Segments()
+        )
+    result.time_s["total"] = time.perf_counter() - t_start
+    logger.debug("%s: %s", result.status, result.message)
+    return result

@@ -1,0 +1,460 @@
+#!/usr/bin/env python
+"""Benchmarks of the vertical vanishing point stage (obliq_colmap.vanishing).
+
+Sections (``--sections``, comma separated):
+
+- ``yud``: YorkUrbanDB, known K: angular error of the vertical direction
+  against the ground truth (median, mean, AUC at 1/2/5 deg) on ``--split``.
+  Note: the GT ``vps_camera`` of yud_gt.json are in a y-up frame relative to
+  the images (the labelled segments converge at K (x, -y, z)); they are the
+  algebraic fit (smallest eigenvector of sum n n^T over the unit normals of
+  the labelled segments' interpretation planes), verified here to 0.00 deg
+  median. We also report the error against the maximum-likelihood VP of the
+  same labelled segments ("ML-GT").
+- ``peer``: lu-vp-detect (PyPI) on the same images, same machine (OpenCV 5
+  adapter: its LSD returns (N, 4) where the package expects (N, 1, 4)).
+- ``ecd``: Eurasian Cities, K unknown: mean angle between the labelled
+  vertical segments and the lines from their midpoints to the estimated VP
+  (parameter-free), with the dataset's own zenith as reference.
+- ``timing``: time per image, both passes, at 640x480, 2004x1336 and
+  4008x2672 (Rennes oblique aerial photos resampled), aerial prior.
+- ``synthetic``: a scene of ``obliq_colmap.synthetic`` (``--scene``): vertical
+  direction error with the TRUE intrinsics and with the priors' focal;
+  second-pass recall on visible building-corner edges longer than 20 px and
+  precision against all true vertical edges (within 1 px, overlap >= 80%).
+
+One thread everywhere (cv2.setNumThreads(1), BLAS via threadpoolctl).
+Example::
+
+    python scripts/bench_vanishing.py --sections yud,peer --split train
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import platform
+import sys
+import time
+from pathlib import Path
+
+import cv2
+import numpy as np
+from threadpoolctl import threadpool_limits
+
+from obliq_colmap.geometry import Camera
+from obliq_colmap.vanishing import (
+    VanishingOptions,
+    VPPrior,
+    detect_vertical_vp,
+    refine_vp,
+)
+
+DATA = Path("/work/shared/data")
+
+
+def angle_deg(a, b) -> float:
+    a = np.asarray(a, float) / np.linalg.norm(a)
+    b = np.asarray(b, float) / np.linalg.norm(b)
+    return float(np.degrees(np.arccos(min(1.0, abs(float(a @ b))))))
+
+
+def auc(errors, threshold_deg) -> float:
+    """Area under the recall-vs-error curve up to the threshold, normalised."""
+    e = np.sort(np.asarray(errors, float))
+    xs = np.linspace(0, threshold_deg, 2001)
+    ys = np.searchsorted(e, xs, side="right") / len(e)
+    return float(np.trapezoid(ys, xs) / threshold_deg)
+
+
+def summary(errors, times=None) -> dict:
+    e = np.asarray(errors, float)
+    out = {
+        "n": int(len(e)),
+        "median_deg": float(np.median(e)),
+        "mean_deg": float(e.mean()),
+        "p95_deg": float(np.percentile(e, 95)),
+        "auc1": auc(e, 1),
+        "auc2": auc(e, 2),
+        "auc5": auc(e, 5),
+    }
+    if times is not None:
+        out["time_ms_median"] = 1000 * float(np.median(times))
+    return out
+
+
+# --------------------------------------------------------------------------
+# YorkUrbanDB
+# --------------------------------------------------------------------------
+
+
+def yud_images(split: str):
+    root = DATA / "yorkurbandb"
+    gt = json.loads((root / "yud_gt.json").read_text())
+    K = np.array(gt["K"])
+    for im in gt["images"]:
+        if im["split"] != split:
+            continue
+        img = cv2.imread(
+            str(root / im["name"] / f"{im['name']}.jpg"), cv2.IMREAD_GRAYSCALE
+        )
+        # The GT frame has y up relative to the image (see the docstring).
+        g = np.array(im["vps_camera"][im["vertical_index"]]) * [1, -1, 1]
+        lines = np.array(im["lines"])
+        vert = lines[lines[:, 4] == im["vertical_index"] + 1, :4].reshape(-1, 2, 2)
+        yield im["name"], img, K, g, vert
+
+
+def ml_gt(vert_px, K, g):
+    """ML VP of the labelled vertical segments, as a direction (camera frame)."""
+    from obliq_colmap.lines import scatter_matrices
+    from obliq_colmap.vanishing import _normaliser
+
+    T, _ = _normaliser(640, 480)
+    en = vert_px @ T[:2, :2].T + T[:2, 2]
+    S = scatter_matrices(en.reshape(-1, 2), np.repeat(np.arange(len(en)), 2), len(en))
+    v0 = T @ (K @ g)
+    v, *_ = refine_vp(S, v0 / np.linalg.norm(v0))
+    d = np.linalg.solve(K, np.linalg.inv(T) @ v)
+    return d / np.linalg.norm(d)
+
+
+def bench_yud(split: str, options: VanishingOptions) -> dict:
+    errs, errs_ml, times, status = [], [], [], {}
+    for _, img, K, g, vert in yud_images(split):
+        # YUD's MATLAB pixels (1-based) to COLMAP's: subtract 0.5.
+        cam = Camera(
+            "PINHOLE", 640, 480, [K[0, 0], K[1, 1], K[0, 2] - 0.5, K[1, 2] - 0.5]
+        )
+        t = time.perf_counter()
+        r = detect_vertical_vp(img, options, camera=cam)
+        times.append(time.perf_counter() - t)
+        status[r.status] = status.get(r.status, 0) + 1
+        n = r.vertical_direction
+        errs.append(90.0 if n is None else angle_deg(n, g))
+        errs_ml.append(90.0 if n is None else angle_deg(n, ml_gt(vert, K, g)))
+    return {
+        "vs_gt": summary(errs, times),
+        "vs_ml_gt": summary(errs_ml),
+        "status": status,
+        "gt_self_check_ml_gt_vs_gt": summary(
+            [angle_deg(ml_gt(v, K, g), g) for _, _, K, g, v in yud_images(split)]
+        ),
+    }
+
+
+class _Cv2Lsd4to1:
+    """cv2 proxy whose LSD returns (N, 1, 4) as lu-vp-detect expects (OpenCV 5)."""
+
+    def __getattr__(self, name):
+        return getattr(cv2, name)
+
+    @staticmethod
+    def createLineSegmentDetector(*args):
+        lsd = cv2.createLineSegmentDetector(*args)
+
+        class Wrapped:
+            def detect(self, img):
+                out = list(lsd.detect(img))
+                out[0] = (
+                    np.zeros((0, 1, 4), np.float32)
+                    if out[0] is None
+                    else out[0].reshape(-1, 1, 4)
+                )
+                return tuple(out)
+
+        return Wrapped()
+
+
+def lu_vertical(img, f, pp):
+    """Vertical VP of lu-vp-detect as a pixel-homogeneous point, or None."""
+    import lu_vp_detect.vp_detection as lu
+
+    lu.cv2 = _Cv2Lsd4to1()
+    det = lu.VPDetection(length_thresh=30, principal_point=pp, focal_length=f, seed=0)
+    vps = det.find_vps(img)  # (3, 3) unit directions, vertical last
+    if vps is None or not np.all(np.isfinite(vps)):
+        return None
+    # Their frame: pixel = f (x, -y)/z + pp? Use their 2D VPs to stay neutral.
+    v2 = np.asarray(det.vps_2D, float)
+    K = np.array([[f, 0, pp[0]], [0, f, pp[1]], [0, 0, 1.0]])
+    dirs = np.linalg.solve(K, np.hstack([v2, np.ones((3, 1))]).T).T
+    dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)
+    k = int(np.argmax(np.abs(dirs[:, 1])))  # the most vertical of the three
+    return np.append(v2[k], 1.0)
+
+
+def bench_peer_yud(split: str) -> dict:
+    errs, times = [], []
+    for _, img, K, g, _ in yud_images(split):
+        t = time.perf_counter()
+        v = lu_vertical(img, K[0, 0], (K[0, 2], K[1, 2]))
+        times.append(time.perf_counter() - t)
+        errs.append(90.0 if v is None else angle_deg(np.linalg.solve(K, v), g))
+    return summary(errs, times)
+
+
+# --------------------------------------------------------------------------
+# Eurasian Cities
+# --------------------------------------------------------------------------
+
+
+def ecd_error(vp, segs) -> float:
+    """Mean angle (deg) between segments and the lines midpoint -> VP."""
+    vp = np.asarray(vp, float)
+    mid = segs.mean(axis=1)
+    d = segs[:, 1] - segs[:, 0]
+    u = vp[:2][None] - mid * vp[2]
+    cross = d[:, 0] * u[:, 1] - d[:, 1] * u[:, 0]
+    dot = np.sum(d * u, axis=1)
+    ang = np.degrees(np.abs(np.arctan2(cross, dot)))
+    return float(np.mean(np.minimum(ang, 180 - ang)))
+
+
+def bench_ecd(options: VanishingOptions, peer: bool) -> dict:
+    root = DATA / "eurasian_cities"
+    gt = json.loads((root / "ecd_gt.json").read_text())
+    ours, ref, lu_errs, times = [], [], [], []
+    status = {}
+    for im in gt["images"]:
+        img = cv2.imread(str(root / im["name"]), cv2.IMREAD_GRAYSCALE)
+        lines = np.array(im["lines"])
+        segs = lines[lines[:, 4] == 1, :4].reshape(-1, 2, 2) - 0.5  # MATLAB -> COLMAP
+        ref.append(ecd_error(np.append(np.array(im["zenith"]) - 0.5, 1.0), segs))
+        t = time.perf_counter()
+        r = detect_vertical_vp(img, options)  # K unknown, prior "none"
+        times.append(time.perf_counter() - t)
+        status[r.status] = status.get(r.status, 0) + 1
+        ours.append(90.0 if r.vp is None else ecd_error(r.vp, segs))
+        if peer:
+            h, w = img.shape
+            v = lu_vertical(img, 1.2 * max(w, h), (w / 2, h / 2))  # focal guessed
+            lu_errs.append(90.0 if v is None else ecd_error(v + [0.5, 0.5, 0], segs))
+    out = {
+        "ours": {
+            "n": len(ours),
+            "median_deg": float(np.median(ours)),
+            "mean_deg": float(np.mean(ours)),
+            "time_ms_median": 1000 * float(np.median(times)),
+            "status": status,
+        },
+        "dataset_zenith": {
+            "median_deg": float(np.median(ref)),
+            "mean_deg": float(np.mean(ref)),
+        },
+    }
+    if peer:
+        out["lu_vp_detect"] = {
+            "median_deg": float(np.median(lu_errs)),
+            "mean_deg": float(np.mean(lu_errs)),
+        }
+    return out
+
+
+# --------------------------------------------------------------------------
+# Timing
+# --------------------------------------------------------------------------
+
+
+def bench_timing(options: VanishingOptions, repeats: int = 3) -> dict:
+    files = sorted((DATA / "rennes_oblique_aerial" / "images").glob("*.jpg"))
+    out = {}
+    for size in [(640, 480), (2004, 1336), (4008, 2672)]:
+        per_image, parts = [], {}
+        for f in files:
+            img = cv2.imread(str(f), cv2.IMREAD_GRAYSCALE)
+            interp = cv2.INTER_AREA if size[0] < img.shape[1] else cv2.INTER_CUBIC
+            img = cv2.resize(img, size, interpolation=interp)
+            runs = []
+            for _ in range(repeats):
+                t = time.perf_counter()
+                r = detect_vertical_vp(img, options, prior=VPPrior.aerial())
+                runs.append(time.perf_counter() - t)
+                for k, v in r.time_s.items():
+                    parts.setdefault(k, []).append(v)
+            per_image.append(min(runs))
+            n_sp = 0 if r.vertical_segments is None else len(r.vertical_segments)
+            out.setdefault("status", {})[f"{f.name}@{size[0]}"] = (
+                f"{r.status}, {r.n_inliers} inliers, {n_sp} segments"
+            )
+        out[f"{size[0]}x{size[1]}"] = {
+            "time_s_median_of_best": float(np.median(per_image)),
+            "parts_s_median": {k: float(np.median(v)) for k, v in parts.items()},
+        }
+    return out
+
+
+# --------------------------------------------------------------------------
+# Synthetic scene
+# --------------------------------------------------------------------------
+
+
+def _on_line(true_seg, det, tol=1.0):
+    """(M, N) overlap lengths along true segments of detections within tol px."""
+    p0, p1 = true_seg[:, 0], true_seg[:, 1]
+    d = p1 - p0
+    L = np.linalg.norm(d, axis=1)
+    t = d / np.maximum(L, 1e-9)[:, None]
+    n = np.stack([-t[:, 1], t[:, 0]], axis=1)
+    q = det  # (N, 2, 2)
+    dist = np.abs(
+        np.einsum("nkd,md->mnk", q, n) - np.sum(p0 * n, axis=1)[:, None, None]
+    )
+    s = np.einsum("nkd,md->mnk", q, t) - np.sum(p0 * t, axis=1)[:, None, None]
+    lo = np.maximum(np.minimum(s[..., 0], s[..., 1]), 0)
+    hi = np.minimum(np.maximum(s[..., 0], s[..., 1]), L[:, None])
+    close = dist.max(axis=2) <= tol
+    return np.where(close, np.maximum(hi - lo, 0), 0.0), lo, hi, close
+
+
+def _union_coverage(lo, hi, close, L):
+    """Fraction of each true segment covered by the union of close detections."""
+    cov = np.zeros(len(L))
+    for m in range(len(L)):
+        idx = np.flatnonzero(close[m] & (hi[m] > lo[m]))
+        if len(idx) == 0:
+            continue
+        iv = sorted(zip(lo[m, idx], hi[m, idx], strict=True))
+        total, cur_lo, cur_hi = 0.0, *iv[0]
+        for a, b in iv[1:]:
+            if a > cur_hi:
+                total += cur_hi - cur_lo
+                cur_lo, cur_hi = a, b
+            else:
+                cur_hi = max(cur_hi, b)
+        cov[m] = (total + cur_hi - cur_lo) / max(L[m], 1e-9)
+    return cov
+
+
+def bench_synthetic(scene_path: str, options: VanishingOptions) -> dict:
+    from obliq_colmap.synthetic import load_scene, true_vertical_edges, true_vertical_vp
+
+    scene = load_scene(scene_path)
+    errs_true, errs_prior, recalls, precisions, times, n_sp, n_in = (
+        [],
+        [],
+        [],
+        [],
+        [],
+        [],
+        [],
+    )
+    prior_by_name = {im.name: im for im in scene.priors.images.values()}
+    for im in scene.gt.images.values():
+        name = im.name
+        cam_true = scene.gt.cameras[im.camera_id]
+        pim = prior_by_name[name]
+        cam_prior = scene.priors.cameras[pim.camera_id]
+        img = cv2.imread(str(scene.image_path(name)), cv2.IMREAD_GRAYSCALE)
+        vp_true = true_vertical_vp(scene, name)
+        n_true = np.linalg.solve(cam_true.K, vp_true)
+        t = time.perf_counter()
+        r = detect_vertical_vp(img, options, camera=cam_true, prior=VPPrior.aerial())
+        times.append(time.perf_counter() - t)
+        errs_true.append(
+            90.0
+            if r.vp is None
+            else angle_deg(np.linalg.solve(cam_true.K, r.vp), n_true)
+        )
+        if r.vp is not None:
+            # The same VP read with the priors' (slightly wrong) intrinsics.
+            errs_prior.append(angle_deg(np.linalg.solve(cam_prior.K, r.vp), n_true))
+        n_in.append(r.n_inliers)
+        edges = true_vertical_edges(scene, name)
+        segs = edges["segments_undistorted"]
+        kind = np.asarray(edges["kind"])
+        det = (
+            r.vertical_segments.endpoints
+            if r.vertical_segments is not None
+            else np.zeros((0, 2, 2))
+        )
+        n_sp.append(len(det))
+        L = np.linalg.norm(segs[:, 1] - segs[:, 0], axis=1)
+        target = (kind == "corner") & (L > 20)
+        if target.any() and len(det):
+            _, lo, hi, close = _on_line(segs[target], det)
+            recalls.append(
+                float(np.mean(_union_coverage(lo, hi, close, L[target]) >= 0.8))
+            )
+        elif target.any():
+            recalls.append(0.0)
+        if len(det) and len(segs):
+            # Precision: a detection counts when >= 80% of it lies within 1 px
+            # of true vertical edges (any kind).
+            _, lo, hi, close = _on_line(det, segs)
+            Ld = np.linalg.norm(det[:, 1] - det[:, 0], axis=1)
+            precisions.append(float(np.mean(_union_coverage(lo, hi, close, Ld) >= 0.8)))
+    e = np.asarray(errs_true)
+    return {
+        "n_images": len(e),
+        "direction_true_K": {
+            "median_deg": float(np.median(e)),
+            "p95_deg": float(np.percentile(e, 95)),
+            "max_deg": float(e.max()),
+        },
+        "direction_prior_K": {
+            "median_deg": float(np.median(errs_prior)),
+            "p95_deg": float(np.percentile(errs_prior, 95)),
+        },
+        "second_pass_recall_corners_gt20px": float(np.mean(recalls))
+        if recalls
+        else None,
+        "second_pass_precision": float(np.mean(precisions)) if precisions else None,
+        "first_pass_inliers_median": float(np.median(n_in)),
+        "second_pass_segments_median": float(np.median(n_sp)),
+        "time_s_median": float(np.median(times)),
+    }
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--sections", default="yud,peer,ecd,timing")
+    parser.add_argument("--split", default="train", choices=["train", "test"])
+    parser.add_argument("--scene", default=None, help="synthetic scene folder")
+    parser.add_argument("--output", default=None, help="write the figures as JSON")
+    args = parser.parse_args(argv)
+    cv2.setNumThreads(1)
+    options = VanishingOptions()
+    sections = args.sections.split(",")
+    results = {
+        "machine": platform.processor() or platform.machine(),
+        "date": time.strftime("%Y-%m-%d %H:%M"),
+        "split": args.split,
+    }
+    with threadpool_limits(1):
+        if "yud" in sections:
+            results["yud"] = bench_yud(args.split, options)
+            print("YUD", args.split, json.dumps(results["yud"], indent=1), flush=True)
+        if "peer" in sections:
+            results["yud_lu_vp_detect"] = bench_peer_yud(args.split)
+            print(
+                "lu-vp-detect",
+                json.dumps(results["yud_lu_vp_detect"], indent=1),
+                flush=True,
+            )
+            if "yud" in results:
+                a, b = results["yud"]["vs_gt"], results["yud_lu_vp_detect"]
+                results["yud_ratio_ours_over_lu"] = {
+                    "median_error": a["median_deg"] / b["median_deg"],
+                    "mean_error": a["mean_deg"] / b["mean_deg"],
+                    "time": a["time_ms_median"] / b["time_ms_median"],
+                }
+                print("ratios", results["yud_ratio_ours_over_lu"], flush=True)
+        if "ecd" in sections:
+            results["ecd"] = bench_ecd(options, peer="peer" in sections)
+            print("ECD", json.dumps(results["ecd"], indent=1), flush=True)
+        if "timing" in sections:
+            results["timing"] = bench_timing(options)
+            print("timing", json.dumps(results["timing"], indent=1), flush=True)
+        if "synthetic" in sections:
+            if not args.scene:
+                parser.error("the synthetic section needs --scene")
+            results["synthetic"] = bench_synthetic(args.scene, options)
+            print("synthetic", json.dumps(results["synthetic"], indent=1), flush=True)
+    if args.output:
+        Path(args.output).write_text(json.dumps(results, indent=1))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,437 @@
+"""Vertical vanishing point: RANSAC + ML on synthetic segments and images, CLI."""
+
+import json
+
+import cv2
+import numpy as np
+import pytest
+
+from obliq_colmap.cli import main
+from obliq_colmap.geometry import Camera, rotation_from_axis_angle
+from obliq_colmap.lines import Segments
+from obliq_colmap.vanishing import (
+    SecondPassOptions,
+    VanishingOptions,
+    VPPrior,
+    detect_vertical_vp,
+    estimate_vertical_vp,
+    refine_vp,
+    vertical_direction,
+    vertical_segments,
+)
+
+W, H = 640, 480
+F = 600.0
+CAMERA = Camera("SIMPLE_PINHOLE", W, H, [F, W / 2, H / 2])
+
+
+def angle_deg(a, b):
+    """Angle between two homogeneous points/directions, sign-free (deg)."""
+    a = np.asarray(a, float) / np.linalg.norm(a)
+    b = np.asarray(b, float) / np.linalg.norm(b)
+    return float(np.degrees(np.arccos(min(1.0, abs(a @ b)))))
+
+
+def direction_error_deg(vp_est, vp_true, K=CAMERA.K):
+    return angle_deg(np.linalg.solve(K, vp_est), np.linalg.solve(K, vp_true))
+
+
+def point_on_line_at_y(vp, q, y):
+    """x of the line through homogeneous vp and pixel q at height y."""
+    ux, uy = vp[0] - q[0] * vp[2], vp[1] - q[1] * vp[2]
+    return q[0] + (y - q[1]) * ux / uy
+
+
+def render(vp, rng, n_bands=10, noise=2.0, clutter=12, size=(W, H), ss=4):
+    """Bands whose long edges meet at ``vp``, horizontal clutter, noise.
+
+    Drawn at ``ss`` times the resolution and area-averaged, so the edges are
+    exact in COLMAP pixels; then blurred (optics) and noised (sensor).
+    """
+    w, h = size
+    hi = np.full((h * ss, w * ss), 90, np.uint8)
+    xs = np.sort(rng.uniform(0.05 * w, 0.95 * w, 2 * n_bands)).reshape(-1, 2)
+    for xa, xb in xs:
+        if xb - xa < 6:
+            continue
+        y0, y1 = sorted(rng.uniform(0.05 * h, 0.95 * h, 2))
+        if y1 - y0 < 0.25 * h:
+            y1 = min(0.95 * h, y0 + 0.3 * h)
+        qa, qb = (xa, h / 2), (xb, h / 2)
+        poly = [
+            (point_on_line_at_y(vp, qa, y0), y0),
+            (point_on_line_at_y(vp, qb, y0), y0),
+            (point_on_line_at_y(vp, qb, y1), y1),
+            (point_on_line_at_y(vp, qa, y1), y1),
+        ]
+        pts = np.round((np.array(poly) * ss - 0.5) * 16).astype(np.int32)
+        cv2.fillPoly(hi, [pts], int(rng.integers(150, 230)), shift=4)
+    for _ in range(clutter):  # horizontal-ish clutter, not through vp
+        x0, x1 = sorted(rng.uniform(0, w, 2))
+        y = rng.uniform(0, h)
+        dy = rng.uniform(-0.1, 0.1) * (x1 - x0)
+        p = (np.array([[x0, y], [x1, y + dy]]) * ss).astype(int)
+        cv2.line(hi, tuple(p[0]), tuple(p[1]), int(rng.integers(0, 60)), 3 * ss)
+    img = cv2.resize(hi, (w, h), interpolation=cv2.INTER_AREA).astype(float)
+    img = cv2.GaussianBlur(img, (0, 0), 0.7) + rng.normal(0, noise, (h, w))
+    return np.clip(img, 0, 255).astype(np.uint8)
+
+
+# --------------------------------------------------------------------------
+# From segments: ML accuracy against the injected endpoint noise
+# --------------------------------------------------------------------------
+
+
+def noisy_segments(vp, rng, n_in=40, n_out=25, sigma=0.25):
+    """Segments through vp with endpoint noise sigma (px), plus outliers."""
+    ends = []
+    for _ in range(n_in):
+        q = np.array([rng.uniform(20, W - 20), rng.uniform(100, H - 100)])
+        y0, y1 = q[1] - rng.uniform(30, 90), q[1] + rng.uniform(30, 90)
+        e = np.array(
+            [[point_on_line_at_y(vp, q, y0), y0], [point_on_line_at_y(vp, q, y1), y1]]
+        )
+        ends.append(e + rng.normal(0, sigma, (2, 2)))
+    for _ in range(n_out):
+        c = rng.uniform([20, 20], [W - 20, H - 20])
+        a = rng.uniform(-np.pi / 3, np.pi / 3)  # near-vertical outliers too
+        d = np.array([np.sin(a), np.cos(a)]) * rng.uniform(20, 80)
+        ends.append(np.array([c - d, c + d]))
+    ends = np.array(ends)
+    return Segments(ends, np.tile([1.0, 0.0], (len(ends), 1)), np.ones(len(ends)))
+
+
+@pytest.mark.parametrize(
+    "vp",
+    [
+        np.array([350.0, 3000.0, 1.0]),  # below
+        np.array([250.0, -2500.0, 1.0]),  # above
+        np.array([0.05, 1.0, 0.0]),  # at infinity
+    ],
+    ids=["below", "above", "infinity"],
+)
+def test_ml_accuracy_matches_injected_noise(vp):
+    rng = np.random.default_rng(3)
+    sigma = 0.25  # endpoint noise (px): the 1 px inlier threshold is 4 sigma
+    errors, stds = [], []
+    for trial in range(8):
+        segs = noisy_segments(vp, rng, sigma=sigma)
+        res = estimate_vertical_vp(segs, (W, H), VanishingOptions(seed=trial), CAMERA)
+        assert res.status == "ok", res.message
+        # The outliers are recognised (a few near-vertical ones may pass by
+        # chance within the threshold), the true segments all kept.
+        assert res.inliers[:40].all()
+        assert res.inliers[40:].sum() <= 3
+        errors.append(direction_error_deg(res.vp, vp))
+        stds.append(res.direction_std_deg)
+    errors, stds = np.array(errors), np.array(stds)
+    # The predicted 1-sigma is right within a factor ~2 (two-sided: a too
+    # small error would mean the test does not test) ...
+    rms = np.sqrt(np.mean(errors**2))
+    assert 0.4 * np.median(stds) < rms < 2.5 * np.median(stds)
+    # ... and every error within 4 predicted sigmas.
+    assert np.all(errors < 4 * stds)
+
+
+def test_refine_vp_exact_without_noise():
+    vp = np.array([0.3, 2.0, 0.5])
+    vp /= np.linalg.norm(vp)
+    rng = np.random.default_rng(0)
+    pts = []
+    for _ in range(6):
+        q = rng.uniform(-1, 1, 2)
+        # Points on the line through q and vp (normalised coordinates).
+        d = vp[:2] - q * vp[2]
+        pts.append([q + t * d / np.linalg.norm(d) for t in (-0.3, 0.1, 0.4)])
+    pts = np.array(pts)  # (6, 3, 2)
+    from obliq_colmap.lines import scatter_matrices
+
+    S = scatter_matrices(pts.reshape(-1, 2), np.repeat(np.arange(6), 3), 6)
+    v, cov, cost, dof = refine_vp(S, vp + [0.05, -0.03, 0.02])
+    assert angle_deg(v, vp) < 1e-6
+    assert cost < 1e-14
+    assert dof == 18 - 6 - 2
+
+
+def test_deterministic_for_a_seed():
+    rng = np.random.default_rng(5)
+    segs = noisy_segments(np.array([350.0, 3000.0, 1.0]), rng)
+    a = estimate_vertical_vp(segs, (W, H), rng=np.random.default_rng(7))
+    b = estimate_vertical_vp(segs, (W, H), rng=np.random.default_rng(7))
+    np.testing.assert_array_equal(a.vp, b.vp)
+    np.testing.assert_array_equal(a.inliers, b.inliers)
+
+
+# --------------------------------------------------------------------------
+# From images
+# --------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize(
+    "vp, prior",
+    [
+        (np.array([380.0, 2600.0, 1.0]), VPPrior.none()),
+        (np.array([380.0, 2600.0, 1.0]), VPPrior.aerial()),
+        (np.array([260.0, -1800.0, 1.0]), VPPrior.none()),  # above the image
+        (np.array([0.03, 1.0, 0.0]), VPPrior.none()),  # at infinity
+    ],
+    ids=["below-none", "below-aerial", "above-none", "infinity-none"],
+)
+def test_image_vp(vp, prior):
+    rng = np.random.default_rng(11)
+    img = render(vp, rng, noise=2.0)
+    res = detect_vertical_vp(img, camera=CAMERA, prior=prior)
+    assert res.status == "ok", res.message
+    err = direction_error_deg(res.vp, vp)
+    # ~10 bands with 100-400 px edges, 2 grey levels of noise on 60-140 grey
+    # steps: edge points good to a few 0.01 px (the 1/4 px rendering grid
+    # dominates); the first-pass covariance is calibrated (checked on segments
+    # above) and bounds the refined VP's error.
+    assert err < 4 * res.direction_std_deg, (err, res.direction_std_deg)
+    assert err < 0.1, err
+    # n points down the world: n_y > 0 without a prior.
+    assert res.vertical_direction[1] > 0
+    assert angle_deg(res.vertical_direction, np.linalg.solve(CAMERA.K, vp)) == (
+        pytest.approx(err, abs=1e-9)
+    )
+    # Second pass: exactly through the VP, more and longer than pass one.
+    sp = res.vertical_segments
+    first = res.segments.subset(res.inliers)
+    assert len(sp) >= 10
+    assert np.sum(sp.lengths) >= np.sum(first.lengths)
+    assert np.median(sp.lengths) > np.median(first.lengths)
+    lines = sp.lines()
+    assert np.abs(lines @ res.vp).max() < 1e-6 * np.linalg.norm(res.vp)
+
+
+def test_aerial_prior_rejects_vp_above():
+    """The paper's prior cannot return a VP above the image."""
+    rng = np.random.default_rng(12)
+    img = render(np.array([260.0, -1800.0, 1.0]), rng)
+    res = detect_vertical_vp(img, camera=CAMERA, prior=VPPrior.aerial())
+    assert res.vp is None or res.vp_pixel is None or res.vp_pixel[1] >= 2 * H
+
+
+def test_ins_prior_near_nadir_vp_inside_frame_and_orientation():
+    # Camera looking almost straight down: the vertical VP is inside the image.
+    R = rotation_from_axis_angle([np.radians(175.0), 0.0, 0.0])  # cam_from_world
+    down_cam = R @ np.array([0.0, 0.0, -1.0])
+    vp = CAMERA.K @ down_cam
+    assert 0 < vp[0] / vp[2] < W and 0 < vp[1] / vp[2] < H
+    rng = np.random.default_rng(13)
+    # Radial bands around the VP: render in a frame where it is "below".
+    img = render_radial(vp[:2] / vp[2], rng)
+    noisy_R = rotation_from_axis_angle([np.radians(176.5), np.radians(1.0), 0.0])
+    prior = VPPrior.from_rotation(noisy_R, cone_deg=5.0)
+    res = detect_vertical_vp(img, camera=CAMERA, prior=prior)
+    assert res.status == "ok", res.message
+    assert direction_error_deg(res.vp, vp) < 0.1
+    # Oriented down the world with the prior: n . R (0, 0, -1) > 0.
+    assert res.vertical_direction @ (noisy_R @ [0, 0, -1.0]) > 0
+    assert angle_deg(res.vertical_direction, down_cam) < 0.1
+    with pytest.raises(ValueError, match="intrinsics"):
+        detect_vertical_vp(img, prior=prior)
+
+
+def render_radial(center, rng, n=14, ss=4):
+    """Wedges radiating from an image point (a near-nadir view of corners)."""
+    hi = np.full((H * ss, W * ss), 80, np.uint8)
+    angles = np.sort(rng.uniform(0, 2 * np.pi, 2 * n)).reshape(-1, 2)
+    for a0, a1 in angles:
+        if a1 - a0 < 0.05 or a1 - a0 > 0.6:
+            a1 = a0 + 0.3
+        r0, r1 = rng.uniform(40, 90), rng.uniform(200, 320)
+        poly = [
+            center + r * np.array([np.cos(a), np.sin(a)])
+            for a, r in ((a0, r0), (a0, r1), (a1, r1), (a1, r0))
+        ]
+        pts = np.round((np.array(poly) * ss - 0.5) * 16).astype(np.int32)
+        cv2.fillPoly(hi, [pts], int(rng.integers(150, 230)), shift=4)
+    img = cv2.resize(hi, (W, H), interpolation=cv2.INTER_AREA).astype(float)
+    img = cv2.GaussianBlur(img, (0, 0), 0.7) + rng.normal(0, 2.0, (H, W))
+    return np.clip(img, 0, 255).astype(np.uint8)
+
+
+def test_distorted_camera_segments_are_undistorted_first():
+    cam = Camera("SIMPLE_RADIAL", W, H, [F, W / 2, H / 2, -0.06])
+    vp = np.array([380.0, 2600.0, 1.0])
+    rng = np.random.default_rng(14)
+    img = render(vp, rng, noise=1.0)
+    # Distort the rendered (pinhole) image: sample it at undistorted positions.
+    yy, xx = np.mgrid[0:H, 0:W].astype(np.float32) + 0.5
+    und = cam.undistort_pixels(np.stack([xx.ravel(), yy.ravel()], 1))
+    map_xy = (und - 0.5).astype(np.float32).reshape(H, W, 2)
+    distorted = cv2.remap(img, map_xy, None, cv2.INTER_LINEAR)
+    plain = detect_vertical_vp(
+        distorted, camera=Camera("SIMPLE_PINHOLE", W, H, [F, W / 2, H / 2])
+    )
+    fixed = detect_vertical_vp(distorted, camera=cam)
+    assert fixed.status == "ok"
+    e_fixed = direction_error_deg(fixed.vp, vp)
+    assert e_fixed < 0.1
+    assert e_fixed < direction_error_deg(plain.vp, vp)
+
+
+@pytest.mark.parametrize("kind", ["noise", "blurred_noise", "ramp", "flat", "waves"])
+def test_no_structure_gives_no_vp(kind):
+    rng = np.random.default_rng(21)
+    if kind == "noise":
+        img = rng.integers(0, 256, (H, W)).astype(np.uint8)
+    elif kind == "blurred_noise":  # grass/foliage-like texture
+        img = cv2.GaussianBlur(rng.normal(128, 60, (H, W)), (0, 0), 1.5)
+        img = np.clip(img, 0, 255).astype(np.uint8)
+    elif kind == "ramp":  # sky
+        img = np.tile(np.linspace(40, 220, H)[:, None], (1, W)).astype(np.uint8)
+    elif kind == "flat":
+        img = np.full((H, W), 100, np.uint8)
+    else:  # water: random short wave crests
+        img = np.full((H, W), 100, np.uint8)
+        for _ in range(400):
+            c = rng.uniform([0, 0], [W, H])
+            a = rng.uniform(0, np.pi)
+            d = 8 * np.array([np.cos(a), np.sin(a)])
+            cv2.line(
+                img, tuple((c - d).astype(int)), tuple((c + d).astype(int)), 160, 2
+            )
+        img = np.clip(img + rng.normal(0, 3, (H, W)), 0, 255).astype(np.uint8)
+    res = detect_vertical_vp(img, camera=CAMERA)
+    assert res.status == "no_vp", (res.status, res.message)
+    assert res.vp is None and res.vertical_direction is None
+    assert res.message
+    assert not res
+
+
+def test_vertical_segments_public_function():
+    vp = np.array([380.0, 2600.0, 1.0])
+    img = render(vp, np.random.default_rng(15))
+    segs = vertical_segments(img, vp, SecondPassOptions())
+    assert len(segs) >= 10
+    assert np.abs(segs.lines() @ (vp / np.linalg.norm(vp))).max() < 1e-6
+    # Normals point to the brighter side (bands are brighter than background).
+    mid = segs.midpoints
+    probe_in = mid + 2.0 * segs.normal
+    probe_out = mid - 2.0 * segs.normal
+
+    def at(p):
+        return img[p[:, 1].astype(int), p[:, 0].astype(int)].astype(float)
+
+    assert np.mean(at(probe_in) > at(probe_out)) > 0.9
+
+
+def test_vertical_direction_orientation():
+    K = CAMERA.K
+    vp = np.array([300.0, -2000.0, 1.0])  # above: camera pitched up
+    n = vertical_direction(vp, K)
+    assert n[1] > 0
+    n2 = vertical_direction(vp, K, down_cam=-n)
+    np.testing.assert_allclose(n2, -n)
+
+
+def test_prior_validation():
+    with pytest.raises(ValueError, match="allowed"):
+        VPPrior(kind="sky")
+    with pytest.raises(ValueError, match="down_cam"):
+        VPPrior(kind="ins")
+
+
+# --------------------------------------------------------------------------
+# Command line
+# --------------------------------------------------------------------------
+
+
+def test_cli_writes_json(tmp_path):
+    images = tmp_path / "images"
+    images.mkdir()
+    vp = np.array([380.0, 2600.0, 1.0])
+    cv2.imwrite(str(images / "a.png"), render(vp, np.random.default_rng(1)))
+    cv2.imwrite(str(images / "sky.png"), np.full((H, W), 200, np.uint8))
+    out = tmp_path / "vps.json"
+    overlay = tmp_path / "overlay"
+    rc = main(
+        [
+            "vanishing",
+            "--image_path",
+            str(images),
+            "--output_path",
+            str(out),
+            "--camera_params",
+            f"{F},{W / 2},{H / 2}",
+            "--vp_prior",
+            "aerial",
+            "--overlay_path",
+            str(overlay),
+        ]
+    )
+    assert rc == 0
+    data = json.loads(out.read_text())
+    a = data["images"]["a.png"]
+    assert set(a) == {
+        "vp",
+        "vertical_direction",
+        "n_inliers",
+        "n_segments",
+        "time_s",
+        "status",
+        "message",
+    }
+    assert a["status"] == "ok"
+    assert direction_error_deg(np.array(a["vp"]), vp) < 0.2
+    assert a["vertical_direction"][1] > 0 and a["n_inliers"] > 5
+    assert a["n_segments"] > 5 and a["time_s"] > 0
+    sky = data["images"]["sky.png"]
+    assert sky["status"] == "no_vp" and sky["vp"] is None and sky["message"]
+    assert (overlay / "a.png").is_file()
+
+
+def test_cli_without_intrinsics_has_no_direction(tmp_path):
+    images = tmp_path / "images"
+    images.mkdir()
+    cv2.imwrite(
+        str(images / "a.png"),
+        render(np.array([380.0, 2600.0, 1.0]), np.random.default_rng(2)),
+    )
+    out = tmp_path / "vps.json"
+    assert (
+        main(["vanishing", "--image_path", str(images), "--output_path", str(out)]) == 0
+    )
+    a = json.loads(out.read_text())["images"]["a.png"]
+    assert a["vertical_direction"] is None and a["vp"] is not None
+
+
+def test_cli_bad_input(tmp_path, capsys):
+    rc = main(
+        [
+            "vanishing",
+            "--image_path",
+            str(tmp_path / "missing"),
+            "--output_path",
+            str(tmp_path / "v.json"),
+        ]
+    )
+    assert rc == 2
+    assert "image folder does not exist" in capsys.readouterr().err
+    (tmp_path / "empty").mkdir()
+    rc = main(
+        [
+            "vanishing",
+            "--image_path",
+            str(tmp_path / "empty"),
+            "--output_path",
+            str(tmp_path / "v.json"),
+        ]
+    )
+    assert rc == 2
+    assert "no images" in capsys.readouterr().err
+    rc = main(
+        [
+            "vanishing",
+            "--image_path",
+            str(tmp_path / "empty"),
+            "--output_path",
+            str(tmp_path / "v.json"),
+            "--vp_prior",
+            "ins",
+        ]
+    )
+    assert rc == 2
+    assert not (tmp_path / "v.json").exists()
