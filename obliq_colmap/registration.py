@@ -1,0 +1,1779 @@
+"""Initial registration of one oblique image to the cadastral map (stage 2).
+
+Habbecke & Kobbelt, section 2.2: with the vertical vanishing point known, the
+pose has four unknowns, ``T(alpha, c) = R_vanish R_z(alpha) (I | -c)`` (eq. 1),
+found from correspondences between map corners and vertical image segments.
+Here the camera height is held at the prior (DESIGN.md, "height gauge"): a
+vertical-line constraint cannot see it, so three unknowns (alpha, c_x, c_y)
+remain and a sample of three pairs determines them in closed form
+(:mod:`obliq_colmap.ransac`).
+
+Steps of :func:`register_image`:
+
+1. Frame. ``R_vanish`` is the prior rotation, minimally rotated so that its
+   vertical agrees with the detected one (or the prior's own vertical when the
+   VP detection failed); ``alpha`` is the heading correction from the prior.
+   Segment endpoints are undistorted; each segment's line is taken through
+   the VP and its endpoint nearer the nadir is its bottom.
+2. Ground height and coarse offset. The priors' heights are in an unknown
+   datum, so the ground height is estimated first: for every (corner,
+   segment) pair within the search radius across the corner's projected
+   vertical, the height of the segment's bottom on the corner's vertical is
+   computed with the prior pose; a 2-D vote over (offset across the vertical,
+   height) peaks at the ground height and the mean image offset.
+3. Coarse pose (Hough). The pairs consistent with that peak vote over a grid
+   of (alpha, c_x, c_y): for each alpha every pair's constraint is a straight
+   line in the (c_x, c_y) plane, rasterised into the accumulator. The peak
+   leaves a few pixels of error, so RANSAC runs in a small radius.
+4. RANSAC. Candidates: pairs within ``ransac_radius_px`` across and
+   ``candidate_height_tolerance_m`` of the ground. Samples of three pairs
+   (distinct corners and segments), hypotheses from the closed-form solver in
+   batches; for each, the linear height function through the samples'
+   bottom heights (paper, Fig. 3b) and the elliptical Mahalanobis test of
+   every candidate: across the segment ``inlier_threshold_px``, along it
+   ``along_segment_stretch`` times more, measured from the segment's bottom
+   to the corner projected at the height function. Score: the number of
+   distinct inlier corners. Adaptive number of trials for ``confidence``.
+5. Refinement. Levenberg-Marquardt (scipy, robust Huber loss) over (alpha,
+   c_x, c_y) of the height-free geometric residual: the distances of both
+   endpoints of each inlier segment to the image of its corner's vertical
+   (eq. 2 without the heights; this avoids the collapse towards the VP of the
+   plain point-to-line distance). Whole buildings whose median residual stays
+   above the threshold are dropped (a building shifted in the map must not
+   pull the pose), then all pairs are re-scored with the refined pose and
+   height plane, and refined once more.
+
+A failure (too few segments or candidates, no consensus, degenerate geometry)
+is returned as a result with ``success=False`` and a message, never raised.
+
+References
+----------
+M. Habbecke, L. Kobbelt, "Automatic registration of oblique aerial images with
+cadastral maps", ECCV workshops 2010, section 2.2.
+R. O. Duda, P. E. Hart, "Use of the Hough transformation to detect lines and
+curves in pictures", CACM 15(1), 1972.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from obliq_colmap import ransac
+from obliq_colmap.geometry import Camera, Pose, rotation_aligning, rotation_z
+
+logger = logging.getLogger(__name__)
+
+_EZ = np.array([0.0, 0.0, 1.0])
+
+
+# --------------------------------------------------------------------------
+# Options and result
+# --------------------------------------------------------------------------
+
+
+@dataclass(kw_only=True)
+class RegistrationOptions:
+    """Options of :func:`register_image` (units in the names or comments).
+
+    Attributes
+    ----------
+    prior_position_sigma_m : float
+        1-sigma error of the prior camera centre per horizontal axis (m).
+    prior_rotation_sigma_deg : float
+        1-sigma error of the prior heading (deg); the tilt comes from the VP.
+    prior_focal_sigma : float
+        Relative 1-sigma error of the rough focal length. A focal error is
+        absorbed by moving the camera along its view, by this fraction of the
+        viewing distance, so it widens the search for the centre.
+    search_sigmas : float
+        The coarse search covers this many sigmas of the prior errors.
+    search_radius_px : float or None
+        Radius (px) across the projected vertical within which a segment
+        is a candidate for a corner in the coarse steps; None derives it
+        from the prior sigmas (``search_sigmas``), the focal length and the
+        viewing distance.
+    ground_height : float or None
+        Ground height under the image (m, local frame, the priors' vertical
+        datum); None estimates it (step 2).
+    altitude_range_m : (float, float)
+        Camera heights above the ground (m) considered by the ground-height
+        search.
+    height_range_m : (float, float)
+        Heights above the ground (m) spanned by the vertical building edges,
+        for the visibility of corners (:func:`cadastre.visible_corners`).
+    min_segment_length_px : float
+        Shorter segments are ignored (px).
+    vp_tolerance_deg : float
+        A segment is used when its direction is within this angle of the line
+        from its midpoint to the VP (matters when the VP comes from the prior
+        rotation; the vanishing stage's segments pass through the VP).
+    coarse_cells_px : (float, float, float)
+        Cells of the coarse pose vote (step 2) along alpha, the lateral and
+        the forward axis of the centre, in pixels of image motion at the
+        median viewing distance. Alpha and forward are coarse on purpose (see
+        :func:`_hough`).
+    coarse_height_step_m : float
+        Height cell of the coarse vote (m).
+    hough_cell_px : float
+        Cell size of the fine pose vote (step 3), pixels.
+    hough_max_cells : int
+        Upper bound on the number of accumulator cells; the cells grow when
+        the search range would need more.
+    candidate_height_tolerance_m : float
+        RANSAC candidates: a segment's bottom within this height (m) of the
+        ground estimate on the corner's vertical.
+    ransac_radius_px : float
+        RANSAC candidates: segments within this distance (px) across the
+        projected vertical of the coarse pose.
+    inlier_threshold_px : float
+        Mahalanobis inlier threshold, in pixels across the segment.
+    along_segment_stretch : float
+        The inlier ellipse is this many times longer along the segment than
+        across it (the segment's bottom vs the corner on the height function).
+    confidence : float
+        RANSAC stops when one all-inlier sample was drawn with this
+        probability (adaptive trial count).
+    min_trials, max_trials : int
+        Bounds on the number of RANSAC samples.
+    num_candidates_verified : int
+        Strongest peaks of the coarse vote that are each tried with a fine
+        vote and a short RANSAC (``verify_trials`` samples); the one with the
+        most inlier corners is kept.
+    verify_trials : int
+        RANSAC samples per candidate ground height.
+    batch_size : int
+        Hypotheses evaluated at once.
+    min_inliers : int
+        Fewer inlier corners is a failure ("no consensus").
+    min_segments : int
+        Fewer usable segments is a failure.
+    height_sigma_m : float
+        Expected error of one bottom height (m), for the height plane.
+    slope_sigma : float
+        Prior on the terrain slope (rise / run) of the height plane; with
+        ``height_sigma_m`` it damps the plane through nearly collinear samples.
+    refine_max_iterations : int
+        Levenberg-Marquardt iterations per refinement.
+    refine_rounds : int
+        Refine / re-score rounds.
+    building_outlier_factor : float
+        After refinement, a building whose median residual exceeds this times
+        ``inlier_threshold_px`` loses all its pairs.
+    refine_vertical : str
+        "auto" (refine the vertical direction too when it comes from the
+        prior rotation), "always" or "never".
+    seed : int
+        Seed of the random generator; the result is a deterministic function
+        of the inputs and the seed.
+    """
+
+    prior_position_sigma_m: float = 8.0
+    prior_rotation_sigma_deg: float = 1.5
+    prior_focal_sigma: float = 0.015
+    search_sigmas: float = 3.5
+    search_radius_px: float | None = None
+    ground_height: float | None = None
+    altitude_range_m: tuple[float, float] = (20.0, 2000.0)
+    height_range_m: tuple[float, float] = (0.0, 60.0)
+    min_segment_length_px: float = 8.0
+    vp_tolerance_deg: float = 3.0
+    coarse_cells_px: tuple[float, float, float] = (16.0, 8.0, 8.0)
+    coarse_height_step_m: float = 4.0
+    hough_cell_px: float = 4.0
+    hough_max_cells: int = 4_000_000
+    candidate_height_tolerance_m: float = 12.0
+    ransac_radius_px: float = 16.0
+    inlier_threshold_px: float = 2.0
+    along_segment_stretch: float = 5.0
+    confidence: float = 0.99
+    min_trials: int = 200
+    max_trials: int = 20_000
+    verify_trials: int = 768
+    num_candidates_verified: int = 8
+    batch_size: int = 256
+    min_inliers: int = 6
+    min_segments: int = 6
+    height_sigma_m: float = 0.5
+    slope_sigma: float = 0.05
+    refine_max_iterations: int = 50
+    refine_rounds: int = 2
+    building_outlier_factor: float = 1.5
+    refine_vertical: str = "auto"
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        positive = (
+            "prior_position_sigma_m",
+            "prior_rotation_sigma_deg",
+            "search_sigmas",
+            "min_segment_length_px",
+            "vp_tolerance_deg",
+            "hough_cell_px",
+            "coarse_height_step_m",
+            "candidate_height_tolerance_m",
+            "ransac_radius_px",
+            "inlier_threshold_px",
+            "along_segment_stretch",
+            "height_sigma_m",
+            "slope_sigma",
+            "building_outlier_factor",
+        )
+        for name in positive:
+            value = getattr(self, name)
+            if not (
+                isinstance(value, (int, float)) and math.isfinite(value) and value > 0
+            ):
+                raise ValueError(
+                    f"RegistrationOptions.{name} must be > 0, got {value!r}"
+                )
+        if not self.prior_focal_sigma >= 0:
+            raise ValueError("RegistrationOptions.prior_focal_sigma must be >= 0")
+        if self.search_radius_px is not None and not self.search_radius_px > 0:
+            raise ValueError("RegistrationOptions.search_radius_px must be > 0 or None")
+        if not 0.0 < self.confidence < 1.0:
+            raise ValueError(f"confidence must be in (0, 1), got {self.confidence!r}")
+        if not 1 <= self.min_trials <= self.max_trials:
+            raise ValueError("need 1 <= min_trials <= max_trials")
+        lo, hi = self.altitude_range_m
+        if not 0 < lo < hi:
+            raise ValueError(
+                f"altitude_range_m must be (min, max), 0 < min < max, "
+                f"got {self.altitude_range_m!r}"
+            )
+        if self.refine_vertical not in ("auto", "always", "never"):
+            raise ValueError(
+                f"refine_vertical={self.refine_vertical!r}; allowed: "
+                "auto, always, never"
+            )
+        if self.min_inliers < 3:
+            raise ValueError("min_inliers must be >= 3")
+
+
+@dataclass
+class RegistrationResult:
+    """The initial registration of one image (failure is a value).
+
+    Attributes
+    ----------
+    success : bool
+    cam_from_world : Pose
+        LOCAL frame; on failure the prior. The camera height is the prior's
+        (vertical-line constraints cannot observe it).
+    vertical_direction : (3,) array
+        Unit vertical in the camera frame pointing down the world, as used
+        (detected, from the prior, or refined).
+    vertical_source : str
+        "detected", "prior" (the VP detection failed) or "refined".
+    inlier_pairs : (K, 2) int array
+        (corner index into the cadastre, segment index into the input).
+    inlier_segments_px : (K, 2, 2) float array
+        The inlier segments, undistorted pixels (for drawing and checks).
+    height_plane : (3,) array
+        ``z = a x + b y + c`` (local metres, the priors' datum) fitted to the
+        heights of the inlier segments' bottoms; NaN on failure.
+    ground_height : float
+        The ground height found (m, local frame, the priors' datum): on
+        success the height plane at the inlier corners' centroid, else the
+        coarse estimate; NaN if unknown.
+    num_segments : int, usable segments.
+    num_candidates : int, RANSAC candidate pairs.
+    num_inliers : int, final inlier pairs (one per corner).
+    num_trials : int, RANSAC samples drawn.
+    inlier_ratio : float, best RANSAC inliers / candidates.
+    residual_rms_px : float, RMS of the final geometric residuals (px).
+    message : str, what happened, in words.
+    timings : dict, wall time per step (s).
+    """
+
+    success: bool
+    cam_from_world: Pose
+    vertical_direction: np.ndarray
+    vertical_source: str = "detected"
+    inlier_pairs: np.ndarray = field(default_factory=lambda: np.zeros((0, 2), int))
+    inlier_segments_px: np.ndarray = field(default_factory=lambda: np.zeros((0, 2, 2)))
+    height_plane: np.ndarray = field(default_factory=lambda: np.full(3, np.nan))
+    ground_height: float = math.nan
+    num_segments: int = 0
+    num_candidates: int = 0
+    num_inliers: int = 0
+    num_trials: int = 0
+    inlier_ratio: float = 0.0
+    residual_rms_px: float = math.nan
+    message: str = ""
+    timings: dict = field(default_factory=dict)
+
+    def __bool__(self) -> bool:
+        return self.success
+
+
+# --------------------------------------------------------------------------
+# The VP-aligned frame of one image
+# --------------------------------------------------------------------------
+
+
+@dataclass
+class _View:
+    """Camera geometry of one image with the vertical fixed.
+
+    ``X_cam = R0 R_z(alpha) (X - c)``; hypotheses are (alpha, c_xy) with c_xy
+    relative to ``c0[:2]`` and the camera height held at ``c0[2]``. Corner
+    coordinates are handled relative to ``c0[:2]`` too (conditioning).
+    """
+
+    K: np.ndarray
+    Kinv: np.ndarray
+    R0: np.ndarray
+    n: np.ndarray
+    c0: np.ndarray
+
+    @property
+    def focal(self) -> float:
+        return float(0.5 * (self.K[0, 0] + self.K[1, 1]))
+
+    def rotation(self, alpha: float) -> np.ndarray:
+        return self.R0 @ rotation_z(alpha)
+
+    def pose(self, alpha: float, c_xy: np.ndarray) -> Pose:
+        c = np.array([self.c0[0] + c_xy[0], self.c0[1] + c_xy[1], self.c0[2]])
+        return Pose.from_center(self.rotation(alpha), c)
+
+    def corner_lines(
+        self, alpha: np.ndarray, c_xy: np.ndarray, corner_rel: np.ndarray
+    ) -> np.ndarray:
+        """Images of the corners' verticals, ``K^-T (n x R (X - c))``.
+
+        Parameters
+        ----------
+        alpha : (H,) radians; c_xy : (H, 2) m; corner_rel : (P, 2) or (H, P, 2) m.
+
+        Returns
+        -------
+        (H, P, 3) lines with unit (a, b); oriented so that a rotation about the
+        vertical moves every point by the same sign of distance.
+        """
+        d = (
+            corner_rel - c_xy[:, None, :]
+            if corner_rel.ndim == 2
+            else corner_rel - c_xy[:, None, :]
+        )
+        h_cam = ransac.horizontal_in_camera(self.R0, alpha, d)  # (H, P, 3)
+        lines = np.cross(self.n, h_cam) @ self.Kinv  # (K^-T v)^T = v^T K^-1
+        norm = np.linalg.norm(lines[..., :2], axis=-1, keepdims=True)
+        return lines / np.where(norm > 0, norm, 1.0)
+
+    def project(
+        self,
+        alpha: np.ndarray,
+        c_xy: np.ndarray,
+        corner_rel: np.ndarray,
+        z: np.ndarray,
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """Pixels and depths of corners at heights ``z``.
+
+        Parameters
+        ----------
+        alpha : (H,); c_xy : (H, 2); corner_rel : (P, 2) or (H, P, 2);
+        z : (H, P) or (P,) absolute heights (m).
+
+        Returns
+        -------
+        px : (H, P, 2) undistorted pixels (NaN behind); depth : (H, P).
+        """
+        d = corner_rel - c_xy[:, None, :]
+        X = ransac.horizontal_in_camera(self.R0, alpha, d)  # (H, P, 3)
+        X = X + np.asarray(z - self.c0[2])[..., None] * self.R0[:, 2]
+        depth = X[..., 2]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            uv = X[..., :2] / np.where(depth > 0, depth, np.nan)[..., None]
+        px = uv @ self.K[:2, :2].T + self.K[:2, 2]
+        return px, depth
+
+    def bottom_heights(
+        self,
+        alpha: np.ndarray,
+        c_xy: np.ndarray,
+        corner_rel: np.ndarray,
+        bottom_px: np.ndarray,
+    ) -> np.ndarray:
+        """Heights of the segments' bottoms on the corners' verticals.
+
+        The bottom's viewing ray meets the corner's vertical (up to the small
+        offset across it) where its horizontal run equals the corner's
+        distance along the ray's horizontal direction.
+
+        Parameters
+        ----------
+        alpha : (H,); c_xy : (H, 2); corner_rel : (H, P, 2) or (P, 2);
+        bottom_px : (H, P, 2) or (P, 2) undistorted pixels.
+
+        Returns
+        -------
+        (H, P) absolute heights (m); NaN where the corner is behind the ray.
+        """
+        ray_cam = (
+            np.concatenate([bottom_px, np.ones(bottom_px.shape[:-1] + (1,))], axis=-1)
+            @ self.Kinv.T
+        )  # (..., 3)
+        ray0 = ray_cam @ self.R0  # R0^T ray: VP-aligned frame, (..., 3)
+        ca, sa = np.cos(alpha)[:, None], np.sin(alpha)[:, None]
+        # R_z(alpha)^T ray0: world direction.
+        rx = ca * ray0[..., 0] + sa * ray0[..., 1]
+        ry = -sa * ray0[..., 0] + ca * ray0[..., 1]
+        rz = np.broadcast_to(ray0[..., 2], rx.shape)
+        d = corner_rel - c_xy[:, None, :]
+        r2 = rx * rx + ry * ry
+        with np.errstate(divide="ignore", invalid="ignore"):
+            t = (d[..., 0] * rx + d[..., 1] * ry) / r2
+            h = self.c0[2] + t * rz
+        return np.where(t > 0, h, np.nan)
+
+
+def _make_view(camera: Camera, prior: Pose, n: np.ndarray) -> _View:
+    K = camera.K
+    R_prior = prior.rotation
+    # The smallest rotation bringing the prior's vertical onto the detected one.
+    R0 = rotation_aligning(R_prior @ _EZ, -n) @ R_prior
+    return _View(K=K, Kinv=np.linalg.inv(K), R0=R0, n=n, c0=prior.center.copy())
+
+
+# --------------------------------------------------------------------------
+# Segments
+# --------------------------------------------------------------------------
+
+
+@dataclass
+class _Segments:
+    """Usable segments in the VP-aligned frame (J of them).
+
+    index : (J,) into the input; bottom, top : (J, 2) undistorted px;
+    direction : (J, 2) unit, bottom to top; normal : (J, 2) unit;
+    length : (J,); line : (J, 3) through the VP and the midpoint, unit (a, b);
+    m_xy : (J, 2) ``(R0^T K^T line)_xy``; side : (J, 3) midpoint ray minus its
+    component along n (camera frame); ends : (J, 2, 2) the original endpoints.
+    """
+
+    index: np.ndarray
+    bottom: np.ndarray
+    top: np.ndarray
+    direction: np.ndarray
+    normal: np.ndarray
+    length: np.ndarray
+    line: np.ndarray
+    m_xy: np.ndarray
+    side: np.ndarray
+    ends: np.ndarray
+
+    def __len__(self) -> int:
+        return len(self.index)
+
+
+def _prepare_segments(
+    segments_px: np.ndarray, view: _View, options: RegistrationOptions
+) -> _Segments:
+    seg = np.asarray(segments_px, float).reshape(-1, 2, 2)
+    finite = np.all(np.isfinite(seg), axis=(1, 2))
+    length = np.linalg.norm(seg[:, 1] - seg[:, 0], axis=1)
+    mid = seg.mean(axis=1)
+    vp = view.K @ view.n  # homogeneous, the image of the nadir
+    line = np.cross(vp, np.column_stack([mid, np.ones(len(mid))]))
+    nrm = np.linalg.norm(line[:, :2], axis=1, keepdims=True)
+    line = line / np.where(nrm > 0, nrm, 1.0)
+    # Angle between the segment and its line through the VP.
+    dist = np.abs(np.sum(seg[:, 0] * line[:, :2], axis=1) + line[:, 2])
+    with np.errstate(divide="ignore", invalid="ignore"):
+        angle = np.degrees(np.arcsin(np.minimum(1.0, 2.0 * dist / length)))
+    keep = finite & (length >= options.min_segment_length_px) & (nrm[:, 0] > 0)
+    keep &= angle <= options.vp_tolerance_deg
+    idx = np.flatnonzero(keep)
+    seg, line, length, mid = seg[idx], line[idx], length[idx], mid[idx]
+    # Bottom: the endpoint whose viewing ray points further down the world.
+    rays = np.concatenate([seg, np.ones((len(seg), 2, 1))], axis=2) @ view.Kinv.T
+    down = (rays @ view.n) / np.linalg.norm(rays, axis=2)  # (J, 2)
+    first_low = down[:, 0] >= down[:, 1]
+    bottom = np.where(first_low[:, None], seg[:, 0], seg[:, 1])
+    top = np.where(first_low[:, None], seg[:, 1], seg[:, 0])
+    # Bottom and top projected onto the line through the VP.
+    bottom = (
+        bottom - (np.sum(bottom * line[:, :2], 1) + line[:, 2])[:, None] * line[:, :2]
+    )
+    top = top - (np.sum(top * line[:, :2], 1) + line[:, 2])[:, None] * line[:, :2]
+    direction = top - bottom
+    dl = np.linalg.norm(direction, axis=1, keepdims=True)
+    direction = direction / np.where(dl > 0, dl, 1.0)
+    normal = np.column_stack([-direction[:, 1], direction[:, 0]])
+    m = line @ view.K @ view.R0  # (R0^T K^T l)^T
+    ray_mid = np.column_stack([mid, np.ones(len(mid))]) @ view.Kinv.T
+    side = ray_mid - (ray_mid @ view.n)[:, None] * view.n
+    return _Segments(
+        idx, bottom, top, direction, normal, length, line, m[:, :2], side, seg
+    )
+
+
+# --------------------------------------------------------------------------
+# Height plane and Mahalanobis test
+# --------------------------------------------------------------------------
+
+
+def _fit_planes(
+    xy: np.ndarray, h: np.ndarray, weights: np.ndarray | None, ridge: float
+) -> np.ndarray:
+    """Ridge least-squares planes ``h = a x + b y + c`` for a batch.
+
+    Parameters
+    ----------
+    xy : (H, S, 2) m (relative coordinates); h : (H, S) m; weights : (H, S) or
+    None; ridge : damping of (a, b), m^2 (``(height_sigma / slope_sigma)^2``).
+
+    Returns
+    -------
+    (H, 3) array (a, b, c) in the same relative coordinates; NaN where the
+    heights are NaN.
+    """
+    w = np.ones(h.shape) if weights is None else weights
+    w = np.where(np.isfinite(h), w, 0.0)
+    hz = np.where(np.isfinite(h), h, 0.0)
+    sw = w.sum(axis=1)  # (H,)
+    sw_safe = np.where(sw > 0, sw, 1.0)
+    mx = (w[..., None] * xy).sum(axis=1) / sw_safe[:, None]  # (H, 2)
+    mh = (w * hz).sum(axis=1) / sw_safe
+    d = xy - mx[:, None, :]
+    dh = hz - mh[:, None]
+    A = np.einsum("hs,hsi,hsj->hij", w, d, d) + ridge * np.eye(2)
+    b = np.einsum("hs,hsi,hs->hi", w, d, dh)
+    ab = np.linalg.solve(A, b[..., None])[..., 0]  # (H, 2)
+    c = mh - np.sum(ab * mx, axis=1)
+    out = np.column_stack([ab, c])
+    out[sw <= 0] = np.nan
+    return out
+
+
+def _plane_at(plane: np.ndarray, xy: np.ndarray) -> np.ndarray:
+    """Heights of (H, 3) planes at (P, 2) or (H, P, 2) points -> (H, P)."""
+    return (
+        plane[:, None, 0] * xy[..., 0]
+        + plane[:, None, 1] * xy[..., 1]
+        + plane[:, None, 2]
+    )
+
+
+def _mahalanobis2(
+    px: np.ndarray, segs: _Segments, seg_idx: np.ndarray, stretch: float
+) -> np.ndarray:
+    """Squared Mahalanobis distances (px^2) of projected corners to segments.
+
+    The ellipse is centred on the segment's bottom: ``across^2 +
+    (along / stretch)^2``; NaN projections give inf.
+
+    Parameters
+    ----------
+    px : (H, P, 2) projected corners; seg_idx : (P,) segment of each pair.
+    """
+    d = px - segs.bottom[seg_idx]
+    across = np.sum(d * segs.normal[seg_idx], axis=-1)
+    along = np.sum(d * segs.direction[seg_idx], axis=-1)
+    d2 = across * across + (along / stretch) ** 2
+    return np.where(np.isfinite(d2), d2, np.inf)
+
+
+# --------------------------------------------------------------------------
+# Steps 2-3: Hough votes over (alpha, c_x, c_y[, ground height])
+# --------------------------------------------------------------------------
+
+
+def _search_windows(view: _View, options: RegistrationOptions, depth_m: float):
+    """(alpha half-range rad, centre half-range m, search radius px)."""
+    k = options.search_sigmas
+    alpha_half = k * math.radians(options.prior_rotation_sigma_deg)
+    c_sigma = math.hypot(
+        options.prior_position_sigma_m, options.prior_focal_sigma * depth_m
+    )
+    c_half = k * c_sigma
+    if options.search_radius_px is not None:
+        radius = float(options.search_radius_px)
+    else:
+        f = view.focal
+        radius = math.hypot(f * alpha_half, f * c_half / depth_m)
+    return alpha_half, c_half, radius
+
+
+@dataclass
+class _HoughPeak:
+    alpha: float
+    c_xy: np.ndarray
+    height: float  # NaN without a height axis
+    votes: float
+
+
+@dataclass
+class _HoughGrid:
+    """A smoothed Hough accumulator over (alpha, c_1, c_2[, height]).
+
+    The centre is ``c_center + k1 d1 u1 + k2 d2 u2`` for cell indices k1, k2
+    centred on zero; ``u1`` is the camera's lateral direction and ``u2`` its
+    horizontal viewing direction.
+    """
+
+    acc: np.ndarray  # (na, n1, n2, nh)
+    alphas: np.ndarray  # (na,) radians
+    c_center: np.ndarray  # (2,)
+    axes: np.ndarray  # (2, 2) rows u1, u2
+    steps: np.ndarray  # (2,) d1, d2 metres
+    h_lo: float
+    d_alpha: float
+    d_h: float  # inf without a height axis
+
+    @property
+    def d_c(self) -> float:
+        return float(self.steps.max())
+
+    def center_of(self, k1, k2) -> np.ndarray:
+        n1, n2 = self.acc.shape[1:3]
+        return (
+            self.c_center
+            + (k1 - n1 // 2) * self.steps[0] * self.axes[0]
+            + (k2 - n2 // 2) * self.steps[1] * self.axes[1]
+        )
+
+    def _at(self, ka, k1, k2, kh) -> _HoughPeak:
+        h = self.h_lo + (kh + 0.5) * self.d_h if math.isfinite(self.d_h) else math.nan
+        return _HoughPeak(
+            float(self.alphas[ka]),
+            self.center_of(k1, k2),
+            float(h),
+            float(self.acc[ka, k1, k2, kh]),
+        )
+
+    def peak(self) -> _HoughPeak:
+        return self._at(*np.unravel_index(int(np.argmax(self.acc)), self.acc.shape))
+
+    def peaks(
+        self, num: int, separation: tuple[int, int, int, int]
+    ) -> list[_HoughPeak]:
+        """The ``num`` strongest local maxima, at least ``separation`` cells apart
+        on some axis (non-maximum suppression), strongest first."""
+        from scipy.ndimage import maximum_filter
+
+        size = tuple(
+            min(2 * s + 1, n) for s, n in zip(separation, self.acc.shape, strict=True)
+        )
+        local = self.acc == maximum_filter(self.acc, size=size, mode="constant")
+        idx = np.argwhere(local & (self.acc > 0))
+        values = self.acc[tuple(idx.T)]
+        order = np.argsort(-values, kind="stable")
+        sep = np.asarray(separation)
+        chosen: list[np.ndarray] = []
+        for k in order:
+            if len(chosen) == num:
+                break
+            if all(np.any(np.abs(idx[k] - c) > sep) for c in chosen):
+                chosen.append(idx[k])
+        return [self._at(*c) for c in chosen]
+
+
+def _horizontal_axes(view: _View) -> np.ndarray:
+    """(2, 2): the camera's lateral and viewing directions on the ground."""
+    forward = view.R0[2, :2]  # optical axis in the world, horizontal part
+    if np.linalg.norm(forward) < 0.2:  # near-nadir: the image's up direction
+        forward = -view.R0[1, :2]
+    forward = forward / np.linalg.norm(forward)
+    lateral = np.array([forward[1], -forward[0]])
+    return np.stack([lateral, forward])
+
+
+def _hough(
+    view: _View,
+    segs: _Segments,
+    corner_rel: np.ndarray,
+    pair_i: np.ndarray,
+    pair_j: np.ndarray,
+    alpha_center: float,
+    alpha_half: float,
+    c_center: np.ndarray,
+    c_half: float,
+    cell_px: tuple[float, float, float],
+    depth_m: float,
+    max_cells: int,
+    heights: tuple[float, float, float] | None = None,
+) -> _HoughGrid:
+    """Vote of candidate pairs over a grid of poses (Hough transform).
+
+    For a fixed alpha, pair k's constraint ``r0 cos + r1 sin - g . c = 0``
+    (``g = R_z(alpha)^T m_xy``, :func:`ransac.constraint_rows`) is a straight
+    line in the plane of the centre; it is sampled at the cell centres of
+    the axis along which it runs and the other coordinate is rounded to a
+    cell. With ``heights`` the accumulator has a fourth axis, the height of
+    the segment's bottom on the corner's vertical at that pose: a pair votes
+    only at the ground height it implies, which separates the true pairs (all
+    at the ground) from the many chance pairs along each vertical.
+
+    The cells are anisotropic because of two near-degeneracies of an oblique
+    view: a heading change moves the image almost like a lateral shift of
+    the camera, and a forward shift almost like a change of the ground
+    height. Coarse cells along alpha and the forward axis are compensated by
+    the lateral axis and the height, which are sampled finely.
+
+    Parameters
+    ----------
+    pair_i, pair_j : (P,) corner and segment of each pair.
+    alpha_center, alpha_half : radians; c_center (2,), c_half : metres, the
+        search window (relative to the prior).
+    cell_px : (alpha, lateral, forward) cell sizes, pixels of image motion
+        at ``depth_m``.
+    max_cells : the cells grow until the accumulator has at most this many.
+    heights : (lo, hi, step) metres, or None for a 3-D vote.
+
+    Returns
+    -------
+    _HoughGrid, the accumulator smoothed over 3 cells per axis.
+    """
+    f = view.focal
+    d_alpha = cell_px[0] / f
+    steps = np.array([cell_px[1], cell_px[2]]) * depth_m / f
+    if heights is not None:
+        h_lo, h_hi, d_h = heights
+        nh = max(1, int(math.ceil((h_hi - h_lo) / d_h)))
+    else:
+        h_lo, d_h, nh = 0.0, math.inf, 1
+    while True:
+        na = 2 * int(math.ceil(alpha_half / d_alpha)) + 1
+        n1, n2 = (2 * np.ceil(c_half / steps).astype(int) + 1).tolist()
+        if na * n1 * n2 * nh <= max_cells or (na == 1 and n1 == 1 and n2 == 1):
+            break
+        d_alpha *= 1.2
+        steps *= 1.2
+    axes = _horizontal_axes(view)
+    alphas = alpha_center + (np.arange(na) - na // 2) * d_alpha
+    xy = corner_rel[pair_i]  # (P, 2)
+    m = segs.m_xy[pair_j]  # (P, 2)
+    rows = ransac.constraint_rows(m, xy - c_center)  # c relative to c_center
+    weight = np.minimum(segs.length[pair_j], 60.0)
+    if heights is not None:
+        ray0 = (
+            np.column_stack([segs.bottom[pair_j], np.ones(len(pair_j))])
+            @ view.Kinv.T
+            @ view.R0
+        )  # (P, 3) bottom rays, VP-aligned frame
+    slab = n1 * n2 * nh
+    acc = np.zeros(na * slab, dtype=np.float32)
+    for k, a in enumerate(alphas):
+        ca, sa = math.cos(a), math.sin(a)
+        rhs = rows[:, 0] * ca + rows[:, 1] * sa  # = g . (c - c_center)
+        g = np.column_stack([ca * m[:, 0] + sa * m[:, 1], -sa * m[:, 0] + ca * m[:, 1]])
+        # In cell units: a1 k1 + a2 k2 = rhs.
+        a1 = (g @ axes[0]) * steps[0]
+        a2 = (g @ axes[1]) * steps[1]
+        iter_2 = np.abs(a1) >= np.abs(a2)  # solve k1 for each k2
+        # Iterate over max(n1, n2) values; out-of-range ones are dropped.
+        n_it = max(n1, n2)
+        t = np.arange(n_it) - n_it // 2  # (n_it,)
+        num = rhs[:, None] - np.where(iter_2, a2, a1)[:, None] * t[None, :]
+        den = np.where(iter_2, a1, a2)[:, None]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            other = num / den  # (P, n_it) cell units
+        ko = np.rint(other)
+        k1 = np.where(iter_2[:, None], ko, t[None, :])
+        k2 = np.where(iter_2[:, None], t[None, :], ko)
+        ok = (np.abs(k1) <= n1 // 2) & (np.abs(k2) <= n2 // 2)
+        i1 = np.where(ok, k1 + n1 // 2, 0).astype(np.int64)
+        i2 = np.where(ok, k2 + n2 // 2, 0).astype(np.int64)
+        cell = (i1 * n2 + i2) * nh
+        if heights is not None:
+            e1 = np.where(iter_2[:, None], other, t[None, :]) * steps[0]
+            e2 = np.where(iter_2[:, None], t[None, :], other) * steps[1]
+            cx = c_center[0] + e1 * axes[0, 0] + e2 * axes[1, 0]
+            cy = c_center[1] + e1 * axes[0, 1] + e2 * axes[1, 1]
+            rx = (ca * ray0[:, 0] + sa * ray0[:, 1])[:, None]
+            ry = (-sa * ray0[:, 0] + ca * ray0[:, 1])[:, None]
+            with np.errstate(divide="ignore", invalid="ignore"):
+                tt = ((xy[:, 0:1] - cx) * rx + (xy[:, 1:2] - cy) * ry) / (
+                    rx * rx + ry * ry
+                )
+                ih = np.floor((view.c0[2] + tt * ray0[:, 2:3] - h_lo) / d_h)
+            ok &= (tt > 0) & (ih >= 0) & (ih < nh)
+            cell = cell + np.where(ok, ih, 0).astype(np.int64)
+        w = np.broadcast_to(weight[:, None], ok.shape)[ok]
+        acc[k * slab : (k + 1) * slab] += np.bincount(
+            cell[ok], weights=w, minlength=slab
+        )
+    from scipy.ndimage import uniform_filter
+
+    acc = uniform_filter(
+        acc.reshape(na, n1, n2, nh), size=(3, 3, 3, min(nh, 3)), mode="constant"
+    )
+    grid = _HoughGrid(
+        acc,
+        alphas,
+        np.asarray(c_center, float),
+        axes,
+        steps,
+        h_lo,
+        float(d_alpha),
+        float(d_h),
+    )
+    return grid
+
+
+def _pairs_near(
+    view: _View,
+    segs: _Segments,
+    corner_rel: np.ndarray,
+    alpha: float,
+    c_xy: np.ndarray,
+    radius_px: float,
+    h_range: tuple[float, float] | None = None,
+    ground=None,
+    height_tol_m: float = 0.0,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Pairs whose segment bottom lies within ``radius_px`` across the corner's
+    projected vertical, with the bottom's height in ``h_range`` or within
+    ``height_tol_m`` of ``ground`` ((I,) array or float) on that vertical.
+
+    Returns (corner indices, segment indices), sorted by corner then segment.
+    """
+    a, c = np.array([alpha]), np.asarray(c_xy, float)[None]
+    lines = view.corner_lines(a, c, corner_rel)[0]  # (I, 3)
+    across = lines[:, :2] @ segs.bottom.T + lines[:, 2:3]  # (I, J)
+    ii, jj = np.nonzero(np.abs(across) <= radius_px)  # sorted by (i, j)
+    h = view.bottom_heights(a, c, corner_rel[ii], segs.bottom[jj])[0]
+    with np.errstate(invalid="ignore"):
+        if h_range is not None:
+            ok = (h >= h_range[0]) & (h <= h_range[1])
+        else:
+            g = ground[ii] if np.ndim(ground) else ground
+            ok = np.abs(h - g) <= height_tol_m
+    return ii[ok], jj[ok]
+
+
+# --------------------------------------------------------------------------
+# Step 4: RANSAC
+# --------------------------------------------------------------------------
+
+
+@dataclass
+class _Candidates:
+    corner: np.ndarray  # (P,) index into corner_rel
+    segment: np.ndarray  # (P,) index into _Segments
+    starts: np.ndarray  # group starts of equal corners (pairs sorted by corner)
+
+
+def _candidates(
+    view: _View,
+    segs: _Segments,
+    corner_rel: np.ndarray,
+    alpha: float,
+    c_xy: np.ndarray,
+    ground: np.ndarray | float,
+    radius_px: float,
+    height_tol_m: float,
+) -> _Candidates:
+    ii, jj = _pairs_near(
+        view,
+        segs,
+        corner_rel,
+        alpha,
+        c_xy,
+        radius_px,
+        ground=ground,
+        height_tol_m=height_tol_m,
+    )
+    starts = (
+        np.flatnonzero(np.r_[True, ii[1:] != ii[:-1]]) if len(ii) else np.zeros(0, int)
+    )
+    return _Candidates(ii, jj, starts)
+
+
+def _score(
+    view: _View,
+    segs: _Segments,
+    corner_rel: np.ndarray,
+    cand: _Candidates,
+    alpha: np.ndarray,
+    c_xy: np.ndarray,
+    plane: np.ndarray,
+    thr2: float,
+    stretch: float,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Distinct inlier corners and MSAC cost of a batch of hypotheses.
+
+    Returns
+    -------
+    count : (H,) int; cost : (H,) float (sum of truncated d^2 over pairs).
+    """
+    xy = corner_rel[cand.corner]  # (P, 2)
+    z = _plane_at(plane, xy)  # (H, P)
+    px, _ = view.project(alpha, c_xy, xy, z)
+    d2 = _mahalanobis2(px, segs, cand.segment, stretch)  # (H, P)
+    inl = d2 <= thr2
+    per_corner = (
+        np.maximum.reduceat(inl, cand.starts, axis=1)
+        if len(cand.starts)
+        else np.zeros((len(alpha), 0), bool)
+    )
+    count = per_corner.sum(axis=1)
+    cost = np.minimum(d2, thr2).sum(axis=1)
+    return count, cost
+
+
+def _ransac(
+    view: _View,
+    segs: _Segments,
+    corner_rel: np.ndarray,
+    cand: _Candidates,
+    alpha_center: float,
+    c_center: np.ndarray,
+    alpha_half: float,
+    c_half: float,
+    options: RegistrationOptions,
+    rng: np.random.Generator,
+    max_trials: int | None = None,
+) -> tuple[float, np.ndarray, np.ndarray, int, float, int]:
+    """Step 4: RANSAC over the candidate pairs.
+
+    Hypotheses farther than ``alpha_half`` / ``c_half`` from the centre of the
+    search are rejected before scoring.
+
+    Returns
+    -------
+    alpha, c_xy (2,), plane (3,) relative coordinates, best count of distinct
+    inlier corners, its MSAC cost, trials drawn.
+    """
+    max_trials = options.max_trials if max_trials is None else max_trials
+    thr2 = options.inlier_threshold_px**2
+    ridge = (options.height_sigma_m / options.slope_sigma) ** 2
+    P = len(cand.corner)
+    best = (-1, math.inf)
+    best_model = (math.nan, np.full(2, np.nan), np.full(3, np.nan))
+    trials = 0
+    needed = float(options.min_trials)
+    while trials < min(needed, max_trials):
+        B = options.batch_size
+        idx = ransac.sample_pairs(rng, B, cand.corner, cand.segment)
+        trials += B
+        if len(idx) == 0:
+            continue
+        ci, sj = cand.corner[idx], cand.segment[idx]  # (S, 3)
+        alpha, c_xy, valid = ransac.solve_minimal(
+            segs.m_xy[sj], corner_rel[ci], view.R0, segs.side[sj]
+        )
+        with np.errstate(invalid="ignore"):
+            valid &= (np.abs(alpha - alpha_center) <= alpha_half) & (
+                np.linalg.norm(c_xy - c_center, axis=1) <= c_half
+            )
+        if not valid.any():
+            continue
+        alpha, c_xy, ci, sj = alpha[valid], c_xy[valid], ci[valid], sj[valid]
+        h = view.bottom_heights(alpha, c_xy, corner_rel[ci], segs.bottom[sj])  # (S, 3)
+        plane = _fit_planes(corner_rel[ci], h, None, ridge)
+        ok = np.all(np.isfinite(plane), axis=1)
+        if not ok.any():
+            continue
+        alpha, c_xy, plane = alpha[ok], c_xy[ok], plane[ok]
+        count, cost = _score(
+            view,
+            segs,
+            corner_rel,
+            cand,
+            alpha,
+            c_xy,
+            plane,
+            thr2,
+            options.along_segment_stretch,
+        )
+        # Most distinct inlier corners; ties broken by the lower MSAC cost.
+        k = int(np.lexsort((cost, -count))[0])
+        if (count[k], -cost[k]) > (best[0], -best[1]):
+            best = (int(count[k]), float(cost[k]))
+            best_model = (float(alpha[k]), c_xy[k].copy(), plane[k].copy())
+            ratio = best[0] / max(P, 1)
+            needed = max(
+                options.min_trials, ransac.required_trials(ratio, 3, options.confidence)
+            )
+    return (*best_model, max(best[0], 0), best[1], trials)
+
+
+# --------------------------------------------------------------------------
+# Step 5: refinement
+# --------------------------------------------------------------------------
+
+
+def _inlier_assignment(
+    view: _View,
+    segs: _Segments,
+    corner_rel: np.ndarray,
+    cand: _Candidates,
+    alpha: float,
+    c_xy: np.ndarray,
+    plane: np.ndarray,
+    options: RegistrationOptions,
+) -> tuple[np.ndarray, np.ndarray]:
+    """One-to-one inlier pairs (best Mahalanobis distance first).
+
+    Returns (corner indices, segment indices), both (K,).
+    """
+    xy = corner_rel[cand.corner]
+    z = _plane_at(plane[None], xy)
+    px, _ = view.project(np.array([alpha]), c_xy[None], xy, z)
+    d2 = _mahalanobis2(px, segs, cand.segment, options.along_segment_stretch)[0]
+    inl = np.flatnonzero(d2 <= options.inlier_threshold_px**2)
+    inl = inl[np.argsort(d2[inl], kind="stable")]
+    used_c, used_s = set(), set()
+    keep = []
+    for k in inl:
+        ci, sj = int(cand.corner[k]), int(cand.segment[k])
+        if ci in used_c or sj in used_s:
+            continue
+        used_c.add(ci)
+        used_s.add(sj)
+        keep.append(k)
+    keep = np.asarray(keep, int)
+    return cand.corner[keep], cand.segment[keep]
+
+
+def _tilt_basis(n: np.ndarray) -> np.ndarray:
+    """(2, 3) two unit vectors orthogonal to n (axes of small tilts)."""
+    a = np.array([1.0, 0.0, 0.0]) if abs(n[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
+    e1 = np.cross(n, a)
+    e1 /= np.linalg.norm(e1)
+    return np.stack([e1, np.cross(n, e1)])
+
+
+def _residuals(
+    params: np.ndarray,
+    view: _View,
+    corner_rel: np.ndarray,
+    ends: np.ndarray,
+    tilt_axes: np.ndarray | None,
+) -> np.ndarray:
+    """Distances (px) of both endpoints of each segment to its corner's vertical."""
+    alpha, cx, cy = params[:3]
+    v = view
+    if tilt_axes is not None:
+        from obliq_colmap.geometry import rotation_from_axis_angle
+
+        dR = rotation_from_axis_angle(
+            params[3] * tilt_axes[0] + params[4] * tilt_axes[1]
+        )
+        v = _View(K=view.K, Kinv=view.Kinv, R0=dR @ view.R0, n=dR @ view.n, c0=view.c0)
+    lines = v.corner_lines(np.array([alpha]), np.array([[cx, cy]]), corner_rel)[0]
+    r = np.sum(ends * lines[:, None, :2], axis=2) + lines[:, None, 2]  # (K, 2)
+    return r.ravel()
+
+
+def _refine(
+    view: _View,
+    corner_rel: np.ndarray,
+    ends: np.ndarray,
+    alpha: float,
+    c_xy: np.ndarray,
+    refine_vertical: bool,
+    options: RegistrationOptions,
+) -> tuple[_View, float, np.ndarray, np.ndarray]:
+    """Levenberg-Marquardt over (alpha, c_x, c_y[, two tilts]) with a Huber loss.
+
+    Returns the (possibly re-tilted) view, alpha, c_xy and the final residuals
+    (K, 2) in px.
+    """
+    from scipy.optimize import least_squares
+
+    tilt_axes = _tilt_basis(view.n) if refine_vertical else None
+    x0 = np.r_[alpha, c_xy, np.zeros(2)] if refine_vertical else np.r_[alpha, c_xy]
+    depth = max(1.0, float(np.median(np.linalg.norm(corner_rel - c_xy, axis=1))))
+    x_scale = np.r_[1.0 / view.focal, np.full(2, depth / view.focal)]
+    if refine_vertical:
+        x_scale = np.r_[x_scale, np.full(2, 1.0 / view.focal)]
+    sol = least_squares(
+        _residuals,
+        x0,
+        args=(view, corner_rel, ends, tilt_axes),
+        loss="huber",
+        f_scale=options.inlier_threshold_px,
+        x_scale=x_scale,
+        max_nfev=options.refine_max_iterations * (len(x0) + 1),
+        method="trf",
+    )
+    x = sol.x
+    if refine_vertical:
+        from obliq_colmap.geometry import rotation_from_axis_angle
+
+        dR = rotation_from_axis_angle(x[3] * tilt_axes[0] + x[4] * tilt_axes[1])
+        view = _View(
+            K=view.K, Kinv=view.Kinv, R0=dR @ view.R0, n=dR @ view.n, c0=view.c0
+        )
+    r = _residuals(x[:3], view, corner_rel, ends, None).reshape(-1, 2)
+    return view, float(x[0]), x[1:3].copy(), r
+
+
+def _final_plane(
+    view: _View,
+    segs: _Segments,
+    corner_rel: np.ndarray,
+    ci: np.ndarray,
+    sj: np.ndarray,
+    alpha: float,
+    c_xy: np.ndarray,
+    options: RegistrationOptions,
+) -> np.ndarray:
+    """Height plane through the inliers' bottom heights (relative coordinates)."""
+    ridge = (options.height_sigma_m / options.slope_sigma) ** 2
+    h = view.bottom_heights(
+        np.array([alpha]), c_xy[None], corner_rel[ci], segs.bottom[sj]
+    )  # (1, K)
+    plane = _fit_planes(corner_rel[ci][None], h, None, ridge)
+    for _ in range(2):  # Huber-like reweighting against occluded bottoms
+        res = h - _plane_at(plane, corner_rel[ci][None])
+        s = 2.0 * options.height_sigma_m
+        w = np.where(np.abs(res) <= s, 1.0, s / np.maximum(np.abs(res), 1e-9))
+        plane = _fit_planes(corner_rel[ci][None], h, w, ridge)
+    return plane[0]
+
+
+# --------------------------------------------------------------------------
+# The stage
+# --------------------------------------------------------------------------
+
+
+def _check_inputs(
+    segments_px, vertical_direction_cam
+) -> tuple[np.ndarray, np.ndarray | None]:
+    seg = np.asarray(segments_px, float)
+    if seg.size == 0:
+        seg = seg.reshape(0, 2, 2)
+    if seg.ndim != 3 or seg.shape[1:] != (2, 2):
+        raise ValueError(f"segments_px must be (N, 2, 2), got shape {seg.shape}")
+    n = None
+    if vertical_direction_cam is not None:
+        n = np.asarray(vertical_direction_cam, float).reshape(-1)
+        if n.shape != (3,) or not np.all(np.isfinite(n)) or np.linalg.norm(n) == 0:
+            raise ValueError(
+                "vertical_direction_cam must be a finite nonzero (3,) vector, "
+                f"got {n!r}"
+            )
+        n = n / np.linalg.norm(n)
+    return seg, n
+
+
+def register_image(
+    segments_px: np.ndarray,
+    vertical_direction_cam: np.ndarray | None,
+    camera: Camera,
+    prior: Pose,
+    cadastre,
+    options: RegistrationOptions | None = None,
+    *,
+    segments_undistorted: bool = False,
+) -> RegistrationResult:
+    """Register one image to the map from its vertical segments (stage 2).
+
+    A pure function of its inputs (safe in a process pool); deterministic for
+    ``options.seed``.
+
+    Parameters
+    ----------
+    segments_px : (N, 2, 2) float array
+        Vertical segments (endpoint k = (x, y) of segment i), COLMAP pixels
+        as detected, i.e. DISTORTED (undistorted here with the camera) unless
+        ``segments_undistorted``.
+    vertical_direction_cam : (3,) array or None
+        Unit vertical direction in the camera frame, pointing down the world,
+        from the vanishing stage; None when its detection failed: the prior
+        rotation's vertical is used and refined with the pose.
+    camera : Camera
+        Rough intrinsics (COLMAP model).
+    prior : Pose
+        Rough ``cam_from_world`` in the cadastre's LOCAL frame; its height is in
+        an unknown vertical datum.
+    cadastre : obliq_colmap.cadastre.Cadastre
+    options : RegistrationOptions or None for the defaults.
+    segments_undistorted : bool
+        The segments are already in pixels of the pinhole part ``K`` (the
+        vanishing stage's second-pass segments are).
+
+    Returns
+    -------
+    RegistrationResult
+        ``success`` False with a message on failure (nothing is raised for a
+        failed registration).
+
+    Raises
+    ------
+    ValueError
+        Malformed inputs (shapes, non-finite vertical direction).
+    """
+    from obliq_colmap.cadastre import visible_corners
+
+    options = options or RegistrationOptions()
+    t_start = time.perf_counter()
+    timings: dict[str, float] = {}
+    seg, n = _check_inputs(segments_px, vertical_direction_cam)
+    vertical_source = "detected"
+    down_prior = prior.rotation @ -_EZ
+    if n is None:
+        n = down_prior
+        vertical_source = "prior"
+    elif n @ down_prior < 0:
+        n = -n  # orient down the world
+    refine_vertical = options.refine_vertical == "always" or (
+        options.refine_vertical == "auto" and vertical_source == "prior"
+    )
+    view = _make_view(camera, prior, n)
+    rng = np.random.default_rng(options.seed)
+
+    def fail(message: str, **kw) -> RegistrationResult:
+        timings["total"] = time.perf_counter() - t_start
+        logger.debug("registration failed: %s", message)
+        return RegistrationResult(
+            success=False,
+            cam_from_world=prior,
+            vertical_direction=n,
+            vertical_source=vertical_source,
+            message=message,
+            timings=timings,
+            **kw,
+        )
+
+    # 1. Segments.
+    t0 = time.perf_counter()
+    if not segments_undistorted and len(seg) and camera.has_distortion:
+        seg = camera.undistort_pixels(seg.reshape(-1, 2)).reshape(-1, 2, 2)
+    segs = _prepare_segments(seg, view, options)
+    timings["segments"] = time.perf_counter() - t0
+    if len(segs) < options.min_segments:
+        return fail(
+            f"too few vertical segments: {len(segs)} usable of {len(seg)} "
+            f"(need {options.min_segments})",
+            num_segments=len(segs),
+        )
+
+    # 2. Ground height and coarse pose: 4-D Hough vote over (alpha, c, h).
+    t0 = time.perf_counter()
+    alt_lo, alt_hi = options.altitude_range_m
+    c0z = view.c0[2]
+    if options.ground_height is not None:
+        h_bounds = (
+            options.ground_height - options.candidate_height_tolerance_m,
+            options.ground_height + options.candidate_height_tolerance_m,
+        )
+    else:
+        h_bounds = (c0z - alt_hi, c0z - alt_lo)
+    prior0 = view.pose(0.0, np.zeros(2))
+    wide = visible_corners(
+        cadastre,
+        camera,
+        prior0,
+        ground_height=h_bounds[0],
+        height_range_m=(0.0, h_bounds[1] - h_bounds[0] + options.height_range_m[1]),
+        margin_px=0.25 * max(camera.width, camera.height),
+        use_building_heights=False,
+    )
+    if len(wide) < options.min_inliers:
+        return fail(
+            f"too few map corners in view of the prior: {len(wide)}",
+            num_segments=len(segs),
+        )
+    corner_rel = cadastre.corner_xy[wide] - view.c0[:2]
+    # Viewing distance for the search windows (the horizontal distance to the
+    # map corners; refined from the ground height below).
+    depth_m = _median_depth(view, corner_rel)
+    alpha_half, c_half, radius = _search_windows(view, options, depth_m)
+    ii, jj = _pairs_near(
+        view,
+        segs,
+        corner_rel,
+        0.0,
+        np.zeros(2),
+        radius,
+        h_range=(h_bounds[0] - c_half, h_bounds[1] + c_half),
+    )
+    if len(ii) < 3:
+        return fail(
+            f"no consensus: {len(ii)} candidate pairs near the prior",
+            num_segments=len(segs),
+        )
+    coarse = _hough(
+        view,
+        segs,
+        corner_rel,
+        ii,
+        jj,
+        0.0,
+        alpha_half,
+        np.zeros(2),
+        c_half,
+        options.coarse_cells_px,
+        depth_m,
+        options.hough_max_cells,
+        heights=(h_bounds[0], h_bounds[1], options.coarse_height_step_m),
+    )
+    separation = (
+        1,
+        1,
+        1,
+        int(
+            math.ceil(
+                options.candidate_height_tolerance_m / options.coarse_height_step_m
+            )
+        ),
+    )
+    starts = coarse.peaks(options.num_candidates_verified, separation)
+    timings["ground"] = time.perf_counter() - t0
+
+    # 3.-4. The strongest peaks: fine pose vote, then a short RANSAC; the one
+    # with the most inlier corners wins and gets the full RANSAC.
+    t0 = time.perf_counter()
+    tries = []
+    for start in starts:
+        h_k = (
+            start.height
+            if options.ground_height is None
+            else float(options.ground_height)
+        )
+        tries.append(
+            _try_start(
+                view,
+                segs,
+                cadastre,
+                camera,
+                start,
+                h_k,
+                coarse,
+                radius,
+                alpha_half,
+                c_half,
+                options,
+                np.random.default_rng(options.seed),
+                verify=True,
+            )
+        )
+    timings["coarse"] = time.perf_counter() - t0
+    tries = [t for t in tries if t is not None]
+    if not tries:
+        return fail(
+            "no consensus: no candidate ground height has matching pairs",
+            num_segments=len(segs),
+        )
+    best_try = max(tries, key=lambda t: (t.count, -t.cost))
+    t0 = time.perf_counter()
+    best_try = _try_start(
+        view,
+        segs,
+        cadastre,
+        camera,
+        best_try.start,
+        best_try.h0,
+        best_try.grid,
+        radius,
+        alpha_half,
+        c_half,
+        options,
+        rng,
+        verify=False,
+    )
+    timings["ransac"] = time.perf_counter() - t0
+    h0, vis, corner_rel, depth_m, cand = (
+        best_try.h0,
+        best_try.vis,
+        best_try.corner_rel,
+        best_try.depth_m,
+        best_try.cand,
+    )
+    alpha_r, c_r, plane_r, n_best, trials = (
+        best_try.alpha,
+        best_try.c_xy,
+        best_try.plane,
+        best_try.count,
+        best_try.trials,
+    )
+    num_candidates = len(cand.corner)
+    common = dict(
+        num_segments=len(segs),
+        num_candidates=num_candidates,
+        num_trials=trials + sum(t.trials for t in tries),
+        inlier_ratio=n_best / max(num_candidates, 1),
+        ground_height=h0,
+    )
+    if n_best < options.min_inliers:
+        return fail(
+            f"no consensus: best hypothesis has {n_best} inlier corners "
+            f"(need {options.min_inliers}) among {num_candidates} candidates",
+            **common,
+        )
+
+    # 5. Refinement and re-scoring.
+    t0 = time.perf_counter()
+    alpha, c_xy, plane = alpha_r, c_r, plane_r
+    ci, sj = _inlier_assignment(
+        view, segs, corner_rel, cand, alpha, c_xy, plane, options
+    )
+    resid = np.zeros((0, 2))
+    for round_ in range(options.refine_rounds):
+        if len(ci) < options.min_inliers:
+            break
+        rv = refine_vertical and round_ == options.refine_rounds - 1
+        new_view, alpha, c_xy, resid = _refine(
+            view, corner_rel[ci], segs.ends[sj], alpha, c_xy, rv, options
+        )
+        # Whole buildings that do not fit (a building shifted in the map).
+        bld = cadastre.corner_building[vis[ci]]
+        res_pair = np.sqrt(np.mean(resid**2, axis=1))
+        bad = np.zeros(len(ci), bool)
+        for b in np.unique(bld):
+            sel = bld == b
+            if (
+                np.median(res_pair[sel])
+                > options.building_outlier_factor * options.inlier_threshold_px
+            ):
+                bad |= sel
+        if bad.any() and (~bad).sum() >= options.min_inliers:
+            ci, sj = ci[~bad], sj[~bad]
+            new_view, alpha, c_xy, resid = _refine(
+                view, corner_rel[ci], segs.ends[sj], alpha, c_xy, rv, options
+            )
+        if rv:
+            view = new_view
+        plane = _final_plane(view, segs, corner_rel, ci, sj, alpha, c_xy, options)
+        # Re-score every pair near the refined pose.
+        ground = _plane_at(plane[None], corner_rel)[0]
+        cand = _candidates(
+            view,
+            segs,
+            corner_rel,
+            alpha,
+            c_xy,
+            ground,
+            4.0 * options.inlier_threshold_px,
+            options.along_segment_stretch
+            * options.inlier_threshold_px
+            * depth_m
+            / view.focal
+            * 2.0
+            + 2.0,
+        )
+        ci, sj = _inlier_assignment(
+            view, segs, corner_rel, cand, alpha, c_xy, plane, options
+        )
+    if len(ci) >= options.min_inliers:
+        _, alpha, c_xy, resid = _refine(
+            view, corner_rel[ci], segs.ends[sj], alpha, c_xy, False, options
+        )
+        plane = _final_plane(view, segs, corner_rel, ci, sj, alpha, c_xy, options)
+    timings["refine"] = time.perf_counter() - t0
+    common["num_inliers"] = len(ci)
+    if len(ci) < options.min_inliers:
+        return fail(
+            f"no consensus after refinement: {len(ci)} inlier corners", **common
+        )
+    # Degenerate geometry: the inliers must not lie on one vertical line.
+    spread = np.linalg.svd(corner_rel[ci] - corner_rel[ci].mean(0), compute_uv=False)
+    if spread[0] < 1.0:
+        return fail("degenerate geometry: the inlier corners coincide", **common)
+
+    pose = view.pose(alpha, c_xy)
+    centroid = corner_rel[ci].mean(axis=0)
+    common["ground_height"] = float(
+        plane[0] * centroid[0] + plane[1] * centroid[1] + plane[2]
+    )
+    plane_abs = np.array(
+        [plane[0], plane[1], plane[2] - plane[0] * view.c0[0] - plane[1] * view.c0[1]]
+    )
+    rms = float(np.sqrt(np.mean(resid**2))) if resid.size else math.nan
+    timings["total"] = time.perf_counter() - t_start
+    return RegistrationResult(
+        success=True,
+        cam_from_world=pose,
+        vertical_direction=view.n.copy(),
+        vertical_source="refined" if refine_vertical else vertical_source,
+        inlier_pairs=np.column_stack([vis[ci], segs.index[sj]]).astype(int),
+        inlier_segments_px=segs.ends[sj].copy(),
+        height_plane=plane_abs,
+        residual_rms_px=rms,
+        message=f"{len(ci)} inlier corners of {num_candidates} candidates, "
+        f"RMS {rms:.2f} px, {trials} trials",
+        timings=timings,
+        **common,
+    )
+
+
+@dataclass
+class _Try:
+    """One candidate ground height carried through steps 3 and 4."""
+
+    start: _HoughPeak
+    grid: _HoughGrid
+    h0: float
+    vis: np.ndarray
+    corner_rel: np.ndarray
+    depth_m: float
+    cand: _Candidates
+    alpha: float
+    c_xy: np.ndarray
+    plane: np.ndarray
+    count: int
+    cost: float
+    trials: int
+
+
+def _try_start(
+    view: _View,
+    segs: _Segments,
+    cadastre,
+    camera: Camera,
+    start: _HoughPeak,
+    h0: float,
+    coarse: _HoughGrid,
+    radius: float,
+    alpha_half: float,
+    c_half: float,
+    options: RegistrationOptions,
+    rng: np.random.Generator,
+    verify: bool,
+) -> _Try | None:
+    """Steps 3 and 4 from one coarse peak; None when nothing matches."""
+    from obliq_colmap.cadastre import visible_corners
+
+    vis = visible_corners(
+        cadastre,
+        camera,
+        view.pose(start.alpha, start.c_xy),
+        ground_height=h0,
+        height_range_m=options.height_range_m,
+        margin_px=radius,
+    )
+    if len(vis) < 3:
+        return None
+    corner_rel = cadastre.corner_xy[vis] - view.c0[:2]
+    _, depth0 = view.project(
+        np.array([start.alpha]), start.c_xy[None], corner_rel, np.full(len(vis), h0)
+    )
+    front = depth0[0][depth0[0] > 0]
+    if len(front) < 3:
+        return None
+    depth_m = float(np.median(front))
+    # 3. Fine pose vote within two coarse cells, pairs near the ground height.
+    band_px = (
+        2.0 * coarse.d_c * view.focal / depth_m + 2.0 * coarse.d_alpha * view.focal
+    )
+    ii, jj = _pairs_near(
+        view,
+        segs,
+        corner_rel,
+        start.alpha,
+        start.c_xy,
+        band_px,
+        ground=h0,
+        height_tol_m=options.candidate_height_tolerance_m + 2.0 * coarse.d_c,
+    )
+    if len(ii) < 3:
+        return None
+    fine = _hough(
+        view,
+        segs,
+        corner_rel,
+        ii,
+        jj,
+        start.alpha,
+        1.5 * coarse.d_alpha,
+        start.c_xy,
+        1.5 * coarse.d_c,
+        (options.hough_cell_px,) * 3,
+        depth_m,
+        options.hough_max_cells,
+    ).peak()
+    # 4. RANSAC in a small radius around it.
+    cand = _candidates(
+        view,
+        segs,
+        corner_rel,
+        fine.alpha,
+        fine.c_xy,
+        h0,
+        options.ransac_radius_px,
+        options.candidate_height_tolerance_m,
+    )
+    if len(cand.corner) < 3:
+        return None
+    alpha, c_xy, plane, count, cost, trials = _ransac(
+        view,
+        segs,
+        corner_rel,
+        cand,
+        fine.alpha,
+        fine.c_xy,
+        alpha_half + 4.0 * options.ransac_radius_px / view.focal,
+        c_half + 4.0 * options.ransac_radius_px * depth_m / view.focal,
+        options,
+        rng,
+        max_trials=options.verify_trials if verify else None,
+    )
+    return _Try(
+        start,
+        coarse,
+        h0,
+        vis,
+        corner_rel,
+        depth_m,
+        cand,
+        alpha,
+        c_xy,
+        plane,
+        count,
+        cost,
+        trials,
+    )
+
+
+def block_ground_height(
+    results: list[RegistrationResult], min_inliers: int = 20
+) -> float | None:
+    """The ground height of a block from its confident registrations.
+
+    All priors of a block share one vertical datum, so the ground heights found
+    per image agree up to the terrain and the prior height noise. A second
+    pass of :func:`register_image` with ``options.ground_height`` set to this
+    value rescues images whose own ground-height search failed (their
+    results have few inliers).
+
+    Parameters
+    ----------
+    results : registrations of the images of one block (local frame).
+    min_inliers : only results with at least this many inlier corners count.
+
+    Returns
+    -------
+    float, the median ground height (m), or None when no result qualifies.
+    """
+    heights = [
+        r.ground_height
+        for r in results
+        if r.success and r.num_inliers >= min_inliers and math.isfinite(r.ground_height)
+    ]
+    return float(np.median(heights)) if heights else None
+
+
+def _median_depth(view: _View, corner_rel: np.ndarray) -> float:
+    """A viewing-distance scale before the ground height is known (m).
+
+    The lower quartile of the horizontal distances to the corners that may be
+    in view at some ground height: the far corners of that set belong to
+    heights far below the true ground, so the median would overestimate.
+    """
+    d = np.linalg.norm(corner_rel, axis=1)
+    return float(np.percentile(d, 25)) if len(d) else 100.0
+
+
+# --------------------------------------------------------------------------
+# Overlay
+# --------------------------------------------------------------------------
+
+#: BGR colours of the overlay: map before (prior), map after, inlier segments,
+#: inlier corners' verticals.
+OVERLAY_COLORS = {
+    "before": (0, 0, 255),
+    "after": (0, 255, 0),
+    "segment": (0, 255, 255),
+    "corner": (255, 0, 255),
+}
+
+
+def _project_edges(
+    cadastre, camera: Camera, pose: Pose, plane_abs: np.ndarray, ground: float
+) -> np.ndarray:
+    """(E, 2, 2) pixels of the map edges at the ground; NaN when behind."""
+    xy = cadastre.edge_xy.reshape(-1, 2)
+    if np.all(np.isfinite(plane_abs)):
+        z = plane_abs[0] * xy[:, 0] + plane_abs[1] * xy[:, 1] + plane_abs[2]
+    else:
+        z = np.full(len(xy), ground)
+    X = pose.transform(np.column_stack([xy, z]))
+    px = camera.img_from_cam(X)
+    px[X[:, 2] <= 0] = np.nan
+    return px.reshape(-1, 2, 2)
+
+
+def draw_registration_overlay(
+    image: np.ndarray,
+    cadastre,
+    camera: Camera,
+    prior_pose: Pose,
+    result: RegistrationResult,
+) -> np.ndarray:
+    """Draw the map before (prior pose, red) and after registration (green).
+
+    The footprint edges are drawn at the ground (the result's height plane,
+    else its ground height), through the camera's distortion; the inlier
+    segments are drawn in yellow and their corners' verticals (from the
+    ground up, 15 m) in magenta.
+
+    Parameters
+    ----------
+    image : (H, W) or (H, W, 3) uint8 array (BGR).
+    cadastre : Cadastre (local frame, as registered).
+    camera : Camera, the rough intrinsics used for the registration.
+    prior_pose : Pose, the prior ``cam_from_world`` (local frame).
+    result : RegistrationResult.
+
+    Returns
+    -------
+    (H, W, 3) uint8 BGR array, a new image.
+    """
+    import cv2
+
+    img = np.asarray(image)
+    if img.ndim == 2:
+        out = cv2.cvtColor(img.astype(np.uint8), cv2.COLOR_GRAY2BGR)
+    elif img.ndim == 3 and img.shape[2] == 3:
+        out = img.astype(np.uint8).copy()
+    else:
+        raise ValueError(f"image must be (H, W) or (H, W, 3), got shape {img.shape}")
+    H, W = out.shape[:2]
+    limit = 4.0 * max(H, W)
+
+    def draw(segments: np.ndarray, color, thickness=1) -> None:
+        for a, b in segments:
+            if not (np.all(np.isfinite(a)) and np.all(np.isfinite(b))):
+                continue
+            if np.any(np.abs(np.r_[a, b]) > limit):
+                continue
+            cv2.line(
+                out,
+                (int(round(a[0])), int(round(a[1]))),
+                (int(round(b[0])), int(round(b[1]))),
+                color,
+                thickness,
+                cv2.LINE_AA,
+            )
+
+    ground = (
+        result.ground_height
+        if math.isfinite(result.ground_height)
+        else prior_pose.center[2] - 300.0
+    )
+    draw(
+        _project_edges(cadastre, camera, prior_pose, np.full(3, np.nan), ground),
+        OVERLAY_COLORS["before"],
+    )
+    if result.success:
+        pose = result.cam_from_world
+        draw(
+            _project_edges(cadastre, camera, pose, result.height_plane, ground),
+            OVERLAY_COLORS["after"],
+        )
+        corners = result.inlier_pairs[:, 0]
+        xy = cadastre.corner_xy[corners]
+        p = result.height_plane
+        z = p[0] * xy[:, 0] + p[1] * xy[:, 1] + p[2]
+        bottom = camera.img_from_cam(pose.transform(np.column_stack([xy, z])))
+        top = camera.img_from_cam(pose.transform(np.column_stack([xy, z + 15.0])))
+        draw(np.stack([bottom, top], axis=1), OVERLAY_COLORS["corner"])
+        seg = result.inlier_segments_px
+        if len(seg) and camera.has_distortion:
+            # Back to the distorted image.
+            uv = (seg.reshape(-1, 2) - camera.K[:2, 2]) / np.diag(camera.K)[:2]
+            seg = camera.img_from_cam(np.column_stack([uv, np.ones(len(uv))]))
+            seg = seg.reshape(-1, 2, 2)
+        draw(seg, OVERLAY_COLORS["segment"], 2)
+    return out

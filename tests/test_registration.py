@@ -1,0 +1,571 @@
+"""Initial registration (stage 2): minimal solver, RANSAC, refinement, the stage.
+
+Tiers (EXAMPLES.md, section 7): exact synthetic correspondences recover the
+pose to machine precision; outliers give exactly the true inlier set; noise
+gives errors of the size of the noise; failures are values with a message.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import numpy as np
+import pytest
+from shapely import affinity
+from shapely.geometry import box
+
+from obliq_colmap import ransac
+from obliq_colmap.cadastre import load_cadastre, visible_corners, write_geojson
+from obliq_colmap.geometry import (
+    Camera,
+    Pose,
+    rotation_angle_deg,
+    rotation_from_axis_angle,
+    rotation_z,
+)
+from obliq_colmap.registration import (
+    RegistrationOptions,
+    draw_registration_overlay,
+    register_image,
+)
+
+ORIGIN = np.array([500_000.0, 5_600_000.0, 0.0])
+TOL_EXACT_DEG = 1e-6
+TOL_EXACT_M = 1e-4
+
+
+# --------------------------------------------------------------------------
+# Ground truth: a small city of boxes seen by one oblique camera
+# --------------------------------------------------------------------------
+
+
+def oblique_pose(center: np.ndarray, heading_deg: float, tilt_deg: float) -> Pose:
+    """cam_from_world of a camera looking along ``heading`` (clockwise from north)."""
+    psi, tilt = math.radians(heading_deg), math.radians(tilt_deg)
+    d = np.array([math.sin(psi), math.cos(psi), 0.0])
+    z = math.cos(tilt) * np.array([0.0, 0.0, -1.0]) + math.sin(tilt) * d
+    x = np.cross(z, [0.0, 0.0, 1.0])
+    x /= np.linalg.norm(x)
+    y = np.cross(z, x)
+    return Pose.from_center(np.stack([x, y, z]), center)
+
+
+def ground_z(xy: np.ndarray) -> np.ndarray:
+    """The true terrain: a gentle plane (true vertical datum)."""
+    return 0.01 * xy[:, 0] - 0.005 * xy[:, 1] + 3.0
+
+
+@dataclasses.dataclass
+class Block:
+    cadastre: object
+    camera: Camera
+    pose: Pose
+    segments: np.ndarray  # (N, 2, 2) undistorted pixels
+    pairs: set  # {(corner, segment)} of the true segments
+    heights: dict  # building index -> height (m)
+
+
+def make_block(
+    seed: int = 0,
+    num_outliers: int = 150,
+    shift_building: bool = False,
+    tmp_path=None,
+    heading_deg: float = 20.0,
+) -> Block:
+    rng = np.random.default_rng(seed)
+    polys, props = [], []
+    for gx in range(-6, 7):
+        for gy in range(-6, 7):
+            cx, cy = gx * 38.0 + rng.uniform(-4, 4), gy * 38.0 + rng.uniform(-4, 4)
+            w, h = rng.uniform(12, 24, 2)
+            p = affinity.rotate(
+                box(cx - w / 2, cy - h / 2, cx + w / 2, cy + h / 2),
+                17.0 + rng.uniform(-3, 3),
+                origin=(cx, cy),
+            )
+            polys.append(affinity.translate(p, ORIGIN[0], ORIGIN[1]))
+            props.append({"id": len(props), "height": float(rng.uniform(8, 30))})
+    path = tmp_path / f"map_{seed}_{int(shift_building)}.geojson"
+    write_geojson(path, polys, crs="EPSG:25832", properties=props)
+    cadastre = load_cadastre(path, origin=ORIGIN)
+    heights = dict(enumerate(cadastre.heights))
+    camera = Camera("PINHOLE", 1000, 667, [1000.0, 1000.0, 500.0, 333.5])
+    psi = math.radians(heading_deg)
+    center = np.array([-250 * math.sin(psi), -250 * math.cos(psi), 253.0])
+    pose = oblique_pose(center, heading_deg, 45.0)
+
+    vis = visible_corners(cadastre, camera, pose, ground_z, (0.0, 60.0))
+    xy = cadastre.corner_xy[vis]
+    z0 = ground_z(xy)
+    top = z0 + cadastre.heights[cadastre.corner_building[vis]]
+    p0 = camera.img_from_cam(pose.transform(np.column_stack([xy, z0])))
+    p1 = camera.img_from_cam(pose.transform(np.column_stack([xy, top])))
+    W, H = camera.width, camera.height
+    inside = np.all((p0 >= 0) & (p0 < [W, H]), axis=1) & np.all(np.isfinite(p1), axis=1)
+    # Clip the tops to the image (the bottoms are inside).
+    d = p1 - p0
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t = np.ones(len(d))
+        for k, lim in ((0, W), (1, H)):
+            t = np.minimum(
+                t,
+                np.where(
+                    d[:, k] > 0,
+                    (lim - 1e-6 - p0[:, k]) / d[:, k],
+                    np.where(d[:, k] < 0, -p0[:, k] / d[:, k], 1.0),
+                ),
+            )
+    p1 = p0 + t[:, None] * d
+    long_enough = np.linalg.norm(p1 - p0, axis=1) >= 15
+    keep = inside & long_enough
+    # Drop ambiguous corners: another corner's ground point inside the
+    # inlier ellipse of this segment's bottom (even if it is not drawn).
+    unit = d / np.linalg.norm(d, axis=1, keepdims=True)
+    normal = np.column_stack([-unit[:, 1], unit[:, 0]])
+    for i in np.flatnonzero(keep):
+        q = p0 - p0[i]
+        across = np.abs(q @ normal[i])
+        along = np.abs(q @ unit[i])
+        near = (across < 6) & (along < 40)
+        near[i] = False
+        if near[inside].any():
+            keep[i] = False
+    true_seg = np.stack([p0[keep], p1[keep]], axis=1)
+    true_corner = vis[keep]
+    # Outliers through the VP, away from every corner's ground point.
+    vp = camera.K @ (pose.rotation @ np.array([0.0, 0.0, -1.0]))
+    vp = vp[:2] / vp[2]
+    outliers = []
+    while len(outliers) < num_outliers:
+        b = rng.uniform([0, 0], [W, H])
+        u = (b - vp) / np.linalg.norm(b - vp)
+        n_ = np.array([-u[1], u[0]])
+        q = p0[inside] - b
+        if np.any((np.abs(q @ n_) < 8) & (np.abs(q @ u) < 50)):
+            continue
+        outliers.append([b, b + u * rng.uniform(15, 80)])
+    segments = np.concatenate([true_seg, np.asarray(outliers)])
+    order = rng.permutation(len(segments))
+    segments = segments[order]
+    where = np.argsort(order)  # new index of each old segment
+    pairs = {(int(c), int(where[k])) for k, c in enumerate(true_corner)}
+    if shift_building:
+        # The map (not the scene) shifts the building with most true pairs.
+        b = np.bincount(cadastre.corner_building[true_corner]).argmax()
+        polys[b] = affinity.translate(polys[b], 1.2, -0.9)
+        path2 = tmp_path / f"map_{seed}_shifted.geojson"
+        write_geojson(path2, polys, crs="EPSG:25832", properties=props)
+        cadastre = load_cadastre(path2, origin=ORIGIN)
+    return Block(cadastre, camera, pose, segments, pairs, heights)
+
+
+def perturbed_prior(
+    pose: Pose, seed: int, position_m=5.0, heading_deg=1.0, tilt_deg=0.5, datum_m=47.0
+) -> Pose:
+    rng = np.random.default_rng(seed + 100)
+    c = pose.center + np.r_[rng.normal(0, position_m, 2), datum_m + rng.normal(0, 3)]
+    R = pose.rotation @ rotation_z(math.radians(heading_deg))  # heading
+    R = rotation_from_axis_angle([math.radians(tilt_deg), 0.0, 0.0]) @ R  # tilt
+    return Pose.from_center(R, c)
+
+
+def vertical_of(pose: Pose) -> np.ndarray:
+    return pose.rotation @ np.array([0.0, 0.0, -1.0])
+
+
+def assert_pose_close(result, pose: Pose, prior: Pose, rot_deg: float, centre_m: float):
+    """Rotation and horizontal centre within tolerances; height held at the prior."""
+    assert result.success, result.message
+    est = result.cam_from_world
+    assert rotation_angle_deg(est.rotation, pose.rotation) < rot_deg
+    assert np.linalg.norm(est.center[:2] - pose.center[:2]) < centre_m
+    assert est.center[2] == pytest.approx(prior.center[2], abs=1e-9)
+    R = est.rotation
+    np.testing.assert_allclose(R @ R.T, np.eye(3), atol=1e-12)
+    assert np.linalg.det(R) == pytest.approx(1.0)
+
+
+@pytest.fixture(scope="module")
+def block(tmp_path_factory):
+    return make_block(0, tmp_path=tmp_path_factory.mktemp("reg"))
+
+
+# --------------------------------------------------------------------------
+# Minimal solver
+# --------------------------------------------------------------------------
+
+
+def random_problem(rng, B: int):
+    """B random oblique cameras, three corners each, exact lines through the VP."""
+    K = np.array([[1200.0, 0, 500], [0, 1200.0, 330], [0, 0, 1]])
+    data = []
+    for _ in range(B):
+        pose = oblique_pose(
+            np.r_[rng.uniform(-50, 50, 2), rng.uniform(150, 400)],
+            rng.uniform(0, 360),
+            rng.uniform(30, 60),
+        )
+        R = pose.rotation
+        n = R @ np.array([0.0, 0.0, -1.0])
+        # R_vanish: R with an arbitrary extra rotation about the vertical.
+        R0 = R @ rotation_z(rng.uniform(-np.pi, np.pi))
+        alpha_true = np.arctan2((R0.T @ R)[1, 0], (R0.T @ R)[0, 0])
+        ahead = pose.center[:2] + 300 * (R[2, :2] / np.linalg.norm(R[2, :2]))
+        X = np.column_stack(
+            [ahead + rng.uniform(-80, 80, (3, 2)), rng.uniform(-5, 30, 3)]
+        )
+        p = X @ R.T + pose.translation
+        q = (X + [0, 0, 10.0]) @ R.T + pose.translation
+        lines = np.cross(p @ K.T, q @ K.T)
+        lines /= np.linalg.norm(lines[:, :2], axis=1, keepdims=True)
+        m = lines @ K @ R0  # (R0^T K^T l)^T
+        mid = 0.5 * (p / p[:, 2:] + q / q[:, 2:])  # normalised midpoints
+        side = mid - (mid @ n)[:, None] * n
+        data.append((m[:, :2], X[:, :2], side, R0, alpha_true, pose.center[:2], n))
+    return data
+
+
+def test_minimal_solver_exact_random_cameras():
+    rng = np.random.default_rng(1)
+    for m, xy, side, R0, alpha, c, _ in random_problem(rng, 50):
+        ref = c + rng.uniform(-20, 20, 2)  # any reference point
+        a, cxy, valid = ransac.solve_minimal(m[None], (xy - ref)[None], R0, side[None])
+        assert valid[0]
+        assert abs(np.angle(np.exp(1j * (a[0] - alpha)))) < 1e-9
+        np.testing.assert_allclose(cxy[0] + ref, c, atol=1e-7)
+
+
+def test_minimal_solver_vectorised_matches_single():
+    rng = np.random.default_rng(2)
+    data = random_problem(rng, 20)
+    # One shared R_vanish is needed for a batch: use one camera, many samples.
+    m, xy, side, R0, alpha, c, n = data[0]
+    rows_m = np.repeat(m[None], 1000, axis=0)
+    rows_xy = np.repeat(xy[None], 1000, axis=0) - c
+    rows_side = np.repeat(side[None], 1000, axis=0)
+    a, cxy, valid = ransac.solve_minimal(rows_m, rows_xy, R0, rows_side)
+    assert valid.all()
+    np.testing.assert_allclose(a, alpha, atol=1e-9)
+    np.testing.assert_allclose(cxy, 0.0, atol=1e-7)
+
+
+def test_minimal_solver_two_signs_and_cheirality():
+    rng = np.random.default_rng(3)
+    m, xy, side, R0, alpha, c, _ = random_problem(rng, 1)[0]
+    rows = ransac.constraint_rows(m, xy - c)[None]
+    w, valid = ransac.null_vectors(rows)
+    assert valid[0]
+    np.testing.assert_allclose(rows[0] @ w[0], 0.0, atol=1e-9)
+    assert w[0, 0] ** 2 + w[0, 1] ** 2 == pytest.approx(1.0)
+    # Both signs solve the algebraic system with the same centre ...
+    for sign in (1.0, -1.0):
+        a, cxy = ransac.pose_parameters(sign * w)
+        np.testing.assert_allclose(cxy[0], 0.0, atol=1e-7)
+    # ... and cheirality keeps the true one, whatever sign came out.
+    for sign in (1.0, -1.0):
+        w2, ok = ransac.choose_sign(sign * w, valid, R0, (xy - c)[None], side[None])
+        a, _ = ransac.pose_parameters(w2)
+        assert ok[0]
+        assert abs(np.angle(np.exp(1j * (a[0] - alpha)))) < 1e-9
+    # Segments on the wrong side for one pair only: inconsistent sample.
+    bad = side.copy()
+    bad[0] *= -1
+    _, ok = ransac.choose_sign(w, valid, R0, (xy - c)[None], bad[None])
+    assert not ok[0]
+
+
+def test_minimal_solver_degenerate_samples():
+    rng = np.random.default_rng(4)
+    m, xy, side, R0, _, c, _ = random_problem(rng, 1)[0]
+    m2, xy2 = m.copy(), xy.copy()
+    m2[2], xy2[2] = m2[1], xy2[1]  # a repeated pair
+    _, _, valid = ransac.solve_minimal(m2[None], (xy2 - c)[None], R0, side[None])
+    assert not valid[0]
+    with pytest.raises(ValueError, match="rows must be"):
+        ransac.null_vectors(np.zeros((2, 4, 4)))
+
+
+@pytest.mark.parametrize(
+    ("inlier_ratio", "expected"),
+    # Hartley & Zisserman, table 4.3 (p = 0.99, s = 3).
+    [(0.95, 3), (0.9, 4), (0.8, 7), (0.75, 9), (0.7, 11), (0.6, 19), (0.5, 35)],
+)
+def test_required_trials_textbook(inlier_ratio, expected):
+    assert ransac.required_trials(inlier_ratio, 3, 0.99) == expected
+
+
+def test_required_trials_paper_and_limits():
+    # The paper: ~6.5 % inliers need about 20k samples of 3.
+    assert 15_000 < ransac.required_trials(0.065, 3, 0.99) < 20_000
+    assert ransac.required_trials(0.0) == math.inf
+    assert ransac.required_trials(1.0) == 1
+    with pytest.raises(ValueError):
+        ransac.required_trials(0.5, 3, 1.0)
+
+
+def test_sample_pairs_distinct_and_deterministic():
+    corner = np.array([0, 0, 1, 2, 3, 3, 4])
+    segment = np.array([0, 1, 1, 2, 3, 4, 5])
+    a = ransac.sample_pairs(np.random.default_rng(5), 500, corner, segment)
+    b = ransac.sample_pairs(np.random.default_rng(5), 500, corner, segment)
+    np.testing.assert_array_equal(a, b)
+    assert len(a) > 0
+    for s in a:
+        assert len(set(corner[s])) == 3 and len(set(segment[s])) == 3
+
+
+# --------------------------------------------------------------------------
+# The stage on exact synthetic correspondences
+# --------------------------------------------------------------------------
+
+
+def test_register_exact_with_outliers_recovers_pose_and_inlier_set(block):
+    prior = perturbed_prior(block.pose, 0)
+    assert len(block.pairs) >= 30
+    result = register_image(
+        block.segments,
+        vertical_of(block.pose),
+        block.camera,
+        prior,
+        block.cadastre,
+        segments_undistorted=True,
+    )
+    assert_pose_close(result, block.pose, prior, TOL_EXACT_DEG, TOL_EXACT_M)
+    assert {tuple(p) for p in result.inlier_pairs.tolist()} == block.pairs
+    assert result.num_inliers == len(block.pairs)
+    assert result.residual_rms_px < 1e-6
+    # The height plane is the terrain in the prior's datum (c_z shifted).
+    dz = prior.center[2] - block.pose.center[2]
+    a, b, c = result.height_plane
+    np.testing.assert_allclose([a, b, c], [0.01, -0.005, 3.0 + dz], atol=1e-5)
+    assert result.ground_height == pytest.approx(3.0 + dz, abs=15.0)
+    assert result.num_candidates >= result.num_inliers
+    assert result.num_trials > 0 and 0 < result.inlier_ratio <= 1
+    assert set(result.timings) >= {"ground", "coarse", "ransac", "refine", "total"}
+
+
+def test_register_deterministic_for_a_seed(block):
+    prior = perturbed_prior(block.pose, 1)
+    n = vertical_of(block.pose)
+    opts = RegistrationOptions(seed=3)
+    r1 = register_image(
+        block.segments,
+        n,
+        block.camera,
+        prior,
+        block.cadastre,
+        opts,
+        segments_undistorted=True,
+    )
+    r2 = register_image(
+        block.segments,
+        n,
+        block.camera,
+        prior,
+        block.cadastre,
+        opts,
+        segments_undistorted=True,
+    )
+    np.testing.assert_array_equal(
+        r1.cam_from_world.matrix(), r2.cam_from_world.matrix()
+    )
+    np.testing.assert_array_equal(r1.inlier_pairs, r2.inlier_pairs)
+    assert r1.num_trials == r2.num_trials
+
+
+def test_register_with_noise_matches_noise(block):
+    rng = np.random.default_rng(7)
+    sigma = 0.3
+    noisy = block.segments + rng.normal(0, sigma, block.segments.shape)
+    prior = perturbed_prior(block.pose, 2)
+    result = register_image(
+        noisy,
+        vertical_of(block.pose),
+        block.camera,
+        prior,
+        block.cadastre,
+        segments_undistorted=True,
+    )
+    assert_pose_close(result, block.pose, prior, 0.05, 0.6)
+    # Residuals of the size of the endpoint noise: too small would be a bug.
+    assert 0.5 * sigma < result.residual_rms_px < 1.5 * sigma
+    found = {tuple(p) for p in result.inlier_pairs.tolist()}
+    assert len(found & block.pairs) >= 0.9 * len(block.pairs)
+    assert len(found - block.pairs) <= 2
+
+
+def test_register_ignores_a_shifted_building(tmp_path):
+    blk = make_block(1, shift_building=True, tmp_path=tmp_path)
+    prior = perturbed_prior(blk.pose, 3)
+    result = register_image(
+        blk.segments,
+        vertical_of(blk.pose),
+        blk.camera,
+        prior,
+        blk.cadastre,
+        segments_undistorted=True,
+    )
+    assert_pose_close(result, blk.pose, prior, TOL_EXACT_DEG, TOL_EXACT_M)
+    b = np.bincount(blk.cadastre.corner_building[[c for c, _ in blk.pairs]]).argmax()
+    inlier_buildings = blk.cadastre.corner_building[result.inlier_pairs[:, 0]]
+    assert b not in set(inlier_buildings.tolist())
+
+
+def test_register_large_prior_error(block):
+    prior = perturbed_prior(block.pose, 4, position_m=20.0, heading_deg=3.0)
+    opts = RegistrationOptions(
+        prior_position_sigma_m=20.0,
+        prior_rotation_sigma_deg=3.0,
+        num_candidates_verified=16,
+    )
+    result = register_image(
+        block.segments,
+        vertical_of(block.pose),
+        block.camera,
+        prior,
+        block.cadastre,
+        opts,
+        segments_undistorted=True,
+    )
+    assert_pose_close(result, block.pose, prior, TOL_EXACT_DEG, TOL_EXACT_M)
+
+
+def test_register_without_vp_uses_and_refines_the_prior_vertical(block):
+    prior = perturbed_prior(block.pose, 5, tilt_deg=0.4)
+    result = register_image(
+        block.segments,
+        None,
+        block.camera,
+        prior,
+        block.cadastre,
+        segments_undistorted=True,
+    )
+    assert result.success, result.message
+    assert result.vertical_source == "refined"
+    assert (
+        rotation_angle_deg(result.cam_from_world.rotation, block.pose.rotation) < 0.05
+    )
+
+
+def test_register_with_known_ground_height(block):
+    prior = perturbed_prior(block.pose, 6)
+    dz = prior.center[2] - block.pose.center[2]
+    opts = RegistrationOptions(ground_height=3.0 + dz)
+    result = register_image(
+        block.segments,
+        vertical_of(block.pose),
+        block.camera,
+        prior,
+        block.cadastre,
+        opts,
+        segments_undistorted=True,
+    )
+    assert_pose_close(result, block.pose, prior, TOL_EXACT_DEG, TOL_EXACT_M)
+
+
+def test_register_distorted_segments_are_undistorted(block):
+    cam = Camera("RADIAL", 1000, 667, [1000.0, 500.0, 333.5, -0.05, 0.01])
+    seg = block.segments.reshape(-1, 2)
+    uv = (seg - [500.0, 333.5]) / 1000.0
+    distorted = cam.img_from_cam(np.column_stack([uv, np.ones(len(uv))]))
+    prior = perturbed_prior(block.pose, 7)
+    result = register_image(
+        distorted.reshape(-1, 2, 2), vertical_of(block.pose), cam, prior, block.cadastre
+    )
+    assert_pose_close(result, block.pose, prior, 1e-5, 1e-3)
+
+
+# --------------------------------------------------------------------------
+# Failures are values
+# --------------------------------------------------------------------------
+
+
+def test_too_few_segments_fails_with_message(block):
+    prior = perturbed_prior(block.pose, 8)
+    result = register_image(
+        block.segments[:3],
+        vertical_of(block.pose),
+        block.camera,
+        prior,
+        block.cadastre,
+        segments_undistorted=True,
+    )
+    assert not result.success and not result
+    assert "too few vertical segments" in result.message
+    assert result.cam_from_world is prior
+
+
+def test_no_consensus_fails_with_message(block):
+    prior = perturbed_prior(block.pose, 9)
+    rng = np.random.default_rng(0)
+    junk = rng.uniform(0, 600, (40, 2, 2))  # not vertical at all
+    junk[:, 1] = junk[:, 0] + [0.0, 40.0]
+    result = register_image(
+        junk,
+        vertical_of(block.pose),
+        block.camera,
+        prior,
+        block.cadastre,
+        segments_undistorted=True,
+    )
+    assert not result.success
+    assert "segments" in result.message or "consensus" in result.message
+
+
+def test_map_out_of_view_fails(block):
+    far = Pose.from_center(block.pose.rotation, block.pose.center + [5000.0, 0, 0])
+    result = register_image(
+        block.segments,
+        vertical_of(block.pose),
+        block.camera,
+        far,
+        block.cadastre,
+        segments_undistorted=True,
+    )
+    assert not result.success
+    assert result.message
+
+
+@pytest.mark.parametrize(
+    ("segments", "n", "match"),
+    [
+        (np.zeros((5, 2)), None, "segments_px must be"),
+        (np.zeros((5, 2, 2)), [0.0, 0.0, 0.0], "vertical_direction_cam"),
+        (np.zeros((5, 2, 2)), [np.nan, 1.0, 0.0], "vertical_direction_cam"),
+    ],
+)
+def test_bad_input_raises(block, segments, n, match):
+    with pytest.raises(ValueError, match=match):
+        register_image(segments, n, block.camera, block.pose, block.cadastre)
+
+
+def test_options_validate():
+    with pytest.raises(ValueError, match="inlier_threshold_px"):
+        RegistrationOptions(inlier_threshold_px=0.0)
+    with pytest.raises(ValueError, match="refine_vertical"):
+        RegistrationOptions(refine_vertical="sometimes")
+    with pytest.raises(ValueError, match="confidence"):
+        RegistrationOptions(confidence=1.0)
+    with pytest.raises(TypeError):
+        RegistrationOptions(0.5)  # keyword-only
+
+
+def test_overlay_draws_before_and_after(block):
+    prior = perturbed_prior(block.pose, 0)
+    result = register_image(
+        block.segments,
+        vertical_of(block.pose),
+        block.camera,
+        prior,
+        block.cadastre,
+        segments_undistorted=True,
+    )
+    image = np.full((block.camera.height, block.camera.width), 128, np.uint8)
+    out = draw_registration_overlay(image, block.cadastre, block.camera, prior, result)
+    assert out.shape == (block.camera.height, block.camera.width, 3)
+    assert out.dtype == np.uint8
+    red = (out[..., 2] > 200) & (out[..., 1] < 100)
+    green = (out[..., 1] > 200) & (out[..., 2] < 100)
+    assert red.sum() > 500 and green.sum() > 500
+    assert np.all(image == 128)  # input untouched
