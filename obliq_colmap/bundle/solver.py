@@ -1,0 +1,793 @@
+"""Global cadastral-line bundle adjustment (paper section 2.3, eq. 3).
+
+Unknowns: per image the 6 extrinsics (rotation, camera centre), per camera
+(COLMAP camera_id, shared by all images of one head) the refined intrinsic
+parameters, and scalar heights: one per facade-edge constraint j (``h_j``)
+and, by default, one per map corner (``h_i``, shared by the corner's
+observations in all images).
+
+Residuals (see :mod:`obliq_colmap.bundle.residuals`, all in pixels):
+
+* vertical: signed distance of the projected corner ``(x_i, y_i, h_i)`` to
+  the detected vertical image line;
+* horizontal: ``dist_z``, the distance of the projected facade point
+  ``(x_j, y_j, h_j)`` to the detected horizontal line, measured along the
+  projected vertical.
+
+Robust loss by IRLS weights ``rho'(r^2)`` (Huber or Cauchy, scale in pixels);
+the cost is ``1/2 sum rho(r^2)`` (plus the optional corner-height prior),
+the same as Ceres' with the same loss.
+
+Algorithm (Levenberg-Marquardt with the heights eliminated):
+
+1. Evaluate residuals and analytic Jacobians, vectorised per camera model.
+2. Normal equations in the camera block C (6 per image + refined intrinsics
+   per camera, dense: a few hundred unknowns) and the height block h, which
+   is DIAGONAL because every residual touches at most one height.
+3. Marquardt damping ``H + lambda * clip(diag H, 1e-6, 1e32)`` on both blocks.
+4. Schur complement ``S = H_CC - E^T D_h^-1 E`` (E: sparse height-camera
+   coupling), dense solve of S with the gauge constraints (below) as a KKT
+   system, back-substitution of the heights.
+5. Accept the step if the robust cost decreases (gain ratio > 1e-3);
+   Nielsen's update of lambda.
+
+Gauge: the map fixes x, y, heading and scale; only the vertical datum is
+free (all heights and the camera centres of a group of linked images shift
+together). Images are linked when they share a height unknown (union-find
+via connected components of the image-height graph). For each component one
+hard linear constraint keeps the mean camera-centre height of its images at
+its initial value (``gauge="component_mean_camera_height"``). Components are
+reported in the summary.
+
+Free corner heights are almost unobservable (the whole vertical edge
+projects onto the same line at the true pose), so an optional weak prior
+``(h_i - h_i0) / sigma`` keeps them at their initial value unless the data
+say otherwise; at the true pose it costs nothing.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+import scipy.sparse as sp
+from scipy.sparse.csgraph import connected_components
+
+from ..geometry import Camera, Pose
+from . import residuals as res
+
+__all__ = [
+    "BundleOptions",
+    "BundleProblem",
+    "BundleResult",
+    "BundleSummary",
+    "image_components",
+    "solve_bundle",
+]
+
+logger = logging.getLogger(__name__)
+
+LOSSES = ("huber", "cauchy", "none")
+CORNER_HEIGHT_MODES = ("free", "fixed")
+GAUGES = ("component_mean_camera_height", "none")
+
+
+# --------------------------------------------------------------------------
+# Data
+# --------------------------------------------------------------------------
+
+
+@dataclass(kw_only=True)
+class BundleOptions:
+    """Options of :func:`solve_bundle`."""
+
+    #: Robust loss on each residual: "huber", "cauchy" or "none".
+    loss: str = "huber"
+    #: Scale of the robust loss, pixels (residuals below it count fully).
+    loss_scale_px: float = 2.0
+    #: Maximum number of Levenberg-Marquardt iterations (accepted or not).
+    max_iterations: int = 100
+    #: Stop when an accepted step lowers the cost by less than this fraction.
+    function_tolerance: float = 1e-8
+    #: Stop when |step| <= tol * (|x| + tol), x = centres, intrinsics, heights.
+    parameter_tolerance: float = 1e-8
+    #: Refine the focal length(s) of every camera.
+    refine_focal_length: bool = True
+    #: Refine the principal point of every camera.
+    refine_principal_point: bool = True
+    #: Refine the distortion parameters of every camera.
+    refine_extra_params: bool = False
+    #: "free": one unknown height per map corner, shared by its observations
+    #: in all images; "fixed": corners at ``BundleProblem.corner_heights``.
+    corner_heights: str = "free"
+    #: Standard deviation, metres, of a weak prior pulling free corner heights
+    #: towards their initial values (None: no prior). 1 px of cost per sigma.
+    corner_height_prior_m: float | None = 5.0
+    #: Vertical datum: "component_mean_camera_height" (per linked component,
+    #: hard constraint) or "none" (rank-deficient; damping only).
+    gauge: str = "component_mean_camera_height"
+    #: Gauss-Newton steps on the heights alone (cameras fixed) before the
+    #: joint solve; 0 disables.
+    height_initialisation_steps: int = 3
+    #: Initial Marquardt damping factor lambda.
+    initial_damping: float = 1e-4
+    #: BLAS threads inside the solver (threadpoolctl); None leaves it alone.
+    blas_threads: int | None = 1
+
+    def __post_init__(self) -> None:
+        for name, value, allowed in (
+            ("loss", self.loss, LOSSES),
+            ("corner_heights", self.corner_heights, CORNER_HEIGHT_MODES),
+            ("gauge", self.gauge, GAUGES),
+        ):
+            if value not in allowed:
+                raise ValueError(
+                    f"BundleOptions.{name}={value!r}; allowed: {', '.join(allowed)}"
+                )
+        if self.loss_scale_px <= 0:
+            raise ValueError(f"loss_scale_px must be > 0, got {self.loss_scale_px}")
+        if self.corner_height_prior_m is not None and self.corner_height_prior_m <= 0:
+            raise ValueError("corner_height_prior_m must be > 0 or None")
+
+
+def _as(a, shape_tail: tuple[int, ...], name: str, dtype=float) -> np.ndarray:
+    arr = np.asarray(a, dtype=dtype)
+    if arr.ndim != 1 + len(shape_tail) or arr.shape[1:] != shape_tail:
+        want = ", ".join(["N", *map(str, shape_tail)])
+        raise ValueError(f"{name} must have shape ({want}), got {arr.shape}")
+    return arr
+
+
+@dataclass(kw_only=True)
+class BundleProblem:
+    """Plain-data input of the bundle; positions in the local map frame (metres).
+
+    Attributes
+    ----------
+    cameras : dict camera_id -> Camera
+        Initial intrinsics; one camera per physical head.
+    poses : dict image_id -> Pose
+        Initial ``cam_from_world`` of every image.
+    image_camera : dict image_id -> camera_id
+    image_ids : sequence of int, optional
+        Order of images for the ``*_image`` index arrays; default ``sorted(poses)``.
+    corner_xy : (C, 2) array
+        Map corner positions.
+    corner_heights : (C,) array
+        Initial heights of the corners (reference heights when fixed), metres.
+    vertical_image, vertical_corner : (M,) int arrays
+        Image (index into ``image_ids``) and corner of each vertical constraint.
+    vertical_line : (M, 3) array
+        Homogeneous vertical image line (pixels) of each.
+    facade_heights : (J,) array
+        Initial heights ``h_j`` of the facade-edge constraints, metres.
+    horizontal_image, horizontal_height : (H,) int arrays
+        Image index and facade-height index of each horizontal constraint.
+    horizontal_anchor_xy : (H, 2) array
+        Map-edge anchor ``(x, y)`` of each (the edge centre), metres.
+    horizontal_line : (H, 3) array
+        Homogeneous horizontal image line (pixels) of each.
+    """
+
+    cameras: dict[int, Camera]
+    poses: dict[int, Pose]
+    image_camera: dict[int, int]
+    corner_xy: np.ndarray
+    corner_heights: np.ndarray
+    vertical_image: np.ndarray
+    vertical_corner: np.ndarray
+    vertical_line: np.ndarray
+    facade_heights: np.ndarray
+    horizontal_image: np.ndarray
+    horizontal_height: np.ndarray
+    horizontal_anchor_xy: np.ndarray
+    horizontal_line: np.ndarray
+    image_ids: tuple[int, ...] | None = None
+
+    def __post_init__(self) -> None:
+        if self.image_ids is None:
+            self.image_ids = tuple(sorted(self.poses))
+        self.image_ids = tuple(int(i) for i in self.image_ids)
+        missing = [i for i in self.image_ids if i not in self.poses]
+        if missing:
+            raise ValueError(f"image_ids without a pose: {missing[:10]}")
+        bad = [
+            i for i in self.image_ids if self.image_camera.get(i) not in self.cameras
+        ]
+        if bad:
+            raise ValueError(f"images without a known camera: {bad[:10]}")
+        self.corner_xy = _as(self.corner_xy, (2,), "corner_xy")
+        self.corner_heights = _as(self.corner_heights, (), "corner_heights")
+        self.vertical_image = _as(self.vertical_image, (), "vertical_image", np.int64)
+        self.vertical_corner = _as(
+            self.vertical_corner, (), "vertical_corner", np.int64
+        )
+        self.vertical_line = _as(self.vertical_line, (3,), "vertical_line")
+        self.facade_heights = _as(self.facade_heights, (), "facade_heights")
+        self.horizontal_image = _as(
+            self.horizontal_image, (), "horizontal_image", np.int64
+        )
+        self.horizontal_height = _as(
+            self.horizontal_height, (), "horizontal_height", np.int64
+        )
+        self.horizontal_anchor_xy = _as(
+            self.horizontal_anchor_xy, (2,), "horizontal_anchor_xy"
+        )
+        self.horizontal_line = _as(self.horizontal_line, (3,), "horizontal_line")
+        nc, ni, nj = len(self.corner_xy), len(self.image_ids), len(self.facade_heights)
+        checks = [
+            ("corner_heights", len(self.corner_heights) == nc),
+            ("vertical_corner", len(self.vertical_corner) == len(self.vertical_image)),
+            ("vertical_line", len(self.vertical_line) == len(self.vertical_image)),
+            (
+                "horizontal_height",
+                len(self.horizontal_height) == len(self.horizontal_image),
+            ),
+            (
+                "horizontal_anchor_xy",
+                len(self.horizontal_anchor_xy) == len(self.horizontal_image),
+            ),
+            (
+                "horizontal_line",
+                len(self.horizontal_line) == len(self.horizontal_image),
+            ),
+        ]
+        for name, ok in checks:
+            if not ok:
+                raise ValueError(f"{name} has the wrong length")
+        for name, idx, n in (
+            ("vertical_image", self.vertical_image, ni),
+            ("vertical_corner", self.vertical_corner, nc),
+            ("horizontal_image", self.horizontal_image, ni),
+            ("horizontal_height", self.horizontal_height, nj),
+        ):
+            if len(idx) and (idx.min() < 0 or idx.max() >= n):
+                raise ValueError(f"{name} out of range [0, {n})")
+        for name, lines in (
+            ("vertical_line", self.vertical_line),
+            ("horizontal_line", self.horizontal_line),
+        ):
+            if len(lines) and np.any(np.linalg.norm(lines[:, :2], axis=1) == 0):
+                raise ValueError(f"{name} has lines with a = b = 0")
+
+
+@dataclass
+class BundleSummary:
+    """What happened in one solve; ``brief()`` gives a one-line report."""
+
+    initial_cost: float
+    final_cost: float
+    initial_rmse_vertical_px: float
+    final_rmse_vertical_px: float
+    initial_rmse_horizontal_px: float
+    final_rmse_horizontal_px: float
+    num_iterations: int
+    num_successful_steps: int
+    time_s: float
+    termination: str
+    converged: bool
+    #: Linked image groups (image ids); each has its own vertical datum.
+    components: list[tuple[int, ...]]
+    num_vertical: int
+    num_horizontal: int
+    num_heights: int
+    num_camera_params: int
+
+    def brief(self) -> str:
+        return (
+            f"bundle: {self.num_vertical} vertical + {self.num_horizontal} horizontal"
+            f" residuals, {self.num_camera_params} camera params, {self.num_heights}"
+            f" heights, {len(self.components)} component(s); cost"
+            f" {self.initial_cost:.6g} -> {self.final_cost:.6g}; RMSE px vertical"
+            f" {self.initial_rmse_vertical_px:.4g} ->"
+            f" {self.final_rmse_vertical_px:.4g},"
+            f" horizontal {self.initial_rmse_horizontal_px:.4g} ->"
+            f" {self.final_rmse_horizontal_px:.4g}; {self.num_iterations} iterations,"
+            f" {self.time_s:.3f} s, {self.termination}"
+        )
+
+
+@dataclass
+class BundleResult:
+    """Refined unknowns, final residuals and the summary.
+
+    Attributes
+    ----------
+    cameras : dict camera_id -> Camera (copies, refined).
+    poses : dict image_id -> Pose (refined ``cam_from_world``).
+    facade_heights : (J,) array, metres.
+    corner_heights : (C,) array, metres (the input values when fixed).
+    vertical_residuals_px : (M,) final residuals in the problem's order.
+    horizontal_residuals_px : (H,) final residuals in the problem's order.
+    summary : BundleSummary
+    """
+
+    cameras: dict[int, Camera]
+    poses: dict[int, Pose]
+    facade_heights: np.ndarray
+    corner_heights: np.ndarray
+    vertical_residuals_px: np.ndarray
+    horizontal_residuals_px: np.ndarray
+    summary: BundleSummary = field(repr=False)
+
+
+# --------------------------------------------------------------------------
+# Loss
+# --------------------------------------------------------------------------
+
+
+def _loss(kind: str, scale: float, r2: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """rho(r^2) and rho'(r^2) (Ceres' conventions, rho(s) = s for small s)."""
+    if kind == "none":
+        return r2, np.ones_like(r2)
+    b = scale * scale
+    if kind == "huber":
+        big = r2 > b
+        sq = np.sqrt(np.where(big, r2, b))
+        return np.where(big, 2.0 * scale * sq - b, r2), np.where(big, scale / sq, 1.0)
+    # cauchy
+    return b * np.log1p(r2 / b), 1.0 / (1.0 + r2 / b)
+
+
+# --------------------------------------------------------------------------
+# Components
+# --------------------------------------------------------------------------
+
+
+def image_components(
+    num_images: int, image_index: np.ndarray, height_index: np.ndarray
+) -> tuple[int, np.ndarray]:
+    """Connected components of images linked by shared height unknowns.
+
+    Parameters
+    ----------
+    num_images : int
+    image_index, height_index : (N,) int arrays
+        One entry per residual that touches a height (image, height index).
+
+    Returns
+    -------
+    num_components : int
+    labels : (num_images,) int array, component of each image, 0-based,
+        numbered in order of first appearance.
+    """
+    image_index = np.asarray(image_index, np.int64)
+    height_index = np.asarray(height_index, np.int64)
+    nh = int(height_index.max()) + 1 if len(height_index) else 0
+    n = num_images + nh
+    g = sp.coo_matrix(
+        (np.ones(len(image_index)), (image_index, num_images + height_index)),
+        shape=(n, n),
+    )
+    _, labels = connected_components(g, directed=False)
+    labels = labels[:num_images]
+    _, first, inv = np.unique(labels, return_index=True, return_inverse=True)
+    order = np.argsort(np.argsort(first))
+    labels = order[inv]
+    return int(labels.max()) + 1 if num_images else 0, labels
+
+
+# --------------------------------------------------------------------------
+# Solver
+# --------------------------------------------------------------------------
+
+
+class _Setup:
+    """Static layout: residual order, parameter columns, groups, gauge."""
+
+    def __init__(self, problem: BundleProblem, options: BundleOptions) -> None:
+        P, opts = problem, options
+        self.image_ids = P.image_ids
+        K = len(P.image_ids)
+        self.camera_ids = sorted({P.image_camera[i] for i in P.image_ids})
+        cam_slot = {cid: s for s, cid in enumerate(self.camera_ids)}
+        self.img_cam = np.array([cam_slot[P.image_camera[i]] for i in P.image_ids])
+        nv, nh = len(P.vertical_image), len(P.horizontal_image)
+        free = opts.corner_heights == "free"
+        nJ = len(P.facade_heights)
+
+        # Residuals: vertical then horizontal, then sorted by image (stable).
+        img = np.concatenate([P.vertical_image, P.horizontal_image])
+        kind = np.concatenate([np.zeros(nv, np.int8), np.ones(nh, np.int8)])
+        xy = np.concatenate([P.corner_xy[P.vertical_corner], P.horizontal_anchor_xy])
+        line = np.concatenate([P.vertical_line, P.horizontal_line])
+        line = line / np.linalg.norm(line[:, :2], axis=1, keepdims=True)
+        hidx = np.concatenate(
+            [nJ + P.vertical_corner if free else np.full(nv, -1), P.horizontal_height]
+        )
+        zfix = np.concatenate([P.corner_heights[P.vertical_corner], np.zeros(nh)])
+        order = np.argsort(img, kind="stable")
+        self.order = order
+        self.nv, self.nh = nv, nh
+        self.img, self.kind, self.xy = img[order], kind[order], xy[order]
+        self.line, self.hidx, self.zfix = line[order], hidx[order], zfix[order]
+        self.cam = self.img_cam[self.img]
+        self.n_heights = nJ + (len(P.corner_xy) if free else 0)
+        self.has_h = self.hidx >= 0
+
+        # Active images and cameras; parameter columns of the camera block.
+        counts = np.bincount(self.img, minlength=K)
+        self.active_images = np.flatnonzero(counts > 0)
+        self.img_start = np.concatenate([[0], np.cumsum(counts)])
+        col = 0
+        self.pose_col = np.full(K, -1)
+        for k in self.active_images:
+            self.pose_col[k] = col
+            col += 6
+        self.refined: list[np.ndarray] = []
+        self.intr_col = np.full(len(self.camera_ids), -1)
+        active_cams = set(self.img_cam[self.active_images].tolist())
+        for s, cid in enumerate(self.camera_ids):
+            focal, pp, extra = res.focal_principal_extra_indices(P.cameras[cid].model)
+            sel = (
+                (focal if opts.refine_focal_length else [])
+                + (pp if opts.refine_principal_point else [])
+                + (extra if opts.refine_extra_params else [])
+            )
+            sel = (
+                np.array(sorted(sel), np.int64)
+                if s in active_cams
+                else np.zeros(0, np.int64)
+            )
+            self.refined.append(sel)
+            if len(sel):
+                self.intr_col[s] = col
+                col += len(sel)
+        self.n_red = col
+        self.L = 6 + max((len(r) for r in self.refined), default=0)
+        # (N, L) global columns of each residual's camera-side Jacobian; the
+        # padding column n_red is dropped after assembly.
+        N = len(self.img)
+        cols = np.full((N, self.L), self.n_red)
+        cols[:, :6] = self.pose_col[self.img][:, None] + np.arange(6)
+        for s, sel in enumerate(self.refined):
+            m = self.cam == s
+            cols[np.ix_(m, 6 + np.arange(len(sel)))] = self.intr_col[s] + np.arange(
+                len(sel)
+            )
+        self.cols = cols
+        self.image_cols = [cols[self.img_start[k]] for k in self.active_images]
+
+        # Evaluation groups: (model, kind) -> residual indices, the group's
+        # camera slots, each residual's position among them, and per camera
+        # the group rows that belong to it.
+        self.groups = []
+        models = [P.cameras[c].model for c in self.camera_ids]
+        for model in sorted(set(models)):
+            cams = np.array([s for s, m in enumerate(models) if m == model])
+            for kd in (0, 1):
+                idx = np.flatnonzero(np.isin(self.cam, cams) & (self.kind == kd))
+                if len(idx):
+                    local = np.searchsorted(cams, self.cam[idx])
+                    per_cam = [(s, np.flatnonzero(self.cam[idx] == s)) for s in cams]
+                    self.groups.append((model, kd, idx, cams, local, per_cam))
+
+        # Components and gauge rows (over the camera block).
+        hmask = self.has_h
+        self.num_components, self.labels = image_components(
+            K, self.img[hmask], self.hidx[hmask]
+        )
+        self.components = [
+            tuple(P.image_ids[k] for k in np.flatnonzero(self.labels == c))
+            for c in range(self.num_components)
+        ]
+        rows = []
+        if opts.gauge == "component_mean_camera_height":
+            for c in range(self.num_components):
+                members = [
+                    k for k in np.flatnonzero(self.labels == c) if self.pose_col[k] >= 0
+                ]
+                if members:
+                    a = np.zeros(self.n_red)
+                    a[self.pose_col[members] + 5] = 1.0 / len(members)
+                    rows.append(a)
+        self.A = np.array(rows).reshape(-1, self.n_red)
+        # Sparse coupling pattern: height rows x camera columns.
+        self.E_rows = np.repeat(self.hidx[hmask], self.L)
+        self.E_cols = cols[hmask].ravel()
+
+
+class _State:
+    def __init__(self, R, c, params, heights):
+        self.R, self.c, self.params, self.heights = R, c, params, heights
+
+    def copy(self):
+        return _State(
+            self.R.copy(),
+            self.c.copy(),
+            [p.copy() for p in self.params],
+            self.heights.copy(),
+        )
+
+
+def _evaluate(setup: _Setup, st: _State, jac: bool):
+    """Residuals (N,) and, if jac, camera Jacobian (N, L) and height Jacobian (N,)."""
+    N = len(setup.img)
+    h = np.where(
+        setup.has_h,
+        st.heights[np.maximum(setup.hidx, 0)] if len(st.heights) else 0.0,
+        setup.zfix,
+    )
+    X = np.column_stack([setup.xy, h])
+    r = np.empty(N)
+    Jc = np.zeros((N, setup.L)) if jac else None
+    Jh = np.zeros(N) if jac else None
+    for model, kd, idx, cams, local, per_cam in setup.groups:
+        img = setup.img[idx]
+        prm = np.stack([st.params[s] for s in cams])[local]  # (n, P)
+        fn = res.vertical_residuals if kd == 0 else res.horizontal_residuals
+        out = fn(
+            model, prm, st.R[img], st.c[img], X[idx], setup.line[idx], jacobians=jac
+        )
+        r[idx] = out.residuals
+        if jac:
+            Jc[idx, :6] = out.d_pose
+            for s, rows in per_cam:
+                sel = setup.refined[s]
+                if len(sel) and len(rows):
+                    Jc[idx[rows], 6 : 6 + len(sel)] = out.d_params[rows][:, sel]
+            Jh[idx] = out.d_height
+    if jac:
+        Jh[~setup.has_h] = 0.0
+    return r, Jc, Jh
+
+
+def solve_bundle(
+    problem: BundleProblem, options: BundleOptions | None = None
+) -> BundleResult:
+    """Refine all extrinsics, intrinsics and heights of eq. 3.
+
+    Parameters
+    ----------
+    problem : BundleProblem
+    options : BundleOptions, optional
+
+    Returns
+    -------
+    BundleResult
+        Refined copies; the problem is not modified.
+
+    Raises
+    ------
+    ValueError
+        If a constrained point is behind its camera at the start.
+    """
+    options = options or BundleOptions()
+    if options.blas_threads is None:
+        return _solve(problem, options)
+    from threadpoolctl import threadpool_limits
+
+    with threadpool_limits(limits=options.blas_threads, user_api="blas"):
+        return _solve(problem, options)
+
+
+def _solve(problem: BundleProblem, opts: BundleOptions) -> BundleResult:
+    t0 = time.perf_counter()
+    P = problem
+    S = _Setup(P, opts)
+    free = opts.corner_heights == "free"
+    nJ = len(P.facade_heights)
+    heights0 = np.concatenate([P.facade_heights, P.corner_heights if free else []])
+    prior_w = (
+        1.0 / opts.corner_height_prior_m**2
+        if free and opts.corner_height_prior_m is not None
+        else 0.0
+    )
+    prior_mask = np.zeros(S.n_heights, bool)
+    prior_mask[nJ:] = prior_w > 0
+
+    st = _State(
+        np.stack([P.poses[i].rotation for i in P.image_ids]),
+        np.stack([P.poses[i].center for i in P.image_ids]),
+        [P.cameras[c].params.copy() for c in S.camera_ids],
+        heights0.copy(),
+    )
+
+    def cost_of(r: np.ndarray, heights: np.ndarray) -> float:
+        rho, _ = _loss(opts.loss, opts.loss_scale_px, r * r)
+        c = 0.5 * float(np.sum(rho))
+        if prior_w:
+            dh = (heights - heights0)[prior_mask]
+            c += 0.5 * prior_w * float(dh @ dh)
+        return c if np.isfinite(c) else np.inf
+
+    def rmse(r: np.ndarray) -> tuple[float, float]:
+        v, h = r[S.kind == 0], r[S.kind == 1]
+        f = lambda a: float(np.sqrt(np.mean(a * a))) if len(a) else float("nan")  # noqa: E731
+        return f(v), f(h)
+
+    r, Jc, Jh = _evaluate(S, st, jac=True)
+    if not np.all(np.isfinite(r)):
+        bad = np.flatnonzero(~np.isfinite(r))
+        raise ValueError(
+            f"{len(bad)} constrained points are behind their camera (or project to "
+            f"infinity) at the start, e.g. in image {P.image_ids[S.img[bad[0]]]}"
+        )
+    cost = cost_of(r, st.heights)
+    initial_cost, initial_rmse = cost, rmse(r)
+
+    # Height-only Gauss-Newton steps (cameras fixed): cheap, diagonal.
+    for _ in range(opts.height_initialisation_steps):
+        if not S.n_heights:
+            break
+        _, w = _loss(opts.loss, opts.loss_scale_px, r * r)
+        Hh = np.bincount(S.hidx[S.has_h], (w * Jh * Jh)[S.has_h], S.n_heights)
+        gh = np.bincount(S.hidx[S.has_h], (w * Jh * r)[S.has_h], S.n_heights)
+        Hh = Hh + prior_w * prior_mask
+        gh = gh + prior_w * prior_mask * (st.heights - heights0)
+        trial = st.copy()
+        trial.heights = st.heights - gh / np.maximum(Hh, 1e-12)
+        r_t, _, _ = _evaluate(S, trial, jac=False)
+        c_t = cost_of(r_t, trial.heights)
+        if not c_t < cost:
+            break
+        st, cost = trial, c_t
+        r, Jc, Jh = _evaluate(S, st, jac=True)
+
+    lam, nu = opts.initial_damping, 2.0
+    it = n_ok = 0
+    termination = "max_iterations"
+    converged = False
+    need_build = True
+    while it < opts.max_iterations:
+        it += 1
+        if need_build:
+            _, w = _loss(opts.loss, opts.loss_scale_px, r * r)
+            H_cc, g_c, H_hh, g_h, E = _normal_equations(S, Jc, Jh, r, w)
+            H_hh = H_hh + prior_w * prior_mask
+            g_h = g_h + prior_w * prior_mask * (st.heights - heights0)
+            need_build = False
+        dc, dh, D_c, D_h = _damped_step(S, H_cc, g_c, H_hh, g_h, E, lam)
+        predicted = 0.5 * (
+            lam * (dc @ (D_c * dc) + dh @ (D_h * dh)) - (g_c @ dc + g_h @ dh)
+        )
+        trial = _apply(S, st, dc, dh)
+        r_t, _, _ = _evaluate(S, trial, jac=False)
+        c_t = cost_of(r_t, trial.heights)
+        x_norm = np.sqrt(
+            np.sum(st.c[S.active_images] ** 2)
+            + sum(float(p @ p) for p in st.params)
+            + float(st.heights @ st.heights)
+        )
+        step_norm = np.sqrt(dc @ dc + dh @ dh)
+        small_step = step_norm <= opts.parameter_tolerance * (
+            x_norm + opts.parameter_tolerance
+        )
+        logger.debug(
+            "  try lam %.3g pred %.6g cost %.9g trial %.9g", lam, predicted, cost, c_t
+        )
+        if predicted <= max(opts.function_tolerance * cost, 1e-30 * len(r)):
+            termination, converged = "function_tolerance (predicted decrease)", True
+            break
+        rho = (cost - c_t) / predicted if np.isfinite(c_t) else -np.inf
+        if rho > 1e-3:
+            decrease = cost - c_t
+            st, cost, r = trial, c_t, r_t
+            n_ok += 1
+            lam *= max(1.0 / 3.0, 1.0 - (2.0 * rho - 1.0) ** 3)
+            lam = max(lam, 1e-16)
+            nu = 2.0
+            logger.debug("it %d cost %.9g lambda %.2g", it, cost, lam)
+            if decrease <= opts.function_tolerance * (cost + decrease):
+                termination, converged = "function_tolerance", True
+                break
+            if small_step:
+                termination, converged = "parameter_tolerance", True
+                break
+            r, Jc, Jh = _evaluate(S, st, jac=True)
+            need_build = True
+        else:
+            if small_step:
+                termination, converged = "parameter_tolerance", True
+                break
+            lam *= nu
+            nu *= 2.0
+            if lam > 1e16:
+                termination = "no further decrease (damping > 1e16)"
+                break
+
+    final_rmse = rmse(r)
+    r_problem = np.empty_like(r)
+    r_problem[S.order] = r
+    cameras = {}
+    for s, cid in enumerate(S.camera_ids):
+        c0 = P.cameras[cid]
+        cameras[cid] = Camera(c0.model, c0.width, c0.height, st.params[s], c0.camera_id)
+    for cid, cam in P.cameras.items():
+        cameras.setdefault(
+            cid, Camera(cam.model, cam.width, cam.height, cam.params, cam.camera_id)
+        )
+    poses = {
+        iid: Pose.from_center(st.R[k], st.c[k]) for k, iid in enumerate(P.image_ids)
+    }
+    summary = BundleSummary(
+        initial_cost=initial_cost,
+        final_cost=cost,
+        initial_rmse_vertical_px=initial_rmse[0],
+        final_rmse_vertical_px=final_rmse[0],
+        initial_rmse_horizontal_px=initial_rmse[1],
+        final_rmse_horizontal_px=final_rmse[1],
+        num_iterations=it,
+        num_successful_steps=n_ok,
+        time_s=time.perf_counter() - t0,
+        termination=termination,
+        converged=converged,
+        components=S.components,
+        num_vertical=S.nv,
+        num_horizontal=S.nh,
+        num_heights=S.n_heights,
+        num_camera_params=S.n_red,
+    )
+    logger.info(summary.brief())
+    return BundleResult(
+        cameras=cameras,
+        poses=poses,
+        facade_heights=st.heights[:nJ].copy(),
+        corner_heights=st.heights[nJ:].copy() if free else P.corner_heights.copy(),
+        vertical_residuals_px=r_problem[: S.nv],
+        horizontal_residuals_px=r_problem[S.nv :],
+        summary=summary,
+    )
+
+
+def _normal_equations(S: _Setup, Jc, Jh, r, w):
+    """Blocks of J^T W J and J^T W r: dense camera block, diagonal heights, sparse E."""
+    n = S.n_red + 1
+    H_cc = np.zeros((n, n))
+    g_c = np.zeros(n)
+    wJ = Jc * w[:, None]
+    for k, cols in zip(S.active_images, S.image_cols, strict=True):
+        a, b = S.img_start[k], S.img_start[k + 1]
+        H_cc[np.ix_(cols, cols)] += Jc[a:b].T @ wJ[a:b]
+        g_c[cols] += wJ[a:b].T @ r[a:b]
+    m = S.has_h
+    H_hh = np.bincount(S.hidx[m], (w * Jh * Jh)[m], S.n_heights)
+    g_h = np.bincount(S.hidx[m], (w * Jh * r)[m], S.n_heights)
+    vals = (wJ[m] * Jh[m, None]).ravel()
+    E = sp.csr_matrix((vals, (S.E_rows, S.E_cols)), shape=(S.n_heights, n))
+    return H_cc[:-1, :-1], g_c[:-1], H_hh, g_h, E[:, :-1].tocsr()
+
+
+def _damped_step(S: _Setup, H_cc, g_c, H_hh, g_h, E, lam):
+    """Solve the damped normal equations by the Schur complement on the heights."""
+    D_c = np.clip(np.diag(H_cc), 1e-6, 1e32)
+    D_h = np.clip(H_hh, 1e-6, 1e32)
+    dinv = 1.0 / (H_hh + lam * D_h)
+    if S.n_heights:
+        Es = sp.diags(np.sqrt(dinv)) @ E
+        schur = (Es.T @ Es).toarray()
+        rhs = -g_c + E.T @ (dinv * g_h)
+    else:
+        schur = 0.0
+        rhs = -g_c
+    A_red = H_cc - schur
+    A_red[np.diag_indices_from(A_red)] += lam * D_c
+    ng = len(S.A)
+    if ng:
+        n = S.n_red
+        kkt = np.zeros((n + ng, n + ng))
+        kkt[:n, :n] = A_red
+        kkt[:n, n:] = S.A.T
+        kkt[n:, :n] = S.A
+        sol = np.linalg.solve(kkt, np.concatenate([rhs, np.zeros(ng)]))
+        dc = sol[:n]
+    else:
+        dc = np.linalg.solve(A_red, rhs)
+    dh = -dinv * (g_h + E @ dc) if S.n_heights else np.zeros(0)
+    return dc, dh, D_c, D_h
+
+
+def _apply(S: _Setup, st: _State, dc: np.ndarray, dh: np.ndarray) -> _State:
+    """New state: R <- Exp(omega) R, c <- c + dc, params += d, heights += dh."""
+    new = st.copy()
+    k = S.active_images
+    blocks = dc[S.pose_col[k][:, None] + np.arange(6)]  # (K_active, 6)
+    new.R[k] = res.rotation_exp(blocks[:, :3]) @ st.R[k]
+    new.c[k] = st.c[k] + blocks[:, 3:]
+    for s, sel in enumerate(S.refined):
+        if len(sel):
+            new.params[s][sel] += dc[S.intr_col[s] + np.arange(len(sel))]
+    new.heights = st.heights + dh
+    return new
