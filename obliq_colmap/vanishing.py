@@ -993,8 +993,14 @@ def estimate_vertical_vp(
         )
         return result
     k = int(inl.sum())
+    # Background model: every long-enough segment has a uniform orientation
+    # (deviation from the line to the VP uniform in [0, pi/2]). The prior only
+    # limits where hypotheses may lie (fewer tests); using the candidates'
+    # narrow orientation band as the chance range would make a strong pencil
+    # of 400 verticals look like chance under a tight INS cone.
+    long_enough = segments.lengths[segments.lengths >= options.min_length_px * factor]
     p_chance = np.minimum(
-        1.0, np.arcsin(np.minimum(1.0, thr_px / (0.5 * length))) / half_range[idx]
+        1.0, np.arcsin(np.minimum(1.0, thr_px / (0.5 * long_enough))) / (np.pi / 2)
     )
     sig = _significance(k, p_chance, len(idx) * (len(idx) - 1) / 2)
 
