@@ -266,7 +266,9 @@ def to_reconstruction(block: Block, points3D: list[Point3D] | None = None):
     return rec
 
 
-def _check_output_path(output_path: Path) -> None:
+def check_output_path(output_path: Path) -> None:
+    """Raise InputError unless ``output_path`` is absent or an empty folder."""
+    output_path = Path(output_path)
     if output_path.exists():
         if not output_path.is_dir():
             raise InputError(output_path, "output path exists and is not a folder")
@@ -291,7 +293,7 @@ class AtomicFolder:
 
     def __init__(self, path: str | Path) -> None:
         self.path = Path(path).absolute()
-        _check_output_path(self.path)
+        check_output_path(self.path)
         self.tmp: Path | None = None
 
     def __enter__(self) -> Path:
@@ -305,7 +307,7 @@ class AtomicFolder:
         if exc_type is not None:
             shutil.rmtree(self.tmp, ignore_errors=True)
             return
-        _check_output_path(self.path)  # nobody wrote there meanwhile
+        check_output_path(self.path)  # nobody wrote there meanwhile
         os.chmod(self.tmp, 0o755)
         # rename(2) replaces an empty directory atomically.
         os.replace(self.tmp, self.path)

@@ -384,6 +384,36 @@ class Camera:
         uv = self.cam_from_img(pixels)
         return uv @ self.K[:2, :2].T + self.K[:2, 2]
 
+    def distort_pixels(self, pixels: np.ndarray) -> np.ndarray:
+        """(N, 2) pixels of the pinhole ``K`` to (N, 2) raw (distorted) pixels.
+
+        The inverse of :meth:`undistort_pixels`.
+        """
+        px = np.asarray(pixels, float).reshape(-1, 2)
+        uv = (px - self.K[:2, 2]) / np.diag(self.K)[:2]
+        return self.img_from_cam(np.column_stack([uv, np.ones(len(uv))]))
+
+    def with_model(self, model: str) -> Camera:
+        """The same camera expressed in another COLMAP model.
+
+        Focal lengths, principal point and the distortion terms both models
+        have are kept; a single focal is the mean of fx and fy; distortion
+        terms the new model adds start at 0 (the bundle refines them) and
+        terms it lacks are dropped (the caller is warned by the pipeline).
+        """
+        fx, fy, cx, cy, k1, k2, p1, p2 = _split_params(self.model, self.params)
+        f = 0.5 * (fx + fy)
+        params = {
+            "SIMPLE_PINHOLE": [f, cx, cy],
+            "PINHOLE": [fx, fy, cx, cy],
+            "SIMPLE_RADIAL": [f, cx, cy, k1],
+            "RADIAL": [f, cx, cy, k1, k2],
+            "OPENCV": [fx, fy, cx, cy, k1, k2, p1, p2],
+        }
+        if model not in params:
+            _split_params(model, np.zeros(0))  # raises the standard message
+        return Camera(model, self.width, self.height, params[model], self.camera_id)
+
     def to_pycolmap(self):
         """As a ``pycolmap.Camera``."""
         import pycolmap

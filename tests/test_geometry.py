@@ -143,3 +143,30 @@ def test_rotation_angle_is_exact_and_vectorised():
     tiny = g.rotation_from_axis_angle([np.radians(1e-7), 0.0, 0.0])
     assert g.rotation_angle_deg(tiny, np.eye(3)) == pytest.approx(1e-7, rel=1e-6)
     assert g.rotation_angle_deg(Rs[0], Rs[0]) == 0.0
+
+
+@pytest.mark.parametrize("model", sorted(g.SUPPORTED_MODELS))
+def test_distort_pixels_inverts_undistort(model):
+    full = [1500.0, 1490.0, 1000.0, 660.0, -0.08, 0.02, 1e-4, -2e-4]
+    n_params = len(g.SUPPORTED_MODELS[model])
+    params = {
+        3: [1500.0, 1000.0, 660.0],
+        4: full[:4] if model == "PINHOLE" else [1500.0, 1000.0, 660.0, -0.08],
+        5: [1500.0, 1000.0, 660.0, -0.08, 0.02],
+        8: full,
+    }[n_params]
+    cam = g.Camera(model, 2000, 1330, params)
+    px = np.random.default_rng(0).uniform([0, 0], [2000, 1330], (50, 2))
+    back = cam.distort_pixels(cam.undistort_pixels(px))
+    assert np.abs(back - px).max() < 1e-6
+
+
+def test_with_model_keeps_projection_where_models_overlap():
+    cam = g.Camera("PINHOLE", 2000, 1330, [1500.0, 1500.0, 1003.0, 662.0])
+    X = np.random.default_rng(1).normal([0, 0, 10], [3, 2, 1], (20, 3))
+    for model in g.SUPPORTED_MODELS:
+        other = cam.with_model(model)
+        assert other.model == model and other.camera_id == cam.camera_id
+        assert np.allclose(other.img_from_cam(X), cam.img_from_cam(X))
+    with pytest.raises(ValueError, match="not supported"):
+        cam.with_model("FISHEYE")
