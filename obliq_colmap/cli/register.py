@@ -1,0 +1,174 @@
+"""``obliq-colmap register``: oblique images + footprint map + priors -> COLMAP model.
+
+    obliq-colmap register --image_path DIR --cadastre_path FOOTPRINTS.geojson \\
+                          --input_path PRIORS_MODEL --output_path OUT_MODEL \\
+                          [--stop_after initial|bundle] [--num_workers N] \\
+                          [--overlay_path DIR] [--camera_model MODEL] ...
+
+Writes the COLMAP binary model, ``georef.json`` and ``report.json`` directly in
+``--output_path`` (atomically) and prints one line per image.
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+from pathlib import Path
+
+from obliq_colmap.bundle import BundleOptions
+from obliq_colmap.colmap_io import check_output_path
+from obliq_colmap.geometry import SUPPORTED_MODELS
+from obliq_colmap.pipeline import (
+    STOP_AFTER,
+    PipelineOptions,
+    available_cores,
+    run_register,
+    summary_table,
+    write_run,
+)
+from obliq_colmap.registration import RegistrationOptions
+
+logger = logging.getLogger(__name__)
+
+
+def _bool01(text: str) -> bool:
+    if text not in ("0", "1"):
+        raise argparse.ArgumentTypeError("expected 0 or 1")
+    return text == "1"
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    io = parser.add_argument_group("Input / output")
+    io.add_argument("--image_path", required=True, help="folder of the images")
+    io.add_argument(
+        "--cadastre_path",
+        required=True,
+        help="GeoJSON footprints (Polygon/MultiPolygon) in a projected metric CRS",
+    )
+    io.add_argument(
+        "--input_path",
+        required=True,
+        help="COLMAP priors model (binary or text): rough poses in the map's frame",
+    )
+    io.add_argument(
+        "--output_path",
+        required=True,
+        help="result model folder (created; may exist if empty)",
+    )
+    io.add_argument(
+        "--overlay_path", help="write one overlay PNG per image into this folder"
+    )
+    run = parser.add_argument_group("Run")
+    run.add_argument(
+        "--stop_after",
+        choices=STOP_AFTER,
+        default="bundle",
+        help="last stage (default %(default)s)",
+    )
+    run.add_argument(
+        "--num_workers",
+        type=int,
+        default=available_cores(),
+        help="processes for the per-image stages (default: available cores, "
+        "%(default)s)",
+    )
+    run.add_argument("--no_progress", action="store_true", help="no progress bars")
+    prior = parser.add_argument_group("Priors")
+    defaults = RegistrationOptions()
+    prior.add_argument(
+        "--prior_position_sigma",
+        type=float,
+        default=defaults.prior_position_sigma_m,
+        help="1-sigma horizontal error of the prior centres, m (default %(default)s)",
+    )
+    prior.add_argument(
+        "--prior_rotation_sigma",
+        type=float,
+        default=defaults.prior_rotation_sigma_deg,
+        help="1-sigma error of the prior rotations, deg (default %(default)s)",
+    )
+    prior.add_argument(
+        "--prior_focal_sigma",
+        type=float,
+        default=defaults.prior_focal_sigma,
+        help="relative 1-sigma error of the prior focal lengths (default %(default)s)",
+    )
+    prior.add_argument(
+        "--ground_height",
+        type=float,
+        help="ground height under the images in the priors' vertical datum, m "
+        "(default: estimated per image)",
+    )
+    bundle = parser.add_argument_group("Bundle")
+    bdefaults = BundleOptions()
+    bundle.add_argument(
+        "--camera_model",
+        choices=sorted(SUPPORTED_MODELS),
+        help="COLMAP camera model of the result (default: the priors')",
+    )
+    bundle.add_argument(
+        "--refine_focal_length",
+        type=_bool01,
+        default=bdefaults.refine_focal_length,
+        metavar="{0,1}",
+        help="refine focal lengths (default 1)",
+    )
+    bundle.add_argument(
+        "--refine_principal_point",
+        type=_bool01,
+        default=bdefaults.refine_principal_point,
+        metavar="{0,1}",
+        help="refine principal points (default 1)",
+    )
+    bundle.add_argument(
+        "--refine_extra_params",
+        type=_bool01,
+        default=bdefaults.refine_extra_params,
+        metavar="{0,1}",
+        help="refine distortion parameters (default 0)",
+    )
+    bundle.add_argument(
+        "--loss_scale",
+        type=float,
+        default=bdefaults.loss_scale_px,
+        help="scale of the robust (Huber) loss, px (default %(default)s)",
+    )
+
+
+def run(args: argparse.Namespace) -> int:
+    output_path = Path(args.output_path)
+    check_output_path(output_path)  # fail before hours of work, not after
+    if args.num_workers < 1:
+        raise SystemExit("obliq-colmap register: error: --num_workers must be >= 1")
+    options = PipelineOptions(
+        stop_after=args.stop_after,
+        num_workers=args.num_workers,
+        camera_model=args.camera_model,
+        overlay_path=Path(args.overlay_path) if args.overlay_path else None,
+        progress=not args.no_progress,
+        registration=RegistrationOptions(
+            prior_position_sigma_m=args.prior_position_sigma,
+            prior_rotation_sigma_deg=args.prior_rotation_sigma,
+            prior_focal_sigma=args.prior_focal_sigma,
+            ground_height=args.ground_height,
+        ),
+        bundle=BundleOptions(
+            refine_focal_length=args.refine_focal_length,
+            refine_principal_point=args.refine_principal_point,
+            refine_extra_params=args.refine_extra_params,
+            loss_scale_px=args.loss_scale,
+        ),
+    )
+    result = run_register(args.image_path, args.cadastre_path, args.input_path, options)
+    print(summary_table(result.report))
+    if not result.block.images:
+        logger.error("no image could be registered; nothing written")
+        return 1
+    write_run(output_path, result)
+    logger.info(
+        "wrote %d images, %d points to %s",
+        len(result.block.images),
+        len(result.points3D),
+        output_path,
+    )
+    return 0

@@ -1,0 +1,867 @@
+"""The ``register`` job: oblique images + footprint map + rough priors -> COLMAP model.
+
+Stages (paper 000, sections 2.1-2.3), each a module of its own:
+
+1. ``initial``, per image and in parallel (:func:`_initial_image`): the
+   vertical vanishing point with the INS prior and the VP-constrained vertical
+   segments (:mod:`obliq_colmap.vanishing`), then the registration to the map
+   by RANSAC over corner-to-line pairs (:mod:`obliq_colmap.registration`).
+   Images whose registration is weak (few inlier corners: their own
+   ground-height search is the usual culprit) are registered once more with
+   the block's ground height (all priors share one vertical datum).
+2. ``bundle``: horizontal facade edges per image (:mod:`obliq_colmap.facades`),
+   matched across images into height constraints (:mod:`obliq_colmap.matching`),
+   and one bundle adjustment over all cameras, intrinsics and heights
+   (:mod:`obliq_colmap.bundle`).
+3. Output (:func:`write_run`): the COLMAP model and ``georef.json`` in a local
+   frame, constrained points with tracks, and ``report.json``, written
+   atomically.
+
+A failed image is a value (:class:`ImageOutcome` with a message), never an
+exception: it is named in a warning and left out of the model.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import math
+import os
+import time
+from collections.abc import Callable, Sequence
+from concurrent.futures import ProcessPoolExecutor
+from dataclasses import dataclass, field
+from multiprocessing import get_context
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from obliq_colmap import __version__
+from obliq_colmap.bundle import BundleOptions, BundleProblem, BundleResult, solve_bundle
+from obliq_colmap.cadastre import (
+    Cadastre,
+    CadastreOptions,
+    load_cadastre,
+    visible_corners,
+)
+from obliq_colmap.colmap_io import (
+    Block,
+    Georef,
+    ImageRecord,
+    Point3D,
+    read_priors,
+    write_result,
+)
+from obliq_colmap.errors import InputError
+from obliq_colmap.geometry import Camera, Pose, lines_through
+from obliq_colmap.registration import (
+    RegistrationOptions,
+    RegistrationResult,
+    block_ground_height,
+    draw_registration_overlay,
+    register_image,
+)
+from obliq_colmap.vanishing import (
+    VanishingOptions,
+    VPPrior,
+    detect_vertical_vp,
+)
+
+logger = logging.getLogger(__name__)
+
+#: Stages after which ``register`` may stop and write its result.
+STOP_AFTER = ("initial", "bundle")
+REPORT_FILE = "report.json"
+
+
+def available_cores() -> int:
+    """CPU cores this process may use (affinity-aware)."""
+    try:
+        return len(os.sched_getaffinity(0))
+    except AttributeError:  # not Linux
+        return os.cpu_count() or 1
+
+
+@dataclass(kw_only=True)
+class PipelineOptions:
+    """Options of :func:`run_register` (the stages' own options nest inside)."""
+
+    #: Last stage to run: "initial" (per-image registration) or "bundle".
+    stop_after: str = "bundle"
+    #: Worker processes for the per-image stages; 0 = the available cores.
+    num_workers: int = 0
+    #: Half-angle (deg) of the cone around the prior rotation's vertical in
+    #: which the VP is searched; None = 3 sigma of the prior rotation + 1 deg.
+    vp_cone_deg: float | None = None
+    #: Images with fewer inlier corners are registered again with the block's
+    #: ground height (0 disables the rescue).
+    rescue_min_inliers: int = 20
+    #: COLMAP camera model of the result (None: the priors' model).
+    camera_model: str | None = None
+    #: Write one overlay PNG per image here (None: none).
+    overlay_path: Path | None = None
+    #: Show progress bars.
+    progress: bool = True
+    vanishing: VanishingOptions = field(default_factory=VanishingOptions)
+    registration: RegistrationOptions = field(default_factory=RegistrationOptions)
+    bundle: BundleOptions = field(default_factory=BundleOptions)
+    cadastre: CadastreOptions = field(default_factory=CadastreOptions)
+
+    def __post_init__(self) -> None:
+        if self.stop_after not in STOP_AFTER:
+            raise ValueError(
+                f"stop_after={self.stop_after!r}; allowed: {', '.join(STOP_AFTER)}"
+            )
+        if self.num_workers < 0:
+            raise ValueError("num_workers must be >= 0")
+
+    @property
+    def workers(self) -> int:
+        return self.num_workers or available_cores()
+
+    @property
+    def cone_deg(self) -> float:
+        if self.vp_cone_deg is not None:
+            return float(self.vp_cone_deg)
+        return 3.0 * self.registration.prior_rotation_sigma_deg + 1.0
+
+
+@dataclass
+class ImageOutcome:
+    """What the per-image stages made of one image.
+
+    Attributes
+    ----------
+    image_id, name : as in the priors.
+    status : "registered", "failed" (no registration) or "unreadable".
+    message : why, in words ("" when registered without remark).
+    vp_status : the vanishing stage's status ("ok", "low_confidence", "no_vp").
+    vertical_direction : (3,) array or None, detected, camera frame, down.
+    segments : (N, 2, 2) array, the VP-constrained vertical segments in
+        UNDISTORTED pixels (the registration's input).
+    registration : RegistrationResult or None (unreadable image).
+    rescued : the result comes from the second try with the block's ground.
+    time_s : wall time per step, seconds.
+    """
+
+    image_id: int
+    name: str
+    status: str
+    message: str = ""
+    vp_status: str = ""
+    vertical_direction: np.ndarray | None = None
+    segments: np.ndarray = field(default_factory=lambda: np.zeros((0, 2, 2)))
+    registration: RegistrationResult | None = None
+    rescued: bool = False
+    time_s: dict[str, float] = field(default_factory=dict)
+
+    @property
+    def registered(self) -> bool:
+        return self.status == "registered"
+
+
+@dataclass
+class RunResult:
+    """Everything :func:`run_register` produced (before writing)."""
+
+    block: Block  # registered images only, local frame of ``georef``
+    georef: Georef
+    points3D: list[Point3D]
+    outcomes: dict[int, ImageOutcome]
+    report: dict[str, Any]
+    bundle: BundleResult | None = None
+
+
+# --------------------------------------------------------------------------
+# Per-image work (runs in worker processes)
+# --------------------------------------------------------------------------
+
+
+@dataclass
+class _ImageTask:
+    image_id: int
+    name: str
+    path: Path
+    camera: Camera
+    prior: Pose  # local frame
+    cone_deg: float
+    vanishing: VanishingOptions
+    registration: RegistrationOptions
+
+
+#: Per-process state: the cadastre, loaded once per worker.
+_STATE: dict[str, Any] = {}
+
+
+def _init_worker(
+    cadastre_path: Path, options: CadastreOptions, origin: np.ndarray
+) -> None:
+    import cv2
+    from threadpoolctl import threadpool_limits
+
+    cv2.setNumThreads(1)  # one process per core; no oversubscription
+    _STATE["blas"] = threadpool_limits(1)
+    _STATE["cadastre"] = load_cadastre(cadastre_path, options, origin)
+
+
+def _read_gray(path: Path) -> np.ndarray | None:
+    import cv2
+
+    return cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)
+
+
+def _initial_image(task: _ImageTask) -> ImageOutcome:
+    """Stage 1 and 2 of one image; failures come back as values."""
+    t0 = time.perf_counter()
+    out = ImageOutcome(task.image_id, task.name, status="failed")
+    img = _read_gray(task.path)
+    if img is None:
+        out.status, out.message = "unreadable", f"cannot read image {task.path}"
+        return out
+    if img.shape != (task.camera.height, task.camera.width):
+        out.status = "unreadable"
+        out.message = (
+            f"image is {img.shape[1]}x{img.shape[0]} px but its camera "
+            f"{task.camera.camera_id} is {task.camera.width}x{task.camera.height}"
+        )
+        return out
+    out.time_s["read"] = time.perf_counter() - t0
+    prior = VPPrior.from_rotation(task.prior.rotation, task.cone_deg)
+    vp = detect_vertical_vp(img, task.vanishing, task.camera, prior, task.image_id)
+    out.vp_status = vp.status
+    out.time_s["vanishing"] = vp.time_s.get("total", math.nan)
+    if vp.vertical_segments is not None:
+        out.segments = vp.vertical_segments.endpoints
+    elif len(vp.segments):
+        out.segments = vp.segments.endpoints
+    # A missing or doubtful VP falls back to the prior rotation's vertical,
+    # which the registration then refines with the pose.
+    if vp.status == "ok":
+        out.vertical_direction = vp.vertical_direction
+    t1 = time.perf_counter()
+    result = register_image(
+        out.segments,
+        out.vertical_direction,
+        task.camera,
+        task.prior,
+        _STATE["cadastre"],
+        task.registration,
+        segments_undistorted=True,
+    )
+    out.time_s["registration"] = time.perf_counter() - t1
+    _set_registration(out, result)
+    out.time_s["total"] = time.perf_counter() - t0
+    return out
+
+
+def _set_registration(out: ImageOutcome, result: RegistrationResult) -> None:
+    out.registration = result
+    out.status = "registered" if result.success else "failed"
+    out.message = "" if result.success else result.message
+
+
+def _reregister(args: tuple[_ImageTask, np.ndarray, np.ndarray | None, float]):
+    """Register one image again with a given ground height."""
+    task, segments, vertical, ground = args
+    options = _replace(task.registration, ground_height=ground)
+    return register_image(
+        segments,
+        vertical,
+        task.camera,
+        task.prior,
+        _STATE["cadastre"],
+        options,
+        segments_undistorted=True,
+    )
+
+
+def _draw_overlay(args: tuple[_ImageTask, RegistrationResult, Path]) -> None:
+    import cv2
+
+    task, result, folder = args
+    img = cv2.imread(str(task.path), cv2.IMREAD_COLOR)
+    if img is None:
+        return
+    drawn = draw_registration_overlay(
+        img, _STATE["cadastre"], task.camera, task.prior, result
+    )
+    cv2.imwrite(str(folder / overlay_name(task.name)), drawn)
+
+
+def overlay_name(image_name: str) -> str:
+    """File name of an image's overlay: its name, folders flattened, as PNG."""
+    return Path(image_name.replace("/", "__")).with_suffix(".png").name
+
+
+def _replace(options, **changes):
+    import dataclasses
+
+    return dataclasses.replace(options, **changes)
+
+
+# --------------------------------------------------------------------------
+# Parallel map with a progress bar
+# --------------------------------------------------------------------------
+
+
+class _Workers:
+    """A process pool (or the calling process for one worker) with the cadastre."""
+
+    def __init__(
+        self, num_workers: int, init_args: tuple, cadastre: Cadastre, progress: bool
+    ) -> None:
+        self.num_workers = num_workers
+        self.progress = progress
+        self.pool: ProcessPoolExecutor | None = None
+        if num_workers > 1:
+            # spawn: workers must not inherit the parent's threads (BLAS, OpenCV)
+            self.pool = ProcessPoolExecutor(
+                num_workers,
+                mp_context=get_context("spawn"),
+                initializer=_init_worker,
+                initargs=init_args,
+            )
+        else:
+            _STATE["cadastre"] = cadastre
+
+    def map(self, fn: Callable, items: Sequence, desc: str) -> list:
+        from tqdm import tqdm
+
+        bar = tqdm(total=len(items), desc=desc, unit="img", disable=not self.progress)
+        try:
+            if self.pool is None:
+                out = []
+                for item in items:
+                    out.append(fn(item))
+                    bar.update()
+                return out
+            futures = [self.pool.submit(fn, item) for item in items]
+            for f in futures:
+                f.add_done_callback(lambda _: bar.update())
+            return [f.result() for f in futures]
+        finally:
+            bar.close()
+
+    def close(self) -> None:
+        if self.pool is not None:
+            self.pool.shutdown(cancel_futures=True)
+
+    def __enter__(self) -> _Workers:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+
+# --------------------------------------------------------------------------
+# Inputs
+# --------------------------------------------------------------------------
+
+
+@dataclass
+class Inputs:
+    """The checked inputs of a run, in the local frame of the cadastre."""
+
+    image_path: Path
+    cadastre_path: Path
+    cadastre: Cadastre
+    priors: Block  # local frame
+    cameras: dict[int, Camera]  # in the result's camera model
+
+
+def load_inputs(
+    image_path: str | Path,
+    cadastre_path: str | Path,
+    input_path: str | Path,
+    options: PipelineOptions,
+) -> Inputs:
+    """Read and check the priors, the images' presence and the map.
+
+    Raises
+    ------
+    InputError
+        Any user mistake (missing files, unreadable map or model, degrees).
+    """
+    image_path, cadastre_path = Path(image_path), Path(cadastre_path)
+    priors_abs = read_priors(input_path, image_path)
+    if not priors_abs.images:
+        raise InputError(input_path, "the priors model has no images")
+    cadastre = load_cadastre(cadastre_path, options.cadastre)
+    if cadastre.num_corners == 0:
+        raise InputError(cadastre_path, "the map has no usable footprints")
+    origin = np.array([cadastre.origin[0], cadastre.origin[1], 0.0])
+    priors = priors_abs.shifted(origin)
+    centres = np.array([im.cam_from_world.center for im in priors.images.values()])
+    far = np.linalg.norm(centres[:, :2], axis=1).min()
+    extent = np.ptp(cadastre.corner_xy, axis=0).max()
+    if far > 10.0 * extent + 5_000.0:
+        raise InputError(
+            input_path,
+            f"the prior camera centres lie {far / 1000:.1f} km from the map "
+            f"{cadastre_path} (is it in another CRS?)",
+        )
+    cameras = {}
+    for cid, cam in priors.cameras.items():
+        model = options.camera_model or cam.model
+        if model != cam.model:
+            logger.info("camera %d: %s -> %s", cid, cam.model, model)
+        cameras[cid] = cam.with_model(model)
+    return Inputs(image_path, cadastre_path, cadastre, priors, cameras)
+
+
+# --------------------------------------------------------------------------
+# The run
+# --------------------------------------------------------------------------
+
+
+def run_register(
+    image_path: str | Path,
+    cadastre_path: str | Path,
+    input_path: str | Path,
+    options: PipelineOptions | None = None,
+) -> RunResult:
+    """Register a block of oblique images to a footprint map.
+
+    Parameters
+    ----------
+    image_path : folder of the images (names as in the priors).
+    cadastre_path : GeoJSON footprint map (projected metric CRS).
+    input_path : COLMAP priors model (rough poses in the map's frame).
+    options : PipelineOptions.
+
+    Returns
+    -------
+    RunResult, to be written with :func:`write_run`.
+
+    Raises
+    ------
+    InputError
+        User mistakes in the inputs.
+    """
+    options = options or PipelineOptions()
+    t_run = time.perf_counter()
+    timings: dict[str, float] = {}
+    inputs = load_inputs(image_path, cadastre_path, input_path, options)
+    cad = inputs.cadastre
+    tasks = [
+        _ImageTask(
+            image_id=im.image_id,
+            name=im.name,
+            path=inputs.image_path / im.name,
+            # The per-image stages keep the priors' model: a model change
+            # only adds parameters that start at zero.
+            camera=inputs.priors.cameras[im.camera_id],
+            prior=im.cam_from_world,
+            cone_deg=options.cone_deg,
+            vanishing=options.vanishing,
+            registration=options.registration,
+        )
+        for im in sorted(inputs.priors.images.values(), key=lambda im: im.image_id)
+    ]
+    logger.info(
+        "%d images, %d cameras, map: %d buildings, %d corners (origin %s, %s)",
+        len(tasks),
+        len(inputs.cameras),
+        cad.num_buildings,
+        cad.num_corners,
+        cad.origin[:2].tolist(),
+        cad.crs,
+    )
+    origin3 = np.array([cad.origin[0], cad.origin[1], 0.0])
+    init_args = (inputs.cadastre_path, options.cadastre, origin3)
+    workers = min(options.workers, len(tasks))
+    with _Workers(workers, init_args, cad, options.progress) as pool:
+        t0 = time.perf_counter()
+        outcomes = pool.map(_initial_image, tasks, "vanishing + registration")
+        timings["initial"] = time.perf_counter() - t0
+        t0 = time.perf_counter()
+        rescued = _rescue(pool, tasks, outcomes, options)
+        timings["rescue"] = time.perf_counter() - t0
+        for o in outcomes:
+            if o.status == "unreadable" or not o.registered:
+                logger.warning("%s: left out: %s", o.name, o.message)
+        if options.overlay_path is not None:
+            folder = Path(options.overlay_path)
+            folder.mkdir(parents=True, exist_ok=True)
+            jobs = [
+                (t, o.registration, folder)
+                for t, o in zip(tasks, outcomes, strict=True)
+                if o.registration is not None
+            ]
+            pool.map(_draw_overlay, jobs, "overlays")
+    by_id = {o.image_id: o for o in outcomes}
+    registered = [o for o in outcomes if o.registered]
+    bundle_result = None
+    poses = {o.image_id: o.registration.cam_from_world for o in registered}
+    cameras = dict(inputs.cameras)
+    if options.stop_after == "bundle" and registered:
+        t0 = time.perf_counter()
+        problem = build_bundle_problem(inputs, by_id)
+        bundle_result = solve_bundle(problem, options.bundle)
+        timings["bundle"] = time.perf_counter() - t0
+        poses = dict(bundle_result.poses)
+        cameras = {**cameras, **bundle_result.cameras}
+    ground = block_ground_height([o.registration for o in registered], 1)
+    z0 = float(np.round(ground)) if ground is not None else 0.0
+    georef = Georef(
+        origin=np.array([cad.origin[0], cad.origin[1], z0]),
+        crs=cad.crs,
+        extra={
+            "vertical_datum": "the priors' (input_path) heights, unchanged",
+            "software": f"obliq-colmap {__version__}",
+        },
+    )
+    block = _result_block(inputs, poses, cameras)
+    points = constrained_points(inputs, block, by_id, bundle_result)
+    block = block.shifted(np.array([0.0, 0.0, z0]))
+    for p in points:
+        p.xyz = p.xyz - np.array([0.0, 0.0, z0])
+    timings["total"] = time.perf_counter() - t_run
+    report = run_report(inputs, outcomes, rescued, bundle_result, georef, timings)
+    report["options"] = {
+        "stop_after": options.stop_after,
+        "num_workers": workers,
+        "vp_cone_deg": options.cone_deg,
+        "camera_model": options.camera_model,
+    }
+    report["num_points3D"] = len(points)
+    return RunResult(block, georef, points, by_id, report, bundle_result)
+
+
+def _rescue(
+    pool: _Workers,
+    tasks: list[_ImageTask],
+    outcomes: list[ImageOutcome],
+    options: PipelineOptions,
+) -> list[str]:
+    """Register weak images again with the block's ground height; keep the better."""
+    if options.rescue_min_inliers <= 0:
+        return []
+    results = [o.registration for o in outcomes if o.registration is not None]
+    ground = block_ground_height(results, options.rescue_min_inliers)
+    if ground is None:
+        return []
+    weak = [
+        i
+        for i, o in enumerate(outcomes)
+        if o.registration is not None
+        and o.registration.num_inliers < options.rescue_min_inliers
+        and len(o.segments) >= options.registration.min_segments
+    ]
+    if not weak:
+        return []
+    logger.info(
+        "%d weak image(s) registered again at the block's ground height %.2f m",
+        len(weak),
+        ground,
+    )
+    jobs = [
+        (tasks[i], outcomes[i].segments, outcomes[i].vertical_direction, ground)
+        for i in weak
+    ]
+    names = []
+    for i, new in zip(weak, pool.map(_reregister, jobs, "rescue"), strict=True):
+        old = outcomes[i].registration
+        if new.success and (not old.success or new.num_inliers > old.num_inliers):
+            _set_registration(outcomes[i], new)
+            outcomes[i].rescued = True
+            names.append(outcomes[i].name)
+    return names
+
+
+def _result_block(
+    inputs: Inputs, poses: dict[int, Pose], cameras: dict[int, Camera]
+) -> Block:
+    """The registered images with their poses; only the cameras they use."""
+    images = {
+        i: ImageRecord(
+            i, inputs.priors.images[i].name, inputs.priors.images[i].camera_id, p
+        )
+        for i, p in poses.items()
+    }
+    used = {im.camera_id for im in images.values()}
+    return Block({c: cameras[c] for c in sorted(used)}, images)
+
+
+# --------------------------------------------------------------------------
+# The bundle problem
+# --------------------------------------------------------------------------
+
+
+def _raw_lines(camera: Camera, segments_undistorted: np.ndarray) -> np.ndarray:
+    """(N, 3) unit lines through segments' endpoints in RAW (distorted) pixels."""
+    ends = camera.distort_pixels(segments_undistorted.reshape(-1, 2)).reshape(-1, 2, 2)
+    return lines_through(ends[:, 0], ends[:, 1])
+
+
+def vertical_constraints(
+    inputs: Inputs, outcomes: dict[int, ImageOutcome], image_ids: Sequence[int]
+) -> dict[str, np.ndarray]:
+    """Corner-to-vertical-line constraints from the registrations' inliers.
+
+    Returns
+    -------
+    dict with ``corner`` (C,) cadastre corner ids of the used corners,
+    ``corner_heights`` (C,) initial heights (mean of the images' height
+    planes at the corner), ``image`` (M,) index into ``image_ids``,
+    ``corner_index`` (M,) index into ``corner``, ``line`` (M, 3) raw pixels.
+    """
+    cad = inputs.cadastre
+    img_idx, corners, lines, heights = [], [], [], []
+    for k, image_id in enumerate(image_ids):
+        r = outcomes[image_id].registration
+        if r is None or not r.success or len(r.inlier_pairs) == 0:
+            continue
+        camera = inputs.priors.cameras[inputs.priors.images[image_id].camera_id]
+        c = r.inlier_pairs[:, 0]
+        xy = cad.corner_xy[c]
+        img_idx.append(np.full(len(c), k))
+        corners.append(c)
+        lines.append(_raw_lines(camera, r.inlier_segments_px))
+        heights.append(
+            r.height_plane[0] * xy[:, 0]
+            + r.height_plane[1] * xy[:, 1]
+            + r.height_plane[2]
+        )
+    if not corners:
+        empty = np.zeros(0, np.int64)
+        return dict(
+            corner=empty,
+            corner_heights=np.zeros(0),
+            image=empty,
+            corner_index=empty,
+            line=np.zeros((0, 3)),
+        )
+    corner_all = np.concatenate(corners)
+    used, inverse = np.unique(corner_all, return_inverse=True)
+    h = np.concatenate(heights)
+    mean_h = np.bincount(inverse, h, len(used)) / np.bincount(inverse, None, len(used))
+    return dict(
+        corner=used,
+        corner_heights=mean_h,
+        image=np.concatenate(img_idx),
+        corner_index=inverse,
+        line=np.concatenate(lines),
+    )
+
+
+def build_bundle_problem(
+    inputs: Inputs, outcomes: dict[int, ImageOutcome]
+) -> BundleProblem:
+    """The global bundle over the registered images (vertical constraints)."""
+    ids = tuple(sorted(i for i, o in outcomes.items() if o.registered))
+    v = vertical_constraints(inputs, outcomes, ids)
+    return BundleProblem(
+        cameras={
+            c: inputs.cameras[c]
+            for c in {inputs.priors.images[i].camera_id for i in ids}
+        },
+        poses={i: outcomes[i].registration.cam_from_world for i in ids},
+        image_camera={i: inputs.priors.images[i].camera_id for i in ids},
+        image_ids=ids,
+        corner_xy=inputs.cadastre.corner_xy[v["corner"]],
+        corner_heights=v["corner_heights"],
+        vertical_image=v["image"],
+        vertical_corner=v["corner_index"],
+        vertical_line=v["line"],
+        facade_heights=np.zeros(0),
+        horizontal_image=np.zeros(0, np.int64),
+        horizontal_height=np.zeros(0, np.int64),
+        horizontal_anchor_xy=np.zeros((0, 2)),
+        horizontal_line=np.zeros((0, 3)),
+    )
+
+
+# --------------------------------------------------------------------------
+# Output
+# --------------------------------------------------------------------------
+
+
+def _ground_heights(
+    outcomes: dict[int, ImageOutcome], xy: np.ndarray, near: np.ndarray
+) -> np.ndarray:
+    """Ground height at map points from the registrations' height planes.
+
+    Each point takes the mean of the planes of the images that see it
+    (``near``: (P, I) bool), else of all registered images.
+    """
+    planes = np.array(
+        [o.registration.height_plane for o in outcomes.values() if o.registered]
+    )
+    h = xy @ planes[:, :2].T + planes[:, 2]  # (P, I)
+    w = near.astype(float)
+    w[w.sum(axis=1) == 0] = 1.0
+    return (h * w).sum(axis=1) / w.sum(axis=1)
+
+
+def constrained_points(
+    inputs: Inputs,
+    block: Block,
+    outcomes: dict[int, ImageOutcome],
+    bundle: BundleResult | None,
+) -> list[Point3D]:
+    """Map corners at their ground heights, observed where they project.
+
+    A corner is observed in an image when the corner's ground point is
+    potentially visible there (:func:`cadastre.visible_corners`: inside the
+    image, an adjacent wall facing the camera) and projects in front of the
+    camera; points seen in fewer than two images are dropped (COLMAP's dense
+    stages need shared points). Occlusion by other buildings is not tested.
+    """
+    cad = inputs.cadastre
+    ids = sorted(block.images)
+    if not ids:
+        return []
+    registered = [i for i in sorted(outcomes) if outcomes[i].registered]
+    seen = np.zeros((cad.num_corners, len(registered)), bool)
+    for k, i in enumerate(registered):
+        r = outcomes[i].registration
+        seen[r.inlier_pairs[:, 0], k] = True
+    ground = _ground_heights({i: outcomes[i] for i in registered}, cad.corner_xy, seen)
+    X = np.column_stack([cad.corner_xy, ground])
+    obs: list[list[tuple[int, np.ndarray]]] = [[] for _ in range(len(X))]
+    for i in ids:
+        im = block.images[i]
+        cam = block.cameras[im.camera_id]
+        pose = im.cam_from_world
+        plane = outcomes[i].registration.height_plane
+        vis = visible_corners(
+            cad, cam, pose, lambda xy, p=plane: xy @ p[:2] + p[2], (0.0, 0.5)
+        )
+        if len(vis) == 0:
+            continue
+        Xc = pose.transform(X[vis])
+        px = cam.img_from_cam(Xc)
+        inside = (
+            (Xc[:, 2] > 0)
+            & np.all(np.isfinite(px), axis=1)
+            & (px[:, 0] >= 0)
+            & (px[:, 1] >= 0)
+            & (px[:, 0] <= cam.width)
+            & (px[:, 1] <= cam.height)
+        )
+        for c, p in zip(vis[inside], px[inside], strict=True):
+            obs[c].append((i, p))
+    return [Point3D(X[c], o) for c, o in enumerate(obs) if len(o) >= 2]
+
+
+def run_report(
+    inputs: Inputs,
+    outcomes: list[ImageOutcome],
+    rescued: list[str],
+    bundle: BundleResult | None,
+    georef: Georef,
+    timings: dict[str, float],
+) -> dict[str, Any]:
+    """The JSON run report: per image, per stage, and the bundle's summary."""
+    images = {}
+    for o in outcomes:
+        r = o.registration
+        images[o.name] = {
+            "image_id": o.image_id,
+            "status": o.status,
+            "message": o.message,
+            "vp_status": o.vp_status,
+            "vertical_source": r.vertical_source if r is not None else None,
+            "num_segments": int(len(o.segments)),
+            "num_candidates": r.num_candidates if r is not None else 0,
+            "num_inlier_corners": r.num_inliers if r is not None else 0,
+            "inlier_ratio": r.inlier_ratio if r is not None else 0.0,
+            "ransac_trials": r.num_trials if r is not None else 0,
+            "residual_rms_px": _finite(r.residual_rms_px) if r is not None else None,
+            "ground_height_m": _finite(r.ground_height) if r is not None else None,
+            "rescued": o.rescued,
+            "time_s": {k: round(v, 4) for k, v in o.time_s.items()},
+        }
+    report: dict[str, Any] = {
+        "software": f"obliq-colmap {__version__}",
+        "image_path": str(inputs.image_path),
+        "cadastre_path": str(inputs.cadastre_path),
+        "georef": georef.to_json(),
+        "num_images": len(outcomes),
+        "num_registered": sum(o.registered for o in outcomes),
+        "left_out": {o.name: o.message for o in outcomes if not o.registered},
+        "rescued": rescued,
+        "time_s": {k: round(v, 3) for k, v in timings.items()},
+        "images": images,
+    }
+    if bundle is not None:
+        s = bundle.summary
+        report["bundle"] = {
+            "brief": s.brief(),
+            "num_vertical": s.num_vertical,
+            "num_horizontal": s.num_horizontal,
+            "num_heights": s.num_heights,
+            "rmse_vertical_px": [s.initial_rmse_vertical_px, s.final_rmse_vertical_px],
+            "rmse_horizontal_px": [
+                _finite(s.initial_rmse_horizontal_px),
+                _finite(s.final_rmse_horizontal_px),
+            ],
+            "iterations": s.num_iterations,
+            "termination": s.termination,
+            "components": [list(c) for c in s.components],
+        }
+    return report
+
+
+def _finite(x: float) -> float | None:
+    return float(x) if x is not None and math.isfinite(x) else None
+
+
+def summary_table(report: dict[str, Any]) -> str:
+    """The closing table of a run, one line per image."""
+    rows = [("image", "vp", "segments", "corners", "rms px", "status")]
+    for name, r in report["images"].items():
+        rms = r["residual_rms_px"]
+        status = r["status"] + (" (rescued)" if r["rescued"] else "")
+        if r["message"]:
+            status += f": {r['message']}"
+        rows.append(
+            (
+                name,
+                r["vp_status"] or "-",
+                str(r["num_segments"]),
+                str(r["num_inlier_corners"]),
+                f"{rms:.2f}" if rms is not None else "-",
+                status,
+            )
+        )
+    widths = [max(len(row[k]) for row in rows) for k in range(5)]
+    lines = [
+        "  ".join(c.ljust(w) for c, w in zip(row[:5], widths, strict=True))
+        + "  "
+        + row[5]
+        for row in rows
+    ]
+    lines.append(
+        f"registered {report['num_registered']}/{report['num_images']} images"
+        f" in {report['time_s'].get('total', math.nan):.1f} s"
+    )
+    return "\n".join(lines)
+
+
+def write_run(output_path: str | Path, run: RunResult) -> Path:
+    """Write the model, georef.json and report.json atomically.
+
+    Raises
+    ------
+    InputError
+        The output folder exists and is not empty, or no image was registered.
+    """
+    if not run.block.images:
+        raise InputError(output_path, "no image could be registered; nothing written")
+    text = json.dumps(run.report, indent=2, default=_json_default) + "\n"
+    return write_result(
+        output_path, run.block, run.georef, run.points3D, {REPORT_FILE: text}
+    )
+
+
+def _json_default(x):
+    if isinstance(x, np.generic):
+        return x.item()
+    if isinstance(x, np.ndarray):
+        return x.tolist()
+    if isinstance(x, Path):
+        return str(x)
+    raise TypeError(f"not JSON serialisable: {type(x)}")
