@@ -113,3 +113,56 @@ def test_a_corrupt_image_is_left_out_and_the_rest_written(tmp_path, caplog):
     assert report["images"][bad.name]["status"] == "unreadable"
     assert bad.name in report["left_out"]
     assert any(bad.name in r.message for r in caplog.records)
+
+
+@pytest.mark.colmap
+@pytest.mark.skipif(
+    shutil.which("colmap") is None,
+    reason="COLMAP's command line (Debian package colmap) is not installed",
+)
+def test_colmap_undistorts_the_result_into_a_dense_workspace(initial_run, tmp_path):
+    """COLMAP 3.8 is the real client: model_analyzer and image_undistorter.
+
+    Dense stereo takes each image's depth range from the points3D it observes
+    (COLMAP's ``ComputeDepthRanges``): every image must observe points in
+    front of it.
+    """
+    import subprocess
+
+    out, _ = initial_run
+    analyzer = subprocess.run(
+        ["colmap", "model_analyzer", "--path", str(out)],
+        capture_output=True,
+        text=True,
+        check=False,
+    )
+    assert analyzer.returncode == 0, analyzer.stderr
+    dense = tmp_path / "dense"
+    undist = subprocess.run(
+        [
+            "colmap",
+            "image_undistorter",
+            "--image_path",
+            str(SAMPLE / "images"),
+            "--input_path",
+            str(out),
+            "--output_path",
+            str(dense),
+        ],
+        capture_output=True,
+        text=True,
+        check=False,
+    )
+    assert undist.returncode == 0, undist.stderr
+    rec = pycolmap.Reconstruction(str(dense / "sparse"))
+    assert rec.num_reg_images() == pycolmap.Reconstruction(str(out)).num_reg_images()
+    for image in rec.images.values():
+        assert (dense / "images" / image.name).is_file()
+        pose = image.cam_from_world()
+        depths = [
+            (pose * rec.points3D[p.point3D_id].xyz)[2]
+            for p in image.points2D
+            if p.has_point3D()
+        ]
+        assert len(depths) >= 10, image.name
+        assert min(depths) > 0, image.name
