@@ -1,0 +1,151 @@
+"""Benchmark of ``obliq-colmap register`` end to end on synthetic scenes.
+
+For each scene: the run's time per stage and in total, peak memory (this
+process and its workers), the counts of constraints, and the accuracy of the
+result against the ground truth (``evaluate``: full deviation and across the
+projected vertical), beside the priors' (baseline).
+
+    python scripts/bench_register.py --scene_path /tmp/syn/paper \\
+        --scene_path /tmp/syn/hard [--stop_after bundle] [--num_workers 2] \\
+        [--output_path bench_register.json]
+
+Scenes are made with ``obliq-colmap synth --preset paper --seed N --output_path DIR``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import os
+import platform
+import resource
+import shutil
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+from obliq_colmap.evaluate import EvaluateOptions, evaluate_model
+from obliq_colmap.pipeline import PipelineOptions, run_register, write_run
+
+logger = logging.getLogger("bench_register")
+
+
+def _peak_rss_mib() -> tuple[float, float]:
+    """Peak resident memory of this process and of its largest child, MiB."""
+    me = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+    kids = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss / 1024
+    return me, kids
+
+
+def _summary(ev) -> dict:
+    s = ev.summary
+    return {
+        "registered": s.num_registered,
+        "total": s.num_total,
+        "deviation_median_px": s.deviation_median_px,
+        "deviation_p95_px": s.deviation_p95_px,
+        "deviation_max_px": s.deviation_max_px,
+        "rotation_median_deg": s.rotation_error_median_deg,
+        "center_median_m": s.center_error_median_m,
+    }
+
+
+def bench_scene(scene: Path, args: argparse.Namespace) -> dict:
+    options = PipelineOptions(
+        stop_after=args.stop_after, num_workers=args.num_workers, progress=False
+    )
+    t0 = time.perf_counter()
+    run = run_register(
+        scene / "images", scene / "cadastre.geojson", scene / "priors", options
+    )
+    wall = time.perf_counter() - t0
+    tmp = Path(tempfile.mkdtemp(prefix="bench_register_"))
+    try:
+        out = write_run(tmp / "model", run)
+        full = evaluate_model(out, scene, EvaluateOptions())
+        across = evaluate_model(out, scene, EvaluateOptions(across_vertical=True))
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
+    base = evaluate_model(None, scene, EvaluateOptions(), baseline=True)
+    per_image = [
+        im["time_s"].get("total", np.nan) for im in run.report["images"].values()
+    ]
+    row = {
+        "scene": str(scene),
+        "stop_after": args.stop_after,
+        "num_workers": options.workers,
+        "wall_s": wall,
+        "time_s": run.report["time_s"],
+        "per_image_s_median": float(np.nanmedian(per_image)),
+        "registered_by_run": run.report["num_registered"],
+        "num_points3D": len(run.points3D),
+        "bundle": run.report.get("bundle"),
+        "full": _summary(full),
+        "across_vertical": _summary(across),
+        "baseline_priors": _summary(base),
+        "peak_rss_mib": dict(
+            zip(("main", "largest_worker"), _peak_rss_mib(), strict=True)
+        ),
+    }
+    return row
+
+
+def _print_row(row: dict) -> None:
+    f, a, b = row["full"], row["across_vertical"], row["baseline_priors"]
+    print(
+        f"{Path(row['scene']).name}: {row['stop_after']}, {row['num_workers']} workers,"
+        f" {row['wall_s']:.1f} s (stages {row['time_s']}),"
+        f" per image {row['per_image_s_median']:.2f} s median;"
+        f" peak RSS {row['peak_rss_mib']}"
+    )
+    for label, s in (("full", f), ("across vertical", a), ("priors", b)):
+        print(
+            f"  {label:16s} registered {s['registered']}/{s['total']}, deviation px"
+            f" median {s['deviation_median_px']:.3f} p95 {s['deviation_p95_px']:.3f}"
+            f" max {s['deviation_max_px']:.3f}; rotation {s['rotation_median_deg']:.4f}"
+            f" deg, centre {s['center_median_m']:.3f} m"
+        )
+    if row["bundle"]:
+        print("  " + row["bundle"]["brief"])
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument(
+        "--scene_path", action="append", required=True, help="synthetic scene folder"
+    )
+    parser.add_argument("--stop_after", choices=("initial", "bundle"), default="bundle")
+    parser.add_argument("--num_workers", type=int, default=2)
+    parser.add_argument("--output_path", help="write all rows as JSON here")
+    args = parser.parse_args(argv)
+    logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(message)s")
+    rows = []
+    for scene in args.scene_path:
+        scene = Path(scene)
+        if not (scene / "gt").is_dir():
+            print(f"error: {scene} is not a synthetic scene (no gt/)", file=sys.stderr)
+            return 2
+        row = bench_scene(scene, args)
+        _print_row(row)
+        rows.append(row)
+    meta = {
+        "date": time.strftime("%Y-%m-%d"),
+        "machine": platform.machine(),
+        "cpus": os.cpu_count(),
+        "load_average": os.getloadavg(),
+        "python": platform.python_version(),
+    }
+    print(f"machine: {meta}")
+    if args.output_path:
+        Path(args.output_path).write_text(
+            json.dumps({"meta": meta, "rows": rows}, indent=2, default=float) + "\n"
+        )
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
