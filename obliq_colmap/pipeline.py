@@ -529,19 +529,50 @@ def run_register(
     return RunResult(block, georef, points, by_id, report, bundle_result)
 
 
+def rescue_heights(
+    results: Sequence[RegistrationResult], min_inliers: int, step_m: float
+) -> np.ndarray:
+    """Candidate ground heights for a weak image: those of the confident ones.
+
+    One image's ground height is only as good as its focal length and tilt (a
+    3 % focal error moves the camera ~3 % of the viewing distance along its
+    axis, i.e. tens of metres in height at 45 deg), so the confident images of
+    a block spread by +-20 m around the true datum. Each of their heights,
+    merged within ``step_m``, is a plausible start for a weak image.
+
+    Returns
+    -------
+    (K,) sorted heights (m), empty when no result is confident.
+    """
+    h = np.sort(
+        [
+            r.ground_height
+            for r in results
+            if r.success
+            and r.num_inliers >= min_inliers
+            and math.isfinite(r.ground_height)
+        ]
+    )
+    if len(h) == 0:
+        return h
+    keep = np.concatenate([[True], np.diff(h) > step_m])
+    groups = np.cumsum(keep) - 1
+    return np.bincount(groups, h) / np.bincount(groups)
+
+
 def _rescue(
     pool: _Workers,
     tasks: list[_ImageTask],
     outcomes: list[ImageOutcome],
     options: PipelineOptions,
 ) -> list[str]:
-    """Register weak images again with the block's ground height; keep the better."""
+    """Register weak images again from the block's ground heights; keep the best."""
     if options.rescue_min_inliers <= 0:
         return []
     results = [o.registration for o in outcomes if o.registration is not None]
-    ground = block_ground_height(results, options.rescue_min_inliers)
-    if ground is None:
-        return []
+    heights = rescue_heights(
+        results, options.rescue_min_inliers, options.registration.coarse_height_step_m
+    )
     weak = [
         i
         for i, o in enumerate(outcomes)
@@ -549,22 +580,26 @@ def _rescue(
         and o.registration.num_inliers < options.rescue_min_inliers
         and len(o.segments) >= options.registration.min_segments
     ]
-    if not weak:
+    if not weak or len(heights) == 0:
         return []
     logger.info(
-        "%d weak image(s) registered again at the block's ground height %.2f m",
+        "%d weak image(s) registered again from the block's ground heights %s m",
         len(weak),
-        ground,
+        np.round(heights, 1).tolist(),
     )
     jobs = [
-        (tasks[i], outcomes[i].segments, outcomes[i].vertical_direction, ground)
+        (tasks[i], outcomes[i].segments, outcomes[i].vertical_direction, float(h))
         for i in weak
+        for h in heights
     ]
+    tries = pool.map(_reregister, jobs, "rescue")
     names = []
-    for i, new in zip(weak, pool.map(_reregister, jobs, "rescue"), strict=True):
+    for k, i in enumerate(weak):
+        mine = tries[k * len(heights) : (k + 1) * len(heights)]
+        best = max(mine, key=lambda r: (r.success, r.num_inliers))
         old = outcomes[i].registration
-        if new.success and (not old.success or new.num_inliers > old.num_inliers):
-            _set_registration(outcomes[i], new)
+        if best.success and (not old.success or best.num_inliers > old.num_inliers):
+            _set_registration(outcomes[i], best)
             outcomes[i].rescued = True
             names.append(outcomes[i].name)
     return names
