@@ -92,7 +92,8 @@ class PipelineOptions:
     #: Worker processes for the per-image stages; 0 = the available cores.
     num_workers: int = 0
     #: Half-angle (deg) of the cone around the prior rotation's vertical in
-    #: which the VP is searched; None = 3 sigma of the prior rotation + 1 deg.
+    #: which the VP is searched; None = 3 sigma of the prior rotation and
+    #: focal errors + 1 deg.
     vp_cone_deg: float | None = None
     #: Images with fewer inlier corners are registered again with the block's
     #: ground height (0 disables the rescue).
@@ -124,7 +125,14 @@ class PipelineOptions:
     def cone_deg(self) -> float:
         if self.vp_cone_deg is not None:
             return float(self.vp_cone_deg)
-        return 3.0 * self.registration.prior_rotation_sigma_deg + 1.0
+        # The predicted vertical errs by the prior's rotation error and, read
+        # through a wrong focal length, by about half the relative focal error
+        # (radians) at 45 deg tilt; 3 sigma of both, plus a degree.
+        reg = self.registration
+        sigma = math.hypot(
+            reg.prior_rotation_sigma_deg, math.degrees(0.5 * reg.prior_focal_sigma)
+        )
+        return 3.0 * sigma + 1.0
 
 
 @dataclass
@@ -231,14 +239,16 @@ def _initial_image(task: _ImageTask) -> ImageOutcome:
     vp = detect_vertical_vp(img, task.vanishing, task.camera, prior, task.image_id)
     out.vp_status = vp.status
     out.time_s["vanishing"] = vp.time_s.get("total", math.nan)
-    if vp.vertical_segments is not None:
+    options = task.registration
+    if vp.status == "ok" and vp.vertical_segments is not None:
         out.segments = vp.vertical_segments.endpoints
-    elif len(vp.segments):
-        out.segments = vp.segments.endpoints
-    # A missing or doubtful VP falls back to the prior rotation's vertical,
-    # which the registration then refines with the pose.
-    if vp.status == "ok":
         out.vertical_direction = vp.vertical_direction
+    else:
+        # A missing or doubtful VP: all first-pass segments, filtered by the
+        # prior rotation's vertical (within its uncertainty), which the
+        # registration then refines with the pose.
+        out.segments = vp.segments.endpoints if len(vp.segments) else out.segments
+        options = _fallback_options(options)
     t1 = time.perf_counter()
     result = register_image(
         out.segments,
@@ -246,13 +256,23 @@ def _initial_image(task: _ImageTask) -> ImageOutcome:
         task.camera,
         task.prior,
         _STATE["cadastre"],
-        task.registration,
+        options,
         segments_undistorted=True,
     )
     out.time_s["registration"] = time.perf_counter() - t1
     _set_registration(out, result)
     out.time_s["total"] = time.perf_counter() - t0
     return out
+
+
+def _fallback_options(options: RegistrationOptions) -> RegistrationOptions:
+    """Registration options when the vertical comes from the prior rotation.
+
+    Segments are then kept within 2 sigma of the prior's tilt of the line
+    towards the predicted VP, not within the detected VP's tolerance.
+    """
+    tolerance = max(options.vp_tolerance_deg, 2.0 * options.prior_rotation_sigma_deg)
+    return _replace(options, vp_tolerance_deg=tolerance)
 
 
 def _set_registration(out: ImageOutcome, result: RegistrationResult) -> None:
@@ -264,7 +284,12 @@ def _set_registration(out: ImageOutcome, result: RegistrationResult) -> None:
 def _reregister(args: tuple[_ImageTask, np.ndarray, np.ndarray | None, float]):
     """Register one image again with a given ground height."""
     task, segments, vertical, ground = args
-    options = _replace(task.registration, ground_height=ground)
+    options = (
+        task.registration
+        if vertical is not None
+        else _fallback_options(task.registration)
+    )
+    options = _replace(options, ground_height=ground)
     return register_image(
         segments,
         vertical,

@@ -30,6 +30,7 @@ import numpy as np
 
 from obliq_colmap.evaluate import EvaluateOptions, evaluate_model
 from obliq_colmap.pipeline import PipelineOptions, run_register, write_run
+from obliq_colmap.registration import RegistrationOptions
 
 logger = logging.getLogger("bench_register")
 
@@ -55,8 +56,17 @@ def _summary(ev) -> dict:
 
 
 def bench_scene(scene: Path, args: argparse.Namespace) -> dict:
+    # A user knows the accuracy of their GPS/INS: take the scene's prior noise.
+    noise = json.loads((scene / "scene.json").read_text())["options"]
     options = PipelineOptions(
-        stop_after=args.stop_after, num_workers=args.num_workers, progress=False
+        stop_after=args.stop_after,
+        num_workers=args.num_workers,
+        progress=False,
+        registration=RegistrationOptions(
+            prior_position_sigma_m=noise["prior_position_m"],
+            prior_rotation_sigma_deg=noise["prior_rotation_deg"],
+            prior_focal_sigma=noise["prior_focal_percent"] / 100.0,
+        ),
     )
     t0 = time.perf_counter()
     run = run_register(
