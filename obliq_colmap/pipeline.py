@@ -523,10 +523,20 @@ def run_register(
     if options.stop_after == "bundle" and registered:
         t0 = time.perf_counter()
         problem = build_bundle_problem(inputs, by_id)
-        bundle_result = solve_bundle(problem, options.bundle)
+        if len(problem.horizontal_image) == 0:
+            # Corner-to-vertical-line constraints alone cannot observe a
+            # camera's height nor its focal/distance trade-off (measured: the
+            # solve drifts by tens of metres): without facade constraints the
+            # per-image registration is the better result.
+            logger.warning(
+                "no facade-edge constraints: the bundle is skipped and the "
+                "per-image registration is written"
+            )
+        else:
+            bundle_result = solve_bundle(problem, options.bundle)
+            poses = dict(bundle_result.poses)
+            cameras = {**cameras, **bundle_result.cameras}
         timings["bundle"] = time.perf_counter() - t0
-        poses = dict(bundle_result.poses)
-        cameras = {**cameras, **bundle_result.cameras}
     ground = block_ground_height([o.registration for o in registered], 1)
     z0 = float(np.round(ground)) if ground is not None else 0.0
     georef = Georef(
