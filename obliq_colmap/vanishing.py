@@ -13,10 +13,22 @@ Stage 1b of the pipeline (Habbecke & Kobbelt, section 2.1):
    of squared endpoint distances to the best line through the VP of each
    segment (the per-segment line is eliminated in closed form), with its
    covariance.
-4. Second pass (:func:`vertical_segments`): the derivative perpendicular to
+4. Competing VPs: the other strong pencils (street and facade directions)
+   are found by RANSAC too, and every segment belongs to the VP it fits best
+   (alternating with the ML refinement). In oblique aerial images a street
+   seen along the camera's azimuth passes through the nadir point, i.e.
+   through the vertical VP: its curbs, markings and parked cars look like
+   verticals inside a strip and pulled the VP along it by up to 5 deg. When a
+   competitor allowed by the prior is more significant than the vertical (a
+   street's many short segments can win the pair-RANSAC), the two swap roles.
+5. Second pass (:func:`vertical_segments`): the derivative perpendicular to
    the line from the VP through each pixel, non-maximum suppression and
-   hysteresis on it, chains fitted as lines constrained through the VP. The VP
-   is then refined once more on these full-resolution edge points.
+   hysteresis on it, chains fitted as lines constrained through the VP
+   (points within ``end_trim_px`` of a chain's ends, bent by the junction
+   with roof or ground, left out of the fit), ends moved out to where the
+   contrast halves (the end of the blurred edge). The VP is then refined once
+   more on these full-resolution edge points, on the chains within a robust
+   noise bound that fit it better than any competing VP.
 
 Everything is homogeneous (a VP at infinity, ``w = 0``, is legal); internally
 pixel coordinates are centred and scaled (``T``) for conditioning. The
@@ -26,9 +38,10 @@ vertical direction ``n = +-normalise(K^-1 v)`` is oriented down the world:
 
 Significance: the best hypothesis is judged a contrario: the number of
 segments consistent with it is compared with the number expected if the
-segment orientations were random (Poisson tail, times the number of pair
-hypotheses). An image without vertical structure (water, fields, sky, noise)
-gives a "no_vp" result instead of a confident wrong VP.
+segment orientations were random (Poisson tail, times the number of
+hypotheses RANSAC may test), in three length classes (the best counts, the
+number of tests tripled). An image without vertical structure (water,
+fields, sky, noise) gives a "no_vp" result instead of a confident wrong VP.
 
 References
 ----------
@@ -54,6 +67,7 @@ from obliq_colmap.lines import (
     EdgePoints,
     LineOptions,
     Segments,
+    _bilinear,
     as_gray_u8,
     connected_pairs,
     detect_segments,
@@ -168,6 +182,12 @@ class SecondPassOptions:
     merge: bool = True
     merge_max_distance_px: float = 1.0
     merge_max_gap_px: float = 12.0
+    #: segment ends are moved outwards along their line to where the
+    #: contrast across it halves, by at most this much, px (0: off).
+    extend_max_px: float = 6.0
+    #: edge points within this distance of either end of their chain are
+    #: left out of the line fit (still part of the extent), px.
+    end_trim_px: float = 3.0
 
 
 @dataclass(kw_only=True)
@@ -178,8 +198,12 @@ class VanishingOptions:
     lines: LineOptions = field(default_factory=LineOptions)
     #: second pass (:func:`vertical_segments`); skipped when None.
     second_pass: SecondPassOptions | None = field(default_factory=SecondPassOptions)
-    #: refine the VP once more on the second pass's edge points.
+    #: refine the VP once more on the second pass's edge points ...
     refine_with_second_pass: bool = True
+    #: ... on the chains whose RMS distance to their line through the VP is
+    #: at most this many robust standard deviations of those RMS values (and
+    #: at most ``second_pass.max_rms_px``).
+    second_pass_rms_factor: float = 3.0
     #: RANSAC: largest distance of a segment endpoint to the line through the
     #: segment's midpoint and the hypothesis, pixels of the detection image.
     inlier_threshold_px: float = 1.0
@@ -201,6 +225,22 @@ class VanishingOptions:
     seed: int = 0
     #: ML refinement: re-selection rounds of the inliers.
     refine_rounds: int = 3
+    #: competing vanishing points: up to this many other VPs (street and
+    #: facade directions) are found by RANSAC among the candidate segments;
+    #: each segment then belongs to the VP it fits best (alternating
+    #: assignment and ML refinement). Lines of a horizontal direction whose
+    #: pencil passes near the vertical VP inside some image strip (a street
+    #: seen along the camera's azimuth, with its curbs, markings and cars) are
+    #: otherwise taken for verticals and pull the VP along that strip.
+    competing_vps: int = 3
+    #: a competing VP needs at least this many segments that fit it better
+    #: than the vertical VP ...
+    competing_min_segments: int = 8
+    #: ... and directions (nominal camera when the intrinsics are unknown) at
+    #: least this far from the vertical, degrees.
+    competing_min_angle_deg: float = 20.0
+    #: RANSAC hypotheses per competing VP (one batch).
+    competing_batch_size: int = 128
     #: fewer inlier segments than this: no VP at all.
     min_inliers: int = 4
     #: status "ok" needs this many inliers ...
@@ -238,6 +278,10 @@ class VanishingResult:
     vertical_segments : Segments or None, second-pass segments.
     n_hypotheses : int, RANSAC hypotheses evaluated.
     time_s : dict, wall time per step, seconds.
+    competing_vps : (K, 3) float array, the other vanishing points the
+        segments were assigned against (homogeneous unit vectors, pixels of
+        the distortion-free image; horizontal directions of streets and
+        facades in oblique aerial images).
     """
 
     status: str
@@ -252,6 +296,7 @@ class VanishingResult:
     vertical_segments: Segments | None = None
     n_hypotheses: int = 0
     time_s: dict = field(default_factory=dict)
+    competing_vps: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
 
     def __bool__(self) -> bool:
         return self.status != "no_vp"
@@ -315,10 +360,20 @@ def _pencil_costs(S: np.ndarray, V: np.ndarray) -> np.ndarray:
     Uses ``A_c = U^T S_c U`` with the 6 distinct entries of the symmetric S.
     """
     U = _tangent_basis(V)  # (P, 3, 2)
-    # A_ij = sum_kl U_ki S_kl U_lj, vectorised over (P, G) with a (G, 9) S.
-    W = np.einsum("pki,plj->pijkl", U, U).reshape(len(V), 4, 9)
-    A = np.einsum("gm,pam->pga", S.reshape(len(S), 9), W)  # (P, G, 4)
-    a00, a01, a11 = A[..., 0], A[..., 1], A[..., 3]
+    P = len(V)
+    # A_ij = sum_kl U_ki S_kl U_lj for the three distinct (i, j), vectorised
+    # over (P, G) as one matrix product with the (G, 9) flattened S.
+    u0, u1 = U[:, :, 0], U[:, :, 1]  # (P, 3)
+    W = np.stack(
+        [
+            (u0[:, :, None] * u0[:, None, :]).reshape(P, 9),
+            (u0[:, :, None] * u1[:, None, :]).reshape(P, 9),
+            (u1[:, :, None] * u1[:, None, :]).reshape(P, 9),
+        ],
+        axis=1,
+    ).reshape(3 * P, 9)
+    A = (S.reshape(len(S), 9) @ W.T).reshape(len(S), P, 3)  # (G, P, 3)
+    a00, a01, a11 = A[..., 0].T, A[..., 1].T, A[..., 2].T  # (P, G)
     B = np.einsum("pki,pkj->pij", U[:, :2], U[:, :2])  # (P, 2, 2)
     b00, b01, b11 = B[:, 0, 0, None], B[:, 0, 1, None], B[:, 1, 1, None]
     qa = b00 * b11 - b01 * b01
@@ -346,7 +401,12 @@ def _pencil_fit(S: np.ndarray, v: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     lines : (G, 3) the lines, unit normal (a, b).
     """
     U = _tangent_basis(v)  # (3, 2)
-    A = np.einsum("ki,gkl,lj->gij", U, S, U)  # (G, 2, 2)
+    W = np.stack(
+        [np.outer(U[:, i], U[:, j]).ravel() for i, j in ((0, 0), (0, 1), (1, 1))]
+    )
+    a = S.reshape(len(S), 9) @ W.T  # (G, 3): A00, A01, A11
+    A = np.empty((len(S), 2, 2))
+    A[:, 0, 0], A[:, 0, 1], A[:, 1, 0], A[:, 1, 1] = a[:, 0], a[:, 1], a[:, 1], a[:, 2]
     B = U[:2].T @ U[:2]  # (2, 2): a^2 + b^2 as a form in x
     qa = B[0, 0] * B[1, 1] - B[0, 1] ** 2
     qb = A[:, 0, 0] * B[1, 1] + A[:, 1, 1] * B[0, 0] - 2 * A[:, 0, 1] * B[0, 1]
@@ -563,6 +623,10 @@ def _ransac(
     prior_ok,
     options: VanishingOptions,
     rng: np.random.Generator,
+    cap: np.ndarray | None = None,
+    sample: np.ndarray | None = None,
+    max_trials: int | None = None,
+    batch_size: int | None = None,
 ) -> tuple[np.ndarray | None, np.ndarray, int]:
     """Best VP hypothesis from pairs of segments (length-weighted MSAC).
 
@@ -571,6 +635,10 @@ def _ransac(
     at once. The number of batches adapts to the best inlier fraction by
     weight (a pair is all-inlier with probability ~ w^2).
 
+    ``cap`` (S,), optional: a segment counts only where its distance is below
+    its cap (the distance to another VP: exclusive scoring). ``sample`` (S,)
+    bool, optional: the segments pairs are drawn from.
+
     Returns
     -------
     vp_n : (3,) unit homogeneous VP (normalised coordinates) or None.
@@ -578,18 +646,27 @@ def _ransac(
     n_hypotheses : int, hypotheses that passed the prior and were scored.
     """
     S = len(lines_n)
-    if S < 2:
+    pool = np.arange(S) if sample is None else np.flatnonzero(sample)
+    if len(pool) < 2:
         return None, np.zeros(S, bool), 0
-    p = length / length.sum()
+    max_trials = options.max_trials if max_trials is None else max_trials
+    batch = options.batch_size if batch_size is None else batch_size
+    p = length[pool] / length[pool].sum()
     best_score, best_v, n_hyp, trials = -1.0, None, 0, 0
-    needed = options.max_trials
+    needed = max_trials
     chunk = max(1, 2_000_000 // S)
-    while trials < min(needed, options.max_trials) or trials < options.min_trials:
-        if trials >= options.max_trials:
+
+    def inliers_of(v):
+        d = _midpoint_distance(v[None], mid_n, half_n)[0]
+        return (d <= thr_n) & (d < cap) if cap is not None else d <= thr_n
+
+    min_trials = min(options.min_trials, max_trials)
+    while trials < min(needed, max_trials) or trials < min_trials:
+        if trials >= max_trials:
             break
-        i = rng.choice(S, options.batch_size, p=p)
-        j = rng.choice(S, options.batch_size, p=p)
-        trials += options.batch_size
+        i = pool[rng.choice(len(pool), batch, p=p)]
+        j = pool[rng.choice(len(pool), batch, p=p)]
+        trials += batch
         keep = i != j
         v = np.cross(lines_n[i[keep]], lines_n[j[keep]])
         nv = np.linalg.norm(v, axis=1)
@@ -598,19 +675,21 @@ def _ransac(
         n_hyp += len(v)
         for k in range(0, len(v), chunk):
             d = _midpoint_distance(v[k : k + chunk], mid_n, half_n)
-            score = (np.maximum(0.0, 1.0 - (d / thr_n) ** 2) * length).sum(axis=1)
+            m = np.maximum(0.0, 1.0 - (d / thr_n) ** 2)
+            if cap is not None:
+                m *= d < cap
+            score = m @ length
             h = int(np.argmax(score))
             if score[h] > best_score:
                 best_score, best_v = float(score[h]), v[k + h]
         if best_v is not None:
-            inl = _midpoint_distance(best_v[None], mid_n, half_n)[0] <= thr_n
-            w = float(length[inl].sum() / length.sum())
+            inl = inliers_of(best_v)
+            w = float(length[inl].sum() / length[pool].sum())
             pw = min(max(w * w, 1e-12), 1 - 1e-12)
             needed = int(np.ceil(np.log(1 - options.confidence) / np.log1p(-pw)))
     if best_v is None:
         return None, np.zeros(S, bool), n_hyp
-    inl = _midpoint_distance(best_v[None], mid_n, half_n)[0] <= thr_n
-    return best_v, inl, n_hyp
+    return best_v, inliers_of(best_v), n_hyp
 
 
 def _significance(k: int, p_chance: np.ndarray, n_tests: float) -> float:
@@ -736,17 +815,29 @@ def _second_pass(
     xy, group, xy_px = xy[good], group[good], xy_px[good]
     absd, d_sign = np.abs(pts.derivative[good]), d_sign[good]
     tangent = np.stack([-lines[:, 1], lines[:, 0]], axis=1)
+    pos = np.sum(xy * tangent[group], axis=1)
     group, order = split_at_gaps(xy, group, tangent, options.max_gap_px / s)
-    xy, absd, d_sign = xy[order], absd[order], d_sign[order]
+    xy, absd, d_sign, pos = xy[order], absd[order], d_sign[order], pos[order]
     G = int(group.max()) + 1 if len(group) else 0
     if G == 0:
         return empty
-    Sc = scatter_matrices(xy, group, G)
+    count = np.bincount(group, minlength=G).astype(float)
+    if options.end_trim_px > 0:
+        # Points near a chain's ends (junctions with roof, ground, other
+        # edges) leave the line in one direction: left out of the fit.
+        first = np.r_[0, np.flatnonzero(np.diff(group)) + 1]
+        last = np.r_[first[1:], len(group)] - 1
+        trim = options.end_trim_px / s
+        w = (pos - pos[first][group] >= trim) & (pos[last][group] - pos >= trim)
+        short = np.bincount(group, weights=w, minlength=G) < 3
+        w = (w | short[group]).astype(float)
+        Sc = scatter_matrices(xy, group, G, weights=w)
+    else:
+        Sc = scatter_matrices(xy, group, G)
     cost, lines = _pencil_fit(Sc, vn)
-    count = Sc[:, 2, 2]
     ends = _extents_on(xy, group, lines, G)
     length = np.linalg.norm(ends[:, 1] - ends[:, 0], axis=1) * s
-    rms = np.sqrt(cost / np.maximum(count, 1)) * s
+    rms = np.sqrt(cost / np.maximum(Sc[:, 2, 2], 1)) * s
     sign = np.bincount(group, weights=d_sign, minlength=G)
     strength = np.bincount(group, weights=absd, minlength=G) / np.maximum(count, 1)
     # Fragments shorter than a quarter of the minimum length (at most 3 px)
@@ -770,15 +861,6 @@ def _second_pass(
             options.merge_max_gap_px / s,
         )
         keep = np.ones(len(Sc), bool)
-    length = np.linalg.norm(ends[:, 1] - ends[:, 0], axis=1) * s
-    keep &= (length >= options.min_length_px) & (count >= options.min_density * length)
-    ends, lines, sign, strength, Sc = (
-        ends[keep],
-        lines[keep],
-        sign[keep],
-        strength[keep],
-        Sc[keep],
-    )
     Tinv = np.linalg.inv(T)
     ends_px = ends @ Tinv[:2, :2].T + Tinv[:2, 2]
     # Edge normal n was (-uy, ux) with u towards the VP; D > 0: brighter on +n.
@@ -790,7 +872,57 @@ def _second_pass(
     normal = (
         np.stack([-uy / nrm, ux / nrm], axis=1) * np.where(sign >= 0, 1, -1)[:, None]
     )
-    return _SecondPass(Segments(ends_px, normal, strength), Sc)
+    if options.extend_max_px > 0:
+        ends_px = _extend_ends(
+            ends_px, normal, strength, gx, gy, camera, options.extend_max_px
+        )
+    length = np.linalg.norm(ends_px[:, 1] - ends_px[:, 0], axis=1)
+    keep &= (length >= options.min_length_px) & (count >= options.min_density * length)
+    return _SecondPass(Segments(ends_px[keep], normal[keep], strength[keep]), Sc[keep])
+
+
+def _extend_ends(ends, normal, strength, gx, gy, camera, max_px, step=0.5):
+    """Move segment ends outwards to where the edge's contrast halves.
+
+    Near a junction (wall meeting roof or ground) the gradient turns and the
+    edge points stop a few pixels short of the edge's end. Along the segment's
+    line beyond each end, the derivative across the line (towards the bright
+    side) is sampled every ``step`` px; the end moves to where it first falls
+    below half the segment's mean strength (the end of a blurred step edge),
+    by linear interpolation, at most ``max_px``. Never shortens a segment.
+    """
+    if len(ends) == 0:
+        return ends
+    d = ends[:, 1] - ends[:, 0]
+    d /= np.maximum(np.linalg.norm(d, axis=1, keepdims=True), 1e-12)
+    k = np.arange(1, int(round(max_px / step)) + 1) * step  # (K,)
+    half = 0.5 * strength[:, None]
+    out = ends.copy()
+    for e, sgn in ((0, -1.0), (1, 1.0)):
+        pts = ends[:, e, None, :] + sgn * k[None, :, None] * d[:, None, :]  # (G, K, 2)
+        flat = pts.reshape(-1, 2)
+        if camera is not None and camera.has_distortion:
+            flat = camera.distort_pixels(flat)
+        D = (
+            _bilinear(gx, flat) * np.repeat(normal[:, 0], len(k))
+            + _bilinear(gy, flat) * np.repeat(normal[:, 1], len(k))
+        ).reshape(len(ends), len(k))
+        below = half > D
+        # Index of the first sample below half strength (K: none).
+        first = np.where(below.any(axis=1), np.argmax(below, axis=1), len(k))
+        prev = np.take_along_axis(D, np.maximum(first - 1, 0)[:, None], axis=1)[:, 0]
+        prev = np.where(first > 0, prev, half[:, 0] * 2)
+        cur = np.take_along_axis(D, np.minimum(first, len(k) - 1)[:, None], axis=1)[
+            :, 0
+        ]
+        # Linear interpolation of the half-strength crossing between samples.
+        frac = np.clip((prev - half[:, 0]) / np.maximum(prev - cur, 1e-9), 0.0, 1.0)
+        dist = np.where(
+            first >= len(k), max_px, np.maximum(first - 1 + frac, 0.0) * step
+        )
+        dist = np.where(first == 0, frac * step, dist)
+        out[:, e] = ends[:, e] + sgn * dist[:, None] * d
+    return out
 
 
 def _extents_on(xy, group, lines, G):
@@ -906,6 +1038,140 @@ def _refine_segments(
     return v, cov, inl
 
 
+def _segment_residuals(S_all: np.ndarray, vps: list[np.ndarray]) -> np.ndarray:
+    """(M, G) RMS endpoint distance of each segment to its best line through each VP."""
+    return np.stack([np.sqrt(_pencil_fit(S_all, v)[0] / 2.0) for v in vps])
+
+
+def _with_competitors(
+    ends_n,
+    lines_n,
+    mid_n,
+    half_n,
+    weight,
+    v,
+    inl,
+    thr_n,
+    Kn,
+    prior_ok,
+    significance_of,
+    options,
+    rng,
+):
+    """Vertical VP refined against competing VPs (exclusive assignment).
+
+    1. ML refinement of the vertical VP on its inliers (:func:`_refine_segments`).
+    2. Up to ``options.competing_vps`` times: RANSAC for another VP among the
+       segments, scored only on segments that fit it better than every VP
+       found so far, its hypotheses at least ``competing_min_angle_deg`` from
+       the vertical direction; kept with ``competing_min_segments`` such
+       segments.
+    3. Alternation (:func:`_alternate`): every segment goes to the VP it
+       fits best (RMS endpoint distance to the best line through the VP), the
+       vertical VP is refined by ML on its segments, until stable.
+    4. If a competitor that the prior allows as the vertical is more
+       significant (``significance_of``), they swap, and 3. again.
+
+    Returns the vertical VP, its covariance, its inliers (S,) bool, and the
+    competing VPs (normalised homogeneous).
+    """
+    v, cov, inl = _refine_segments(ends_n, v, inl, thr_n, options.refine_rounds)
+    if options.competing_vps <= 0 or inl.sum() < 3:
+        return v, cov, inl, []
+    S_all = _endpoint_scatter(ends_n)
+    Kinv = np.linalg.inv(Kn)
+    cos_sep = np.cos(np.radians(options.competing_min_angle_deg))
+
+    def direction(h):
+        d = h @ Kinv.T
+        return d / np.linalg.norm(d, axis=-1, keepdims=True)
+
+    comps: list[np.ndarray] = []
+    for _ in range(options.competing_vps):
+        dv = direction(v)
+
+        def far_from_vertical(h, dv=dv):
+            return np.abs(direction(h) @ dv) <= cos_sep
+
+        cap = _midpoint_distance(np.vstack([v] + comps), mid_n, half_n).min(axis=0)
+        free = cap > 0.5 * thr_n
+        h, hinl, _ = _ransac(
+            lines_n,
+            mid_n,
+            half_n,
+            weight,
+            thr_n,
+            far_from_vertical,
+            options,
+            rng,
+            cap=cap,
+            sample=free,
+            # Streets and facades are strong pencils: one small batch.
+            max_trials=options.competing_batch_size,
+            batch_size=options.competing_batch_size,
+        )
+        if h is None or hinl.sum() < options.competing_min_segments:
+            break
+        comps.append(h)
+    if not comps:
+        return v, cov, inl, []
+    vps = [v] + comps
+    vps, cov, assign = _alternate(S_all, vps, cov, thr_n, direction, cos_sep, options)
+    # The vertical is the most significant pencil the prior allows: a street
+    # seen along its length (dashes, curbs, cars: many short segments) can
+    # outscore the buildings in pair-RANSAC; if a competitor the prior allows
+    # is more significant, the two swap roles.
+    allowed = prior_ok(np.array(vps))
+    score = np.array(
+        [
+            significance_of(h) if ok else -np.inf
+            for h, ok in zip(vps, allowed, strict=True)
+        ]
+    )
+    best = int(np.argmax(score))
+    if best != 0 and score[best] > score[0]:
+        vps[0], vps[best] = vps[best], vps[0]
+        v2, cov2, _, _ = refine_vp(S_all[assign == best], vps[0])
+        if np.all(np.isfinite(v2)):
+            vps[0], cov = v2, cov2
+        vps, cov, assign = _alternate(
+            S_all, vps, cov, thr_n, direction, cos_sep, options
+        )
+    inl = assign == 0
+    return vps[0], cov, inl, vps[1:]
+
+
+def _alternate(S_all, vps, cov, thr_n, direction, cos_sep, options):
+    """Assign segments to their best VP and refine, until stable.
+
+    The competitors (``vps[1:]``) are refined once, a few Newton steps (they
+    only claim their segments); the vertical VP ``vps[0]`` in every round.
+    """
+    vps = list(vps)
+    assign, first_round = None, True
+    for _ in range(max(options.refine_rounds, 1)):
+        D = _segment_residuals(S_all, vps)
+        new = np.where(D.min(axis=0) <= thr_n, np.argmin(D, axis=0), -1)
+        if assign is not None and np.array_equal(new, assign):
+            break
+        assign = new
+        if first_round:
+            for m in range(1, len(vps)):
+                sel = assign == m
+                if sel.sum() >= 3:
+                    vm = refine_vp(S_all[sel], vps[m], max_iterations=3)[0]
+                    # A competitor must not drift onto the vertical.
+                    if np.abs(direction(vm) @ direction(vps[0])) <= cos_sep:
+                        vps[m] = vm
+            first_round = False
+        sel = assign == 0
+        if sel.sum() >= 3:
+            vm, cm, _, _ = refine_vp(S_all[sel], vps[0])
+            if np.all(np.isfinite(vm)):
+                vps[0], cov = vm, cm
+    return vps, cov, assign
+
+
 def estimate_vertical_vp(
     segments: Segments,
     image_size: tuple[int, int],
@@ -980,7 +1246,59 @@ def estimate_vertical_vp(
         return result
 
     t0 = time.perf_counter()
-    v, cov, inl = _refine_segments(ends_n, v, inl, thr_n, options.refine_rounds)
+    # Background model: every segment has a uniform orientation (deviation
+    # from the line to the VP uniform in [0, pi/2]); k counts those consistent
+    # with the VP, whichever VP they were assigned to. The prior only limits
+    # where hypotheses may lie (fewer tests); using the candidates' narrow
+    # orientation band as the chance range would make a strong pencil of 400
+    # verticals look like chance under a tight INS cone. The test is made in
+    # three length classes (at least 1, 2 and 4 times min_length_px), the
+    # best one counting, with the number of tests multiplied by 3: a pencil of
+    # many short segments and one of a few long ones in a textured image
+    # (where hundreds of short segments make any VP look like chance) are
+    # both recognised. Number of tests: the hypotheses RANSAC may examine
+    # (fixed a priori by max_trials), not all pairs of segments.
+    n_tests = 3 * min(len(idx) * (len(idx) - 1) / 2, options.max_trials)
+    classes = []
+    for mult in (1.0, 2.0, 4.0):
+        sel = segments.lengths >= mult * options.min_length_px * factor
+        Lc = segments.lengths[sel]
+        p_c = np.minimum(
+            1.0, np.arcsin(np.minimum(1.0, thr_px / (0.5 * Lc))) / (np.pi / 2)
+        )
+        ends_c = segments.endpoints[sel] @ T[:2, :2].T + T[:2, 2]
+        classes.append((_endpoint_scatter(ends_c), p_c))
+
+    def significance_of(v_):
+        best = -np.inf
+        for S_c, p_c in classes:
+            if len(S_c) == 0:
+                continue
+            d = np.sqrt(_pencil_fit(S_c, v_)[0] / 2.0)
+            k_c = int(np.count_nonzero(d <= thr_n))
+            best = max(best, _significance(k_c, p_c, n_tests))
+        return best
+
+    v, cov, inl, comps = _with_competitors(
+        ends_n,
+        lines_n,
+        mid_n,
+        half_n,
+        weight,
+        v,
+        inl,
+        thr_n,
+        T @ Knom,
+        prior_ok,
+        significance_of,
+        options,
+        rng,
+    )
+    if comps:
+        c = np.array(comps) @ np.linalg.inv(T).T
+        result.competing_vps = _canonical_sign(
+            c / np.linalg.norm(c, axis=1, keepdims=True)
+        )
     result.time_s["refine"] = time.perf_counter() - t0
     if not prior_ok(v[None])[0]:
         # The structure converges where the prior says the VP cannot be (e.g.
@@ -992,18 +1310,7 @@ def estimate_vertical_vp(
             f"(homogeneous VP {np.round(vpx / np.linalg.norm(vpx), 5).tolist()})"
         )
         return result
-    k = int(inl.sum())
-    # Background model: every long-enough segment has a uniform orientation
-    # (deviation from the line to the VP uniform in [0, pi/2]). The prior only
-    # limits where hypotheses may lie (fewer tests); using the candidates'
-    # narrow orientation band as the chance range would make a strong pencil
-    # of 400 verticals look like chance under a tight INS cone.
-    long_enough = segments.lengths[segments.lengths >= options.min_length_px * factor]
-    p_chance = np.minimum(
-        1.0, np.arcsin(np.minimum(1.0, thr_px / (0.5 * long_enough))) / (np.pi / 2)
-    )
-    sig = _significance(k, p_chance, len(idx) * (len(idx) - 1) / 2)
-
+    sig = significance_of(v)
     result.inliers[idx[inl]] = True
     _set_vp(result, v, cov, T, K, Knom, prior)
     result.significance = sig
@@ -1113,15 +1420,37 @@ def detect_vertical_vp(
             # non-vertical edges that passed near the first-pass VP (streets
             # receding towards the horizon) drop out as the VP improves.
             max_cost = (options.second_pass.max_rms_px / s_px) ** 2
-            use = np.ones(len(sp.scatter), bool)
-            for _ in range(max(options.refine_rounds, 1)):
+            n_pts = np.maximum(sp.scatter[:, 2, 2], 1)
+            # Chains that fit a competing VP (a street's direction) better
+            # than the vertical one are not vertical edges.
+            comps = result.competing_vps @ T.T
+            comps /= np.linalg.norm(comps, axis=1, keepdims=True)
+            other = np.full(len(sp.scatter), np.inf)
+            for c in comps:
+                other = np.minimum(other, _pencil_fit(sp.scatter, c)[0] / n_pts)
+            cost = _pencil_fit(sp.scatter, v_n)[0] / n_pts
+            use = (cost <= max_cost) & (cost <= np.maximum(other, 0.25 * max_cost))
+            if use.sum() < 3:
+                use[:] = True
+            for _ in range(max(options.refine_rounds, 1) + 2):
                 v_n, _, _, _ = refine_vp(sp.scatter[use], v_n)
-                cost, _ = _pencil_fit(sp.scatter, v_n)
-                new = cost / np.maximum(sp.scatter[:, 2, 2], 1) <= max_cost
+                cost = _pencil_fit(sp.scatter, v_n)[0] / n_pts
+                # Robust scale of the chains' RMS distances: straight edges
+                # through the VP share one noise level. The VP is refined on
+                # the chains within ``second_pass_rms_factor`` of it; a chain
+                # goes to a competing VP only when that fits it better by more
+                # than this noise (near the line joining the two VPs both fit
+                # equally well).
+                scale2 = (1.4826 * np.median(np.sqrt(cost[use]))) ** 2
+                thr = min(max_cost, options.second_pass_rms_factor**2 * scale2)
+                new = (cost <= thr) & (cost - other <= scale2)
                 if np.array_equal(new, use) or new.sum() < 3:
                     break
                 use = new
-            sp = _SecondPass(sp.segments.subset(use), sp.scatter[use])
+            # Returned: every chain through the refined VP within the second
+            # pass's own tolerance that fits it better than any competing VP.
+            keep = (cost <= max_cost) & (cost < other)
+            sp = _SecondPass(sp.segments.subset(keep), sp.scatter[keep])
             # The edge points of a chain are correlated (smoothing, optics), so
             # their formal covariance is ~10x too optimistic; the first pass's
             # (calibrated on independent segments) is kept as a conservative

@@ -435,3 +435,105 @@ def test_cli_bad_input(tmp_path, capsys):
     )
     assert rc == 2
     assert not (tmp_path / "v.json").exists()
+
+
+# --------------------------------------------------------------------------
+# Competing vanishing points; second-pass segment ends
+# --------------------------------------------------------------------------
+
+
+def street_strip_segments(vp, vp_street, rng, sigma=0.25, n_in=40, n_street=150):
+    """Verticals through ``vp`` and a street's lines through ``vp_street``.
+
+    The street lines lie in a strip around the line joining the two VPs,
+    where they point almost exactly at ``vp`` (an oblique camera looking
+    along a street: curbs, markings and cars).
+    """
+    segs = noisy_segments(vp, rng, n_in=n_in, n_out=0, sigma=sigma)
+    ends = [segs.endpoints]
+    # Points of the joining line inside the image, shifted sideways a little.
+    join = np.cross(vp, vp_street)
+    for _ in range(n_street):
+        y = rng.uniform(60, H - 60)
+        x = -(join[1] * y + join[2]) / join[0] + rng.uniform(-60, 60)
+        q = np.array([x, y])
+        y0, y1 = y - rng.uniform(8, 40), y + rng.uniform(8, 40)
+        e = np.array(
+            [
+                [point_on_line_at_y(vp_street, q, y0), y0],
+                [point_on_line_at_y(vp_street, q, y1), y1],
+            ]
+        )
+        ends.append((e + rng.normal(0, sigma, (2, 2)))[None])
+    ends = np.concatenate(ends)
+    return Segments(ends, np.tile([1.0, 0.0], (len(ends), 1)), np.ones(len(ends)))
+
+
+def test_competing_vp_keeps_a_street_from_pulling_the_vertical():
+    vp = np.array([330.0, 2400.0, 1.0])
+    vp_street = np.array([40.0, -1500.0, 1.0])  # on the horizon, above
+    errors, errors_plain = [], []
+    for trial in range(6):
+        rng = np.random.default_rng(100 + trial)
+        segs = street_strip_segments(vp, vp_street, rng)
+        aerial = VPPrior.aerial()
+        res = estimate_vertical_vp(
+            segs, (W, H), VanishingOptions(seed=trial), CAMERA, aerial
+        )
+        plain = estimate_vertical_vp(
+            segs, (W, H), VanishingOptions(seed=trial, competing_vps=0), CAMERA, aerial
+        )
+        assert res.status == "ok", res.message
+        # The street's VP is found and claims (most of) its segments.
+        assert len(res.competing_vps) >= 1
+        street = res.competing_vps[
+            np.argmin([angle_deg(c, vp_street) for c in res.competing_vps])
+        ]
+        # (short segments in a narrow strip: its distance is poorly defined)
+        assert direction_error_deg(street, vp_street) < 10.0
+        assert res.inliers[40:].mean() < 0.2
+        errors.append(direction_error_deg(res.vp, vp))
+        errors_plain.append(direction_error_deg(plain.vp, vp))
+        # Within 4 predicted sigmas of the verticals alone (0.25 px noise).
+        assert errors[-1] < 4 * res.direction_std_deg, (
+            errors[-1],
+            res.direction_std_deg,
+        )
+    # Without the competitor, the street pulls the VP along the strip.
+    assert np.median(errors_plain) > 3 * np.median(errors)
+
+
+def test_second_pass_reaches_the_ends_of_edges():
+    # Bands with exactly known ends (y0, y1) meeting horizontal edges, as a
+    # wall's corner meets the roof and the ground.
+    vp = np.array([380.0, 2600.0, 1.0])
+    rng = np.random.default_rng(21)
+    w, h, ss = W, H, 4
+    hi = np.full((h * ss, w * ss), 90, np.uint8)
+    bands = []
+    for xa in np.linspace(60, 560, 6):
+        y0, y1 = rng.uniform(40, 120), rng.uniform(300, 440)
+        qa, qb = (xa, h / 2), (xa + 40, h / 2)
+        poly = [
+            (point_on_line_at_y(vp, qa, y0), y0),
+            (point_on_line_at_y(vp, qb, y0), y0),
+            (point_on_line_at_y(vp, qb, y1), y1),
+            (point_on_line_at_y(vp, qa, y1), y1),
+        ]
+        pts = np.round((np.array(poly) * ss - 0.5) * 16).astype(np.int32)
+        cv2.fillPoly(hi, [pts], int(rng.integers(150, 230)), shift=4)
+        bands.append((y0, y1))
+    img = cv2.resize(hi, (w, h), interpolation=cv2.INTER_AREA).astype(float)
+    img = cv2.GaussianBlur(img, (0, 0), 0.7) + rng.normal(0, 2.0, (h, w))
+    img = np.clip(img, 0, 255).astype(np.uint8)
+    segs = vertical_segments(img, vp, SecondPassOptions())
+    extended = [np.sort(s[:, 1]) for s in segs.endpoints if segs.lengths[0] > 0]
+    for y0, y1 in bands:
+        # Both long edges of every band, ends within 1 px (blur 0.7 px and
+        # the 1 px smoothing; without the extension they stop ~3 px short).
+        hits = [e for e in extended if abs(e[0] - y0) < 8 and abs(e[1] - y1) < 8]
+        assert len(hits) == 2, (y0, y1, hits)
+        for e in hits:
+            assert abs(e[0] - y0) < 1.0 and abs(e[1] - y1) < 1.0, (y0, y1, e)
+    short = vertical_segments(img, vp, SecondPassOptions(extend_max_px=0))
+    assert np.sum(short.lengths) < np.sum(segs.lengths) - 2 * len(bands) * 2
