@@ -70,6 +70,10 @@ logger = logging.getLogger(__name__)
 
 _EZ = np.array([0.0, 0.0, 1.0])
 
+#: Upper bound on the cells of the fine pose vote (step 3); the window is
+#: about (2 * 1.5 * coarse / fine)^3 ~ 30 x 13 x 13 cells at the true height.
+_FINE_MAX_CELLS = 20_000
+
 
 # --------------------------------------------------------------------------
 # Options and result
@@ -112,11 +116,16 @@ class RegistrationOptions:
         A segment is used when its direction is within this angle of the line
         from its midpoint to the VP (matters when the VP comes from the prior
         rotation; the vanishing stage's segments pass through the VP).
-    coarse_cells_px : (float, float, float)
+    coarse_cells_mrad : (float, float, float)
         Cells of the coarse pose vote (step 2) along alpha, the lateral and
-        the forward axis of the centre, in pixels of image motion at the
-        median viewing distance. Alpha and forward are coarse on purpose (see
-        :func:`_hough`).
+        the forward axis of the centre, in milliradians of image motion at the
+        median viewing distance (pixels / focal length; 13 mrad is 16 px at
+        1000 px image width). Angles, not pixels: the vote only has to land
+        within the reach of the fine vote, whose error budget is angular, and
+        its cost grows with the cube of the number of cells. Alpha and forward
+        are coarse on purpose (see :func:`_hough`).
+    coarse_max_segments : int
+        The coarse vote uses at most this many segments, the longest.
     coarse_height_step_m : float
         Height cell of the coarse vote (m).
     hough_cell_px : float
@@ -165,8 +174,26 @@ class RegistrationOptions:
         After refinement, a building whose median residual exceeds this times
         ``inlier_threshold_px`` loses all its pairs.
     refine_vertical : str
-        "auto" (refine the vertical direction too when it comes from the
-        prior rotation), "always" or "never".
+        "always" (refine the vertical direction with the pose, from
+        ``min_inliers_intrinsics`` inliers on), "auto" (only when it comes
+        from the prior rotation) or "never". A detected VP 1-5 deg off (the
+        vanishing stage's tail) tilts every projected vertical; the tilt is
+        observable from the positions of many corners at different
+        distances.
+    vertical_sigma_deg : float
+        Prior 1-sigma of the given vertical direction when it is refined
+        (deg): a weak prior against drift with few inliers.
+    refine_focal : bool
+        Refine the focal length with the pose (the rough focal length of the
+        priors is a few percent off; at 0.15 m/px a 3 % error leaves ~2 px
+        across the verticals). The result carries the refined ``camera``.
+    focal_sigma_min : float
+        Lower bound of the relative 1-sigma focal prior in the refinement
+        (``prior_focal_sigma`` also sets the search window; a tight focal
+        prior would hold the focal where the data can move it).
+    min_inliers_intrinsics : int
+        The focal length and the vertical move only with at least this many
+        inlier corners.
     seed : int
         Seed of the random generator; the result is a deterministic function
         of the inputs and the seed.
@@ -182,7 +209,8 @@ class RegistrationOptions:
     height_range_m: tuple[float, float] = (0.0, 60.0)
     min_segment_length_px: float = 8.0
     vp_tolerance_deg: float = 3.0
-    coarse_cells_px: tuple[float, float, float] = (16.0, 8.0, 8.0)
+    coarse_cells_mrad: tuple[float, float, float] = (13.0, 6.5, 6.5)
+    coarse_max_segments: int = 150
     coarse_height_step_m: float = 4.0
     hough_cell_px: float = 4.0
     hough_max_cells: int = 4_000_000
@@ -194,7 +222,7 @@ class RegistrationOptions:
     min_trials: int = 200
     max_trials: int = 20_000
     verify_trials: int = 768
-    num_candidates_verified: int = 8
+    num_candidates_verified: int = 12
     batch_size: int = 256
     min_inliers: int = 6
     min_segments: int = 6
@@ -203,7 +231,11 @@ class RegistrationOptions:
     refine_max_iterations: int = 50
     refine_rounds: int = 2
     building_outlier_factor: float = 1.5
-    refine_vertical: str = "auto"
+    refine_vertical: str = "always"
+    vertical_sigma_deg: float = 3.0
+    refine_focal: bool = True
+    focal_sigma_min: float = 0.05
+    min_inliers_intrinsics: int = 15
     seed: int = 0
 
     def __post_init__(self) -> None:
@@ -222,6 +254,7 @@ class RegistrationOptions:
             "height_sigma_m",
             "slope_sigma",
             "building_outlier_factor",
+            "vertical_sigma_deg",
         )
         for name in positive:
             value = getattr(self, name)
@@ -288,6 +321,9 @@ class RegistrationResult:
     residual_rms_px : float, RMS of the final geometric residuals (px).
     message : str, what happened, in words.
     timings : dict, wall time per step (s).
+    camera : Camera or None
+        The intrinsics the pose belongs to: the input camera with the refined
+        focal length (``options.refine_focal``); None on failure.
     """
 
     success: bool
@@ -306,6 +342,7 @@ class RegistrationResult:
     residual_rms_px: float = math.nan
     message: str = ""
     timings: dict = field(default_factory=dict)
+    camera: Camera | None = None
 
     def __bool__(self) -> bool:
         return self.success
@@ -651,6 +688,33 @@ class _HoughGrid:
     def peak(self) -> _HoughPeak:
         return self._at(*np.unravel_index(int(np.argmax(self.acc)), self.acc.shape))
 
+    def peaks_by_height(self, num: int, separation: int) -> list[_HoughPeak]:
+        """The best pose at each of the ``num`` strongest heights, the heights
+        local maxima of the height profile (the best vote over all poses) at
+        least ``separation`` cells apart, strongest first.
+
+        Spurious heights (chance alignments of the map with clutter, far
+        above or below the ground) can form many strong pose peaks at one
+        height; ranking heights rather than 4-D peaks keeps the true ground
+        among the candidates that are verified.
+        """
+        nh = self.acc.shape[3]
+        flat = self.acc.reshape(-1, nh)
+        best = np.argmax(flat, axis=0)  # (nh,) pose cell per height
+        profile = flat[best, np.arange(nh)]
+        order = np.argsort(-profile, kind="stable")
+        chosen: list[int] = []
+        for kh in order:
+            if len(chosen) == num or profile[kh] <= 0:
+                break
+            if all(abs(int(kh) - c) > separation for c in chosen):
+                chosen.append(int(kh))
+        out = []
+        for kh in chosen:
+            ka, k1, k2 = np.unravel_index(int(best[kh]), self.acc.shape[:3])
+            out.append(self._at(ka, k1, k2, kh))
+        return out
+
     def peaks(
         self, num: int, separation: tuple[int, int, int, int]
     ) -> list[_HoughPeak]:
@@ -760,45 +824,80 @@ def _hough(
         )  # (P, 3) bottom rays, VP-aligned frame
     slab = n1 * n2 * nh
     acc = np.zeros(na * slab, dtype=np.float32)
-    for k, a in enumerate(alphas):
-        ca, sa = math.cos(a), math.sin(a)
-        rhs = rows[:, 0] * ca + rows[:, 1] * sa  # = g . (c - c_center)
-        g = np.column_stack([ca * m[:, 0] + sa * m[:, 1], -sa * m[:, 0] + ca * m[:, 1]])
+    half = np.array([n1 // 2, n2 // 2])
+    if heights is not None:
+        # Horizontal run of the corner from the search centre along each
+        # bottom ray's heading is linear in the centre, hence in the cell
+        # index along the iterated axis: every pair's votes lie on a segment
+        # of cells that is computed in closed form and enumerated sparsely.
+        d_rel = xy - c_center  # (P, 2)
+        h_hi = h_lo + nh * d_h
+    P = len(pair_i)
+    # Alphas in chunks of at most ~2^18 (alpha, pair) rows: vectorised over
+    # both, bounded memory.
+    chunk = max(1, (1 << 18) // max(P, 1))
+    for k0 in range(0, na, chunk):
+        ka = np.arange(k0, min(na, k0 + chunk))
+        ca = np.repeat(np.cos(alphas[ka]), P)  # (R,) rows = (alpha, pair)
+        sa = np.repeat(np.sin(alphas[ka]), P)
+        pr = np.tile(np.arange(P), len(ka))
+        mx, my = m[pr, 0], m[pr, 1]
+        rhs = rows[pr, 0] * ca + rows[pr, 1] * sa  # = g . (c - c_center)
+        gx, gy = ca * mx + sa * my, -sa * mx + ca * my
         # In cell units: a1 k1 + a2 k2 = rhs.
-        a1 = (g @ axes[0]) * steps[0]
-        a2 = (g @ axes[1]) * steps[1]
-        iter_2 = np.abs(a1) >= np.abs(a2)  # solve k1 for each k2
-        # Iterate over max(n1, n2) values; out-of-range ones are dropped.
-        n_it = max(n1, n2)
-        t = np.arange(n_it) - n_it // 2  # (n_it,)
-        num = rhs[:, None] - np.where(iter_2, a2, a1)[:, None] * t[None, :]
-        den = np.where(iter_2, a1, a2)[:, None]
+        a1 = (gx * axes[0, 0] + gy * axes[0, 1]) * steps[0]
+        a2 = (gx * axes[1, 0] + gy * axes[1, 1]) * steps[1]
+        iter_2 = np.abs(a1) >= np.abs(a2)  # iterate k2, solve k1 (else swap)
+        den = np.where(iter_2, a1, a2)
         with np.errstate(divide="ignore", invalid="ignore"):
-            other = num / den  # (P, n_it) cell units
-        ko = np.rint(other)
-        k1 = np.where(iter_2[:, None], ko, t[None, :])
-        k2 = np.where(iter_2[:, None], t[None, :], ko)
-        ok = (np.abs(k1) <= n1 // 2) & (np.abs(k2) <= n2 // 2)
-        i1 = np.where(ok, k1 + n1 // 2, 0).astype(np.int64)
-        i2 = np.where(ok, k2 + n2 // 2, 0).astype(np.int64)
-        cell = (i1 * n2 + i2) * nh
+            A_o = rhs / den  # other = A_o + B_o t (cell units)
+            B_o = -np.where(iter_2, a2, a1) / den
+        half_it = np.where(iter_2, half[1], half[0])
+        half_o = np.where(iter_2, half[0], half[1])
+        t_lo, t_hi = _t_interval(A_o, B_o, -half_o - 0.5, half_o + 0.5)
+        t_lo, t_hi = np.maximum(t_lo, -half_it), np.minimum(t_hi, half_it)
         if heights is not None:
-            e1 = np.where(iter_2[:, None], other, t[None, :]) * steps[0]
-            e2 = np.where(iter_2[:, None], t[None, :], other) * steps[1]
-            cx = c_center[0] + e1 * axes[0, 0] + e2 * axes[1, 0]
-            cy = c_center[1] + e1 * axes[0, 1] + e2 * axes[1, 1]
-            rx = (ca * ray0[:, 0] + sa * ray0[:, 1])[:, None]
-            ry = (-sa * ray0[:, 0] + ca * ray0[:, 1])[:, None]
+            # Centre offsets e1 = E1a + E1b t, e2 = E2a + E2b t (m).
+            E1a = np.where(iter_2, A_o * steps[0], 0.0)
+            E1b = np.where(iter_2, B_o * steps[0], steps[0])
+            E2a = np.where(iter_2, 0.0, A_o * steps[1])
+            E2b = np.where(iter_2, steps[1], B_o * steps[1])
+            rx = ca * ray0[pr, 0] + sa * ray0[pr, 1]
+            ry = -sa * ray0[pr, 0] + ca * ray0[pr, 1]
+            r2 = rx * rx + ry * ry
+            u1r = axes[0, 0] * rx + axes[0, 1] * ry
+            u2r = axes[1, 0] * rx + axes[1, 1] * ry
             with np.errstate(divide="ignore", invalid="ignore"):
-                tt = ((xy[:, 0:1] - cx) * rx + (xy[:, 1:2] - cy) * ry) / (
-                    rx * rx + ry * ry
-                )
-                ih = np.floor((view.c0[2] + tt * ray0[:, 2:3] - h_lo) / d_h)
-            ok &= (tt > 0) & (ih >= 0) & (ih < nh)
-            cell = cell + np.where(ok, ih, 0).astype(np.int64)
-        w = np.broadcast_to(weight[:, None], ok.shape)[ok]
-        acc[k * slab : (k + 1) * slab] += np.bincount(
-            cell[ok], weights=w, minlength=slab
+                # Run along the ray: tt = TA + TB t (> 0: in front).
+                TA = (
+                    d_rel[pr, 0] * rx + d_rel[pr, 1] * ry - E1a * u1r - E2a * u2r
+                ) / r2
+                TB = -(E1b * u1r + E2b * u2r) / r2
+            hA = view.c0[2] + TA * ray0[pr, 2]
+            hB = TB * ray0[pr, 2]
+            lo, hi = _t_interval(hA, hB, h_lo, h_hi)
+            t_lo, t_hi = np.maximum(t_lo, lo), np.minimum(t_hi, hi)
+            lo, hi = _t_interval(TA, TB, 0.0, np.inf)
+            t_lo, t_hi = np.maximum(t_lo, lo), np.minimum(t_hi, hi)
+        counts = np.maximum(t_hi - t_lo + 1, 0).astype(np.int64)
+        total = int(counts.sum())
+        if total == 0:
+            continue
+        ridx = np.repeat(np.arange(len(counts)), counts)
+        offs = np.cumsum(counts) - counts
+        t = t_lo[ridx] + (np.arange(total) - offs[ridx])
+        ko = np.rint(A_o[ridx] + B_o[ridx] * t)
+        it2 = iter_2[ridx]
+        k1 = np.where(it2, ko, t)
+        k2 = np.where(it2, t, ko)
+        ok = (np.abs(k1) <= half[0]) & (np.abs(k2) <= half[1])
+        cell = (ka[ridx // P] * slab) + ((k1 + half[0]) * n2 + (k2 + half[1])) * nh
+        if heights is not None:
+            ih = np.floor((hA[ridx] + hB[ridx] * t - h_lo) / d_h)
+            ok &= (ih >= 0) & (ih < nh) & (TA[ridx] + TB[ridx] * t > 0)
+            cell = cell + ih
+        acc += np.bincount(
+            cell[ok].astype(np.int64), weights=weight[pr[ridx[ok]]], minlength=acc.size
         )
     from scipy.ndimage import uniform_filter
 
@@ -816,6 +915,22 @@ def _hough(
         float(d_h),
     )
     return grid
+
+
+def _t_interval(
+    A: np.ndarray, B: np.ndarray, lo: float, hi: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """Integer t with ``lo <= A + B t <= hi``, per row: (t_lo, t_hi) float
+    arrays (t_lo > t_hi when empty; infinite bounds where B = 0)."""
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t1, t2 = (lo - A) / B, (hi - A) / B
+    inside = (lo <= A) & (hi >= A)  # B = 0: all t or none
+    flat = B == 0
+    all_t = np.where(inside, -np.inf, np.inf)
+    t_lo = np.where(flat, all_t, np.ceil(np.minimum(t1, t2)))
+    t_hi = np.where(flat, -all_t, np.floor(np.maximum(t1, t2)))
+    bad = ~np.isfinite(A) | np.isnan(B)
+    return np.where(bad, np.inf, t_lo), np.where(bad, -np.inf, t_hi)
 
 
 def _pairs_near(
@@ -1042,26 +1157,67 @@ def _tilt_basis(n: np.ndarray) -> np.ndarray:
     return np.stack([e1, np.cross(n, e1)])
 
 
+def _perturbed_view(
+    view: _View, log_focal: float, tilt: np.ndarray | None, tilt_axes: np.ndarray
+) -> _View:
+    """The view with its focal length scaled by ``exp(log_focal)`` and its
+    vertical tilted by ``tilt`` (2,) radians about ``tilt_axes``.
+
+    The focal change keeps the vanishing point's PIXEL fixed (the detected
+    quantity): the vertical direction ``n = K^-1 v`` follows the new ``K``
+    by the smallest rotation; the tilt then moves the vanishing point.
+    """
+    from obliq_colmap.geometry import rotation_from_axis_angle
+
+    K = view.K.copy()
+    K[0, 0] *= math.exp(log_focal)
+    K[1, 1] *= math.exp(log_focal)
+    Kinv = np.linalg.inv(K)
+    n_f = Kinv @ (view.K @ view.n)
+    dR = rotation_aligning(view.n, n_f)
+    if tilt is not None:
+        dR = (
+            rotation_from_axis_angle(tilt[0] * tilt_axes[0] + tilt[1] * tilt_axes[1])
+            @ dR
+        )
+    n = dR @ view.n
+    return _View(K=K, Kinv=Kinv, R0=dR @ view.R0, n=n / np.linalg.norm(n), c0=view.c0)
+
+
 def _residuals(
     params: np.ndarray,
     view: _View,
     corner_rel: np.ndarray,
     ends: np.ndarray,
-    tilt_axes: np.ndarray | None,
+    free: tuple[bool, bool],
+    tilt_axes: np.ndarray,
+    prior_px: np.ndarray,
 ) -> np.ndarray:
-    """Distances (px) of both endpoints of each segment to its corner's vertical."""
+    """Distances (px) of both endpoints of each segment to its corner's
+    vertical, then the prior terms of the free focal / tilt (1 px per sigma).
+
+    ``params`` = (alpha, c_x, c_y[, log focal][, tilt_1, tilt_2]) as ``free``
+    (focal, vertical) says; ``prior_px`` (3,) = 1 / sigma of (log focal,
+    tilt_1, tilt_2).
+    """
     alpha, cx, cy = params[:3]
     v = view
-    if tilt_axes is not None:
-        from obliq_colmap.geometry import rotation_from_axis_angle
-
-        dR = rotation_from_axis_angle(
-            params[3] * tilt_axes[0] + params[4] * tilt_axes[1]
-        )
-        v = _View(K=view.K, Kinv=view.Kinv, R0=dR @ view.R0, n=dR @ view.n, c0=view.c0)
+    extra = []
+    if free[0] or free[1]:
+        k = 3
+        log_f = 0.0
+        if free[0]:
+            log_f = params[k]
+            extra.append(log_f * prior_px[0])
+            k += 1
+        tilt = None
+        if free[1]:
+            tilt = params[k : k + 2]
+            extra += list(tilt * prior_px[1:])
+        v = _perturbed_view(view, log_f, tilt, tilt_axes)
     lines = v.corner_lines(np.array([alpha]), np.array([[cx, cy]]), corner_rel)[0]
     r = np.sum(ends * lines[:, None, :2], axis=2) + lines[:, None, 2]  # (K, 2)
-    return r.ravel()
+    return np.r_[r.ravel(), extra]
 
 
 def _refine(
@@ -1070,26 +1226,43 @@ def _refine(
     ends: np.ndarray,
     alpha: float,
     c_xy: np.ndarray,
-    refine_vertical: bool,
+    free: tuple[bool, bool],
     options: RegistrationOptions,
 ) -> tuple[_View, float, np.ndarray, np.ndarray]:
-    """Levenberg-Marquardt over (alpha, c_x, c_y[, two tilts]) with a Huber loss.
+    """Levenberg-Marquardt over (alpha, c_x, c_y[, focal][, two tilts]) with
+    a Huber loss.
 
-    Returns the (possibly re-tilted) view, alpha, c_xy and the final residuals
-    (K, 2) in px.
+    ``free`` = (focal, vertical): which of the extra parameters move. The
+    focal length is observable from one image through the spread of the
+    pencil of projected verticals (a 1-D homography from the azimuths of the
+    corners around the camera); the vertical through the directions of the
+    segments and the positions of corners at different distances. Both get a
+    weak prior (``prior_focal_sigma``, ``vertical_sigma_deg``) so that a few
+    inliers cannot drag them far.
+
+    Returns the (possibly re-focused and re-tilted) view, alpha, c_xy and the
+    final residuals (K, 2) in px.
     """
     from scipy.optimize import least_squares
 
-    tilt_axes = _tilt_basis(view.n) if refine_vertical else None
-    x0 = np.r_[alpha, c_xy, np.zeros(2)] if refine_vertical else np.r_[alpha, c_xy]
+    tilt_axes = _tilt_basis(view.n)
+    n_extra = int(free[0]) + 2 * int(free[1])
+    x0 = np.r_[alpha, c_xy, np.zeros(n_extra)]
+
     depth = max(1.0, float(np.median(np.linalg.norm(corner_rel - c_xy, axis=1))))
     x_scale = np.r_[1.0 / view.focal, np.full(2, depth / view.focal)]
-    if refine_vertical:
-        x_scale = np.r_[x_scale, np.full(2, 1.0 / view.focal)]
+    x_scale = np.r_[x_scale, np.full(n_extra, 1.0 / view.focal)]
+    prior_px = np.array(
+        [
+            1.0 / max(options.prior_focal_sigma, options.focal_sigma_min),
+            1.0 / math.radians(options.vertical_sigma_deg),
+            1.0 / math.radians(options.vertical_sigma_deg),
+        ]
+    )
     sol = least_squares(
         _residuals,
         x0,
-        args=(view, corner_rel, ends, tilt_axes),
+        args=(view, corner_rel, ends, free, tilt_axes, prior_px),
         loss="huber",
         f_scale=options.inlier_threshold_px,
         x_scale=x_scale,
@@ -1097,15 +1270,12 @@ def _refine(
         method="trf",
     )
     x = sol.x
-    if refine_vertical:
-        from obliq_colmap.geometry import rotation_from_axis_angle
-
-        dR = rotation_from_axis_angle(x[3] * tilt_axes[0] + x[4] * tilt_axes[1])
-        view = _View(
-            K=view.K, Kinv=view.Kinv, R0=dR @ view.R0, n=dR @ view.n, c0=view.c0
-        )
-    r = _residuals(x[:3], view, corner_rel, ends, None).reshape(-1, 2)
-    return view, float(x[0]), x[1:3].copy(), r
+    if n_extra:
+        log_f = x[3] if free[0] else 0.0
+        tilt = x[3 + int(free[0]) : 5 + int(free[0])] if free[1] else None
+        view = _perturbed_view(view, log_f, tilt, tilt_axes)
+    r = _residuals(x[:3], view, corner_rel, ends, (False, False), tilt_axes, prior_px)
+    return view, float(x[0]), x[1:3].copy(), r.reshape(-1, 2)
 
 
 def _final_plane(
@@ -1220,6 +1390,7 @@ def register_image(
     refine_vertical = options.refine_vertical == "always" or (
         options.refine_vertical == "auto" and vertical_source == "prior"
     )
+    refine_focal = bool(options.refine_focal)
     view = _make_view(camera, prior, n)
     rng = np.random.default_rng(options.seed)
 
@@ -1289,6 +1460,14 @@ def register_image(
         radius,
         h_range=(h_bounds[0] - c_half, h_bounds[1] + c_half),
     )
+    if len(segs) > options.coarse_max_segments:
+        # The coarse vote needs the strong structure only: its cost is
+        # linear in the pairs, and the long segments (building edges from
+        # the ground up) carry most of the true pairs.
+        rank = np.empty(len(segs), int)
+        rank[np.argsort(-segs.length, kind="stable")] = np.arange(len(segs))
+        keep = rank[jj] < options.coarse_max_segments
+        ii, jj = ii[keep], jj[keep]
     if len(ii) < 3:
         return fail(
             f"no consensus: {len(ii)} candidate pairs near the prior",
@@ -1304,7 +1483,7 @@ def register_image(
         alpha_half,
         np.zeros(2),
         c_half,
-        options.coarse_cells_px,
+        tuple(1e-3 * c * view.focal for c in options.coarse_cells_mrad),
         depth_m,
         options.hough_max_cells,
         heights=(h_bounds[0], h_bounds[1], options.coarse_height_step_m),
@@ -1319,7 +1498,7 @@ def register_image(
             )
         ),
     )
-    starts = coarse.peaks(options.num_candidates_verified, separation)
+    starts = coarse.peaks_by_height(options.num_candidates_verified, separation[3])
     timings["ground"] = time.perf_counter() - t0
 
     # 3.-4. The strongest peaks: fine pose vote, then a short RANSAC; the one
@@ -1350,6 +1529,13 @@ def register_image(
             )
         )
     timings["coarse"] = time.perf_counter() - t0
+    for st, tr in zip(starts, tries, strict=True):
+        logger.debug(
+            "start h %.1f votes %.0f -> %s",
+            st.height,
+            st.votes,
+            None if tr is None else (tr.count, round(tr.cost, 1), len(tr.cand.corner)),
+        )
     tries = [t for t in tries if t is not None]
     if not tries:
         return fail(
@@ -1410,12 +1596,17 @@ def register_image(
         view, segs, corner_rel, cand, alpha, c_xy, plane, options
     )
     resid = np.zeros((0, 2))
-    for round_ in range(options.refine_rounds):
+    f0 = view.focal
+    for _ in range(options.refine_rounds):
         if len(ci) < options.min_inliers:
             break
-        rv = refine_vertical and round_ == options.refine_rounds - 1
+        # The focal and the vertical move only with enough inliers.
+        free = (
+            refine_focal and len(ci) >= options.min_inliers_intrinsics,
+            refine_vertical and len(ci) >= options.min_inliers_intrinsics,
+        )
         new_view, alpha, c_xy, resid = _refine(
-            view, corner_rel[ci], segs.ends[sj], alpha, c_xy, rv, options
+            view, corner_rel[ci], segs.ends[sj], alpha, c_xy, free, options
         )
         # Whole buildings that do not fit (a building shifted in the map).
         bld = cadastre.corner_building[vis[ci]]
@@ -1431,10 +1622,9 @@ def register_image(
         if bad.any() and (~bad).sum() >= options.min_inliers:
             ci, sj = ci[~bad], sj[~bad]
             new_view, alpha, c_xy, resid = _refine(
-                view, corner_rel[ci], segs.ends[sj], alpha, c_xy, rv, options
+                view, corner_rel[ci], segs.ends[sj], alpha, c_xy, free, options
             )
-        if rv:
-            view = new_view
+        view = new_view
         plane = _final_plane(view, segs, corner_rel, ci, sj, alpha, c_xy, options)
         # Re-score every pair near the refined pose.
         ground = _plane_at(plane[None], corner_rel)[0]
@@ -1458,7 +1648,7 @@ def register_image(
         )
     if len(ci) >= options.min_inliers:
         _, alpha, c_xy, resid = _refine(
-            view, corner_rel[ci], segs.ends[sj], alpha, c_xy, False, options
+            view, corner_rel[ci], segs.ends[sj], alpha, c_xy, (False, False), options
         )
         plane = _final_plane(view, segs, corner_rel, ci, sj, alpha, c_xy, options)
     timings["refine"] = time.perf_counter() - t0
@@ -1483,6 +1673,7 @@ def register_image(
     rms = float(np.sqrt(np.mean(resid**2))) if resid.size else math.nan
     timings["total"] = time.perf_counter() - t_start
     return RegistrationResult(
+        camera=_scaled_camera(camera, view.focal / f0),
         success=True,
         cam_from_world=pose,
         vertical_direction=view.n.copy(),
@@ -1581,7 +1772,11 @@ def _try_start(
         1.5 * coarse.d_c,
         (options.hough_cell_px,) * 3,
         depth_m,
-        options.hough_max_cells,
+        # The window is 3 coarse cells wide; at a spurious ground height
+        # near the camera the viewing distance, hence the cell in metres,
+        # is tiny and the window would need 10^5-10^6 cells: cap it (the
+        # cells grow instead; a wrong height fails the RANSAC anyway).
+        min(options.hough_max_cells, _FINE_MAX_CELLS),
     ).peak()
     # 4. RANSAC in a small radius around it.
     cand = _candidates(
@@ -1652,6 +1847,14 @@ def block_ground_height(
         if r.success and r.num_inliers >= min_inliers and math.isfinite(r.ground_height)
     ]
     return float(np.median(heights)) if heights else None
+
+
+def _scaled_camera(camera: Camera, scale: float) -> Camera:
+    """The camera with its focal length(s) multiplied by ``scale``."""
+    params = np.array(camera.params, float)
+    nf = 2 if camera.model in ("PINHOLE", "OPENCV") else 1
+    params[:nf] *= scale
+    return Camera(camera.model, camera.width, camera.height, params, camera.camera_id)
 
 
 def _median_depth(view: _View, corner_rel: np.ndarray) -> float:
