@@ -39,6 +39,7 @@ import numpy as np
 
 from obliq_colmap import __version__
 from obliq_colmap.bundle import BundleOptions, BundleProblem, BundleResult, solve_bundle
+from obliq_colmap.bundle import residuals as res
 from obliq_colmap.cadastre import (
     Cadastre,
     CadastreOptions,
@@ -54,7 +55,10 @@ from obliq_colmap.colmap_io import (
     write_result,
 )
 from obliq_colmap.errors import InputError
+from obliq_colmap.facades import FacadeEdges, FacadeOptions, facade_edges
 from obliq_colmap.geometry import Camera, Pose, lines_through
+from obliq_colmap.lines import Segments
+from obliq_colmap.matching import FacadeTracks, MatchingOptions, match_facade_edges
 from obliq_colmap.registration import (
     RegistrationOptions,
     RegistrationResult,
@@ -106,6 +110,9 @@ class PipelineOptions:
     progress: bool = True
     vanishing: VanishingOptions = field(default_factory=VanishingOptions)
     registration: RegistrationOptions = field(default_factory=RegistrationOptions)
+    facades: FacadeOptions = field(default_factory=FacadeOptions)
+    matching: MatchingOptions = field(default_factory=MatchingOptions)
+    #: The bundle (its corner points are always fixed: vertical_constraints).
     bundle: BundleOptions = field(default_factory=BundleOptions)
     cadastre: CadastreOptions = field(default_factory=CadastreOptions)
 
@@ -148,7 +155,11 @@ class ImageOutcome:
     vertical_direction : (3,) array or None, detected, camera frame, down.
     segments : (N, 2, 2) array, the VP-constrained vertical segments in
         UNDISTORTED pixels (the registration's input).
+    line_segments : Segments, all first-pass segments (undistorted pixels,
+        with their bright side), the input of the facade-edge search.
     registration : RegistrationResult or None (unreadable image).
+    camera : Camera or None, the intrinsics the registered pose belongs to
+        (the priors' camera with the focal length refined for this image).
     rescued : the result comes from the second try with the block's ground.
     time_s : wall time per step, seconds.
     """
@@ -160,7 +171,9 @@ class ImageOutcome:
     vp_status: str = ""
     vertical_direction: np.ndarray | None = None
     segments: np.ndarray = field(default_factory=lambda: np.zeros((0, 2, 2)))
+    line_segments: Segments = field(default_factory=Segments)
     registration: RegistrationResult | None = None
+    camera: Camera | None = None
     rescued: bool = False
     time_s: dict[str, float] = field(default_factory=dict)
 
@@ -238,6 +251,7 @@ def _initial_image(task: _ImageTask) -> ImageOutcome:
     prior = VPPrior.from_rotation(task.prior.rotation, task.cone_deg)
     vp = detect_vertical_vp(img, task.vanishing, task.camera, prior, task.image_id)
     out.vp_status = vp.status
+    out.line_segments = vp.segments
     out.time_s["vanishing"] = vp.time_s.get("total", math.nan)
     options = task.registration
     if vp.status == "ok" and vp.vertical_segments is not None:
@@ -277,6 +291,7 @@ def _fallback_options(options: RegistrationOptions) -> RegistrationOptions:
 
 def _set_registration(out: ImageOutcome, result: RegistrationResult) -> None:
     out.registration = result
+    out.camera = result.camera
     out.status = "registered" if result.success else "failed"
     out.message = "" if result.success else result.message
 
@@ -517,13 +532,15 @@ def run_register(
             pool.map(_draw_overlay, jobs, "overlays")
     by_id = {o.image_id: o for o in outcomes}
     registered = [o for o in outcomes if o.registered]
-    bundle_result = None
-    poses = {o.image_id: o.registration.cam_from_world for o in registered}
-    cameras = dict(inputs.cameras)
+    state = BlockState.from_outcomes(registered)
+    bundle_result: BundleResult | None = None
+    stage3: Stage3 | None = None
     if options.stop_after == "bundle" and registered:
         t0 = time.perf_counter()
-        problem = build_bundle_problem(inputs, by_id)
-        if len(problem.horizontal_image) == 0:
+        stage3 = facade_stage(inputs, state, by_id, options)
+        timings["facades"] = time.perf_counter() - t0
+        t0 = time.perf_counter()
+        if stage3.tracks.num_observations == 0:
             # Corner-to-vertical-line constraints alone cannot observe a
             # camera's height nor its focal/distance trade-off (measured: the
             # solve drifts by tens of metres): without facade constraints the
@@ -533,9 +550,19 @@ def run_register(
                 "per-image registration is written"
             )
         else:
-            bundle_result = solve_bundle(problem, options.bundle)
-            poses = dict(bundle_result.poses)
-            cameras = {**cameras, **bundle_result.cameras}
+            state = state.with_datum_correction(
+                dict(zip(stage3.ids, stage3.tracks.datum_correction, strict=True))
+            )
+            problem = build_bundle_problem(inputs, by_id, state, stage3)
+            try:
+                bundle_result = solve_bundle(
+                    problem, _replace(options.bundle, corner_heights="fixed")
+                )
+            except ValueError as exc:
+                logger.warning("bundle failed (%s): the per-image result is kept", exc)
+            else:
+                logger.info("%s", bundle_result.summary.brief())
+                state = state.with_bundle(bundle_result, problem.image_camera)
         timings["bundle"] = time.perf_counter() - t0
     ground = block_ground_height([o.registration for o in registered], 1)
     z0 = float(np.round(ground)) if ground is not None else 0.0
@@ -547,13 +574,15 @@ def run_register(
             "software": f"obliq-colmap {__version__}",
         },
     )
-    block = _result_block(inputs, poses, cameras)
-    points = constrained_points(inputs, block, by_id, bundle_result)
+    block = _result_block(inputs, state)
+    points = constrained_points(inputs, block, state, by_id, bundle_result, stage3)
     block = block.shifted(np.array([0.0, 0.0, z0]))
     for p in points:
         p.xyz = p.xyz - np.array([0.0, 0.0, z0])
     timings["total"] = time.perf_counter() - t_run
     report = run_report(inputs, outcomes, rescued, bundle_result, georef, timings)
+    if stage3 is not None:
+        report["facades"] = stage3.report(by_id)
     report["options"] = {
         "stop_after": options.stop_after,
         "num_workers": workers,
@@ -640,23 +669,156 @@ def _rescue(
     return names
 
 
-def _result_block(
-    inputs: Inputs, poses: dict[int, Pose], cameras: dict[int, Camera]
-) -> Block:
-    """The registered images with their poses; only the cameras they use."""
-    images = {
-        i: ImageRecord(
-            i, inputs.priors.images[i].name, inputs.priors.images[i].camera_id, p
+# --------------------------------------------------------------------------
+# The block as it stands (per-image stage, then the bundle)
+# --------------------------------------------------------------------------
+
+
+@dataclass
+class BlockState:
+    """Poses, intrinsics and ground planes of the registered images.
+
+    Attributes
+    ----------
+    poses : dict image_id -> Pose, ``cam_from_world``, local frame.
+    cameras : dict image_id -> Camera, the intrinsics each pose belongs to
+        (per image after stage 2, which refines the focal length per image;
+        the shared camera of the image's head after the bundle).
+    planes : dict image_id -> (3,) ground plane ``z = a x + b y + c``.
+    shared : bool, the cameras are shared per camera_id (after the bundle).
+    """
+
+    poses: dict[int, Pose]
+    cameras: dict[int, Camera]
+    planes: dict[int, np.ndarray]
+    shared: bool = False
+
+    @classmethod
+    def from_outcomes(cls, registered: Sequence[ImageOutcome]) -> BlockState:
+        return cls(
+            poses={o.image_id: o.registration.cam_from_world for o in registered},
+            cameras={o.image_id: o.camera for o in registered},
+            planes={o.image_id: o.registration.height_plane.copy() for o in registered},
         )
-        for i, p in poses.items()
-    }
-    used = {im.camera_id for im in images.values()}
-    return Block({c: cameras[c] for c in sorted(used)}, images)
+
+    def ground(self, image_id: int) -> Callable[[np.ndarray], np.ndarray]:
+        """The image's ground plane as a function of (N, 2) local xy."""
+        p = self.planes[image_id]
+        return lambda xy: xy @ p[:2] + p[2]
+
+    def with_datum_correction(self, correction: dict[int, float]) -> BlockState:
+        """Cameras and planes lowered by each image's height datum error (m)."""
+        poses, planes = dict(self.poses), {k: v.copy() for k, v in self.planes.items()}
+        for i, e in correction.items():
+            if not math.isfinite(e):
+                continue
+            pose = poses[i]
+            poses[i] = Pose.from_center(pose.rotation, pose.center - np.r_[0, 0, e])
+            planes[i][2] -= e
+        return BlockState(poses, dict(self.cameras), planes, self.shared)
+
+    def with_bundle(
+        self, result: BundleResult, image_camera: dict[int, int]
+    ) -> BlockState:
+        """The bundle's poses and shared cameras; ground planes follow each
+        camera's height change (the heights an image sees move with it)."""
+        planes = {}
+        for i, p in self.planes.items():
+            dz = result.poses[i].center[2] - self.poses[i].center[2]
+            planes[i] = p + np.r_[0.0, 0.0, dz]
+        cameras = {i: result.cameras[image_camera[i]] for i in result.poses}
+        return BlockState(dict(result.poses), cameras, planes, shared=True)
+
+
+def _result_block(inputs: Inputs, state: BlockState) -> Block:
+    """The registered images with their poses and intrinsics.
+
+    After the bundle the images of one head share its camera (as in the
+    priors); a per-image result gives every image its own camera (id = the
+    image id), since stage 2 refines the focal length per image.
+    """
+    images, cameras = {}, {}
+    for i, pose in state.poses.items():
+        prior = inputs.priors.images[i]
+        cam = state.cameras[i]
+        cid = prior.camera_id if state.shared else i
+        cameras[cid] = Camera(cam.model, cam.width, cam.height, cam.params, cid)
+        images[i] = ImageRecord(i, prior.name, cid, pose)
+    return Block(dict(sorted(cameras.items())), images)
 
 
 # --------------------------------------------------------------------------
-# The bundle problem
+# Stage 3: facade edges, matching, the bundle problem
 # --------------------------------------------------------------------------
+
+
+@dataclass
+class Stage3:
+    """Facade edges of every registered image and their tracks.
+
+    Attributes
+    ----------
+    ids : tuple of image ids, the order of ``facades`` and of the tracks'
+        image indices.
+    facades : list of FacadeEdges, per image.
+    tracks : FacadeTracks.
+    """
+
+    ids: tuple[int, ...]
+    facades: list[FacadeEdges]
+    tracks: FacadeTracks
+
+    def report(self, outcomes: dict[int, ImageOutcome]) -> dict[str, Any]:
+        t = self.tracks
+        obs = np.bincount(t.image, minlength=len(self.ids))
+        return {
+            "num_tracks": t.num_tracks,
+            "num_observations": t.num_observations,
+            "num_image_pairs": len(t.pairs),
+            "num_pair_matches": int(sum(p.num_matches for p in t.pairs)),
+            "images": {
+                outcomes[i].name: {
+                    "facade_segments": len(f),
+                    "walls": f.num_walls,
+                    "observations": int(obs[k]),
+                    "datum_correction_m": _finite(t.datum_correction[k]),
+                }
+                for k, (i, f) in enumerate(zip(self.ids, self.facades, strict=True))
+            },
+        }
+
+
+def facade_stage(
+    inputs: Inputs,
+    state: BlockState,
+    outcomes: dict[int, ImageOutcome],
+    options: PipelineOptions,
+) -> Stage3:
+    """Horizontal facade edges per image, matched across images into tracks."""
+    ids = tuple(sorted(state.poses))
+    facades = []
+    for i in ids:
+        seg = outcomes[i].line_segments
+        facades.append(
+            facade_edges(
+                seg.endpoints,
+                seg.normal,
+                state.cameras[i],
+                state.poses[i],
+                state.ground(i),
+                inputs.cadastre,
+                options.facades,
+            )
+        )
+    grounds = np.array([state.planes[i] for i in ids]).reshape(-1, 3)
+    tracks = match_facade_edges(facades, grounds, inputs.cadastre, options.matching)
+    logger.info(
+        "facade edges: %d segments on walls, %d tracks with %d observations",
+        sum(len(f) for f in facades),
+        tracks.num_tracks,
+        tracks.num_observations,
+    )
+    return Stage3(ids, facades, tracks)
 
 
 def _raw_lines(camera: Camera, segments_undistorted: np.ndarray) -> np.ndarray:
@@ -665,81 +827,134 @@ def _raw_lines(camera: Camera, segments_undistorted: np.ndarray) -> np.ndarray:
     return lines_through(ends[:, 0], ends[:, 1])
 
 
+def _heights_on_vertical(
+    camera: Camera, pose: Pose, xy: np.ndarray, pixels: np.ndarray
+) -> np.ndarray:
+    """(N,) heights where the rays through undistorted pixels (N, 2) pass
+    closest to the verticals over map points xy (N, 2)."""
+    rays = camera.cam_from_img(camera.distort_pixels(pixels))
+    d = np.column_stack([rays, np.ones(len(rays))]) @ pose.rotation  # world
+    c = pose.center
+    lam = np.sum(d[:, :2] * (xy - c[:2]), axis=1) / np.sum(d[:, :2] ** 2, axis=1)
+    return c[2] + lam * d[:, 2]
+
+
 def vertical_constraints(
-    inputs: Inputs, outcomes: dict[int, ImageOutcome], image_ids: Sequence[int]
+    inputs: Inputs,
+    outcomes: dict[int, ImageOutcome],
+    state: BlockState,
+    image_ids: Sequence[int],
 ) -> dict[str, np.ndarray]:
     """Corner-to-vertical-line constraints from the registrations' inliers.
 
+    Each inlier pair (map corner, vertical segment) gives TWO point-to-line
+    residuals: the corner's vertical at the heights of the segment's two
+    endpoints (fixed, from the start pose), projected, to the segment's line.
+    Together they say that the segment lies on the image of the corner's
+    vertical: its position AND its direction, i.e. the vanishing point,
+    which is what holds the block's tilt (with one point per segment, or a
+    free corner height, a tilted block fits the lines nearly as well:
+    measured on the sample, 3 deg drift from the truth). The heights only
+    place the points near the segment; sliding along the vertical does not
+    change a distance to a line through the vanishing point.
+
     Returns
     -------
-    dict with ``corner`` (C,) cadastre corner ids of the used corners,
-    ``corner_heights`` (C,) initial heights (mean of the images' height
-    planes at the corner), ``image`` (M,) index into ``image_ids``,
-    ``corner_index`` (M,) index into ``corner``, ``line`` (M, 3) raw pixels.
+    dict with ``xy`` (M, 2) corner positions, ``height`` (M,), ``image`` (M,)
+    index into ``image_ids``, ``line`` (M, 3) raw pixels, ``corner`` (M,)
+    cadastre corner ids.
     """
     cad = inputs.cadastre
-    img_idx, corners, lines, heights = [], [], [], []
+    parts: dict[str, list[np.ndarray]] = {
+        k: [] for k in ("xy", "height", "image", "line", "corner")
+    }
     for k, image_id in enumerate(image_ids):
         r = outcomes[image_id].registration
         if r is None or not r.success or len(r.inlier_pairs) == 0:
             continue
-        camera = inputs.priors.cameras[inputs.priors.images[image_id].camera_id]
+        prior_cam = inputs.priors.cameras[inputs.priors.images[image_id].camera_id]
         c = r.inlier_pairs[:, 0]
-        xy = cad.corner_xy[c]
-        img_idx.append(np.full(len(c), k))
-        corners.append(c)
-        lines.append(_raw_lines(camera, r.inlier_segments_px))
-        heights.append(
-            r.height_plane[0] * xy[:, 0]
-            + r.height_plane[1] * xy[:, 1]
-            + r.height_plane[2]
+        ends = r.inlier_segments_px  # (K, 2, 2) undistorted
+        xy = np.repeat(cad.corner_xy[c], 2, axis=0)
+        h = _heights_on_vertical(
+            prior_cam, state.poses[image_id], xy, ends.reshape(-1, 2)
         )
-    if not corners:
-        empty = np.zeros(0, np.int64)
+        parts["xy"].append(xy)
+        parts["height"].append(h)
+        parts["image"].append(np.full(len(xy), k))
+        parts["line"].append(np.repeat(_raw_lines(prior_cam, ends), 2, axis=0))
+        parts["corner"].append(np.repeat(c, 2))
+    if not parts["xy"]:
         return dict(
-            corner=empty,
-            corner_heights=np.zeros(0),
-            image=empty,
-            corner_index=empty,
+            xy=np.zeros((0, 2)),
+            height=np.zeros(0),
+            image=np.zeros(0, np.int64),
             line=np.zeros((0, 3)),
+            corner=np.zeros(0, np.int64),
         )
-    corner_all = np.concatenate(corners)
-    used, inverse = np.unique(corner_all, return_inverse=True)
-    h = np.concatenate(heights)
-    mean_h = np.bincount(inverse, h, len(used)) / np.bincount(inverse, None, len(used))
-    return dict(
-        corner=used,
-        corner_heights=mean_h,
-        image=np.concatenate(img_idx),
-        corner_index=inverse,
-        line=np.concatenate(lines),
-    )
+    return {k: np.concatenate(v) for k, v in parts.items()}
+
+
+def _group_cameras(inputs: Inputs, state: BlockState) -> dict[int, Camera]:
+    """Start intrinsics per camera_id: the result model's camera with the
+    median of its images' per-image focal lengths (stage 2 refines the focal
+    per image; the images of one head share one)."""
+    ratios: dict[int, list[float]] = {}
+    for i, cam in state.cameras.items():
+        cid = inputs.priors.images[i].camera_id
+        prior = inputs.priors.cameras[cid]
+        ratios.setdefault(cid, []).append(cam.params[0] / prior.params[0])
+    out = {}
+    for cid, r in ratios.items():
+        cam = inputs.cameras[cid]
+        focal, _, _ = res.focal_principal_extra_indices(cam.model)
+        params = cam.params.copy()
+        params[focal] *= float(np.median(r))
+        out[cid] = Camera(cam.model, cam.width, cam.height, params, cid)
+    return out
 
 
 def build_bundle_problem(
-    inputs: Inputs, outcomes: dict[int, ImageOutcome]
+    inputs: Inputs,
+    outcomes: dict[int, ImageOutcome],
+    state: BlockState,
+    stage3: Stage3,
 ) -> BundleProblem:
-    """The global bundle over the registered images (vertical constraints)."""
-    ids = tuple(sorted(i for i, o in outcomes.items() if o.registered))
-    v = vertical_constraints(inputs, outcomes, ids)
+    """The global bundle over the registered images (paper eq. 3).
+
+    Vertical constraints: the registrations' inlier corner-to-segment pairs;
+    horizontal ones: every observation of every facade track, anchored at
+    the track's point on its map edge. Lines in RAW pixels (the bundle
+    projects through the full camera model). The corner points are fixed
+    (``BundleOptions.corner_heights = "fixed"``, see
+    :func:`vertical_constraints`).
+    """
+    ids = stage3.ids
+    v = vertical_constraints(inputs, outcomes, state, ids)
+    t = stage3.tracks
+    lines = np.zeros((t.num_observations, 3))
+    for k, i in enumerate(ids):
+        sel = np.flatnonzero(t.image == k)
+        if len(sel) == 0:
+            continue
+        camera = inputs.priors.cameras[inputs.priors.images[i].camera_id]
+        lines[sel] = _raw_lines(camera, stage3.facades[k].endpoints[t.row[sel]])
+    cameras = _group_cameras(inputs, state)
     return BundleProblem(
-        cameras={
-            c: inputs.cameras[c]
-            for c in {inputs.priors.images[i].camera_id for i in ids}
-        },
-        poses={i: outcomes[i].registration.cam_from_world for i in ids},
+        cameras=cameras,
+        poses={i: state.poses[i] for i in ids},
         image_camera={i: inputs.priors.images[i].camera_id for i in ids},
         image_ids=ids,
-        corner_xy=inputs.cadastre.corner_xy[v["corner"]],
-        corner_heights=v["corner_heights"],
+        corner_xy=v["xy"],
+        corner_heights=v["height"],
         vertical_image=v["image"],
-        vertical_corner=v["corner_index"],
+        vertical_corner=np.arange(len(v["xy"])),
         vertical_line=v["line"],
-        facade_heights=np.zeros(0),
-        horizontal_image=np.zeros(0, np.int64),
-        horizontal_height=np.zeros(0, np.int64),
-        horizontal_anchor_xy=np.zeros((0, 2)),
-        horizontal_line=np.zeros((0, 3)),
+        facade_heights=t.height,
+        horizontal_image=t.image,
+        horizontal_height=t.track,
+        horizontal_anchor_xy=t.anchor_xy[t.track],
+        horizontal_line=lines,
     )
 
 
@@ -748,19 +963,37 @@ def build_bundle_problem(
 # --------------------------------------------------------------------------
 
 
-def _ground_heights(
-    outcomes: dict[int, ImageOutcome], xy: np.ndarray, near: np.ndarray
-) -> np.ndarray:
-    """Ground height at map points from the registrations' height planes.
-
-    Each point takes the mean of the planes of the images that see it
-    (``near``: (P, I) bool), else of all registered images.
-    """
-    planes = np.array(
-        [o.registration.height_plane for o in outcomes.values() if o.registered]
+def _observations(
+    block: Block, image_id: int, X: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """Where points (N, 3) project in an image: (kept (K,) indices, (K, 2) px),
+    only those in front of the camera and inside the image."""
+    im = block.images[image_id]
+    cam = block.cameras[im.camera_id]
+    Xc = im.cam_from_world.transform(X)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        px = cam.img_from_cam(Xc)
+    inside = (
+        (Xc[:, 2] > 0)
+        & np.all(np.isfinite(px), axis=1)
+        & (px[:, 0] >= 0)
+        & (px[:, 1] >= 0)
+        & (px[:, 0] <= cam.width)
+        & (px[:, 1] <= cam.height)
     )
-    h = xy @ planes[:, :2].T + planes[:, 2]  # (P, I)
-    w = near.astype(float)
+    keep = np.flatnonzero(inside)
+    return keep, px[keep]
+
+
+def _corner_ground(inputs: Inputs, state: BlockState, seen: np.ndarray) -> np.ndarray:
+    """(C,) ground height of every map corner: the mean ground plane of the
+    images that used the corner (``seen``: (C, I) bool in
+    ``sorted(state.planes)`` order), else of all images."""
+    xy = inputs.cadastre.corner_xy
+    ids = sorted(state.planes)
+    planes = np.array([state.planes[i] for i in ids])
+    h = xy @ planes[:, :2].T + planes[:, 2]  # (C, I)
+    w = seen.astype(float)
     w[w.sum(axis=1) == 0] = 1.0
     return (h * w).sum(axis=1) / w.sum(axis=1)
 
@@ -768,52 +1001,56 @@ def _ground_heights(
 def constrained_points(
     inputs: Inputs,
     block: Block,
+    state: BlockState,
     outcomes: dict[int, ImageOutcome],
-    bundle: BundleResult | None,
+    bundle: BundleResult | None = None,
+    stage3: Stage3 | None = None,
 ) -> list[Point3D]:
-    """Map corners at their ground heights, observed where they project.
+    """The constrained points with tracks, for COLMAP's dense stages.
 
-    A corner is observed in an image when the corner's ground point is
-    potentially visible there (:func:`cadastre.visible_corners`: inside the
-    image, an adjacent wall facing the camera) and projects in front of the
-    camera; points seen in fewer than two images are dropped (COLMAP's dense
-    stages need shared points). Occlusion by other buildings is not tested.
+    * Map corners at their ground heights, observed where they project in
+      every image in which the corner is potentially visible
+      (:func:`cadastre.visible_corners`: inside the image, an adjacent wall
+      facing the camera). Occlusion by other buildings is not tested.
+    * After the bundle, every facade track's point ``x_j + h_j z``, observed
+      where it projects in the images of the track.
+
+    Points seen in fewer than two images are dropped (COLMAP's dense stages
+    need shared points).
     """
     cad = inputs.cadastre
     ids = sorted(block.images)
     if not ids:
         return []
-    registered = [i for i in sorted(outcomes) if outcomes[i].registered]
-    seen = np.zeros((cad.num_corners, len(registered)), bool)
-    for k, i in enumerate(registered):
-        r = outcomes[i].registration
-        seen[r.inlier_pairs[:, 0], k] = True
-    ground = _ground_heights({i: outcomes[i] for i in registered}, cad.corner_xy, seen)
-    X = np.column_stack([cad.corner_xy, ground])
+    seen = np.zeros((cad.num_corners, len(ids)), bool)
+    for k, i in enumerate(ids):
+        seen[outcomes[i].registration.inlier_pairs[:, 0], k] = True
+    X = np.column_stack([cad.corner_xy, _corner_ground(inputs, state, seen)])
     obs: list[list[tuple[int, np.ndarray]]] = [[] for _ in range(len(X))]
     for i in ids:
         im = block.images[i]
-        cam = block.cameras[im.camera_id]
-        pose = im.cam_from_world
-        plane = outcomes[i].registration.height_plane
         vis = visible_corners(
-            cad, cam, pose, lambda xy, p=plane: xy @ p[:2] + p[2], (0.0, 0.5)
+            cad,
+            block.cameras[im.camera_id],
+            im.cam_from_world,
+            state.ground(i),
+            (0.0, 0.5),
         )
-        if len(vis) == 0:
-            continue
-        Xc = pose.transform(X[vis])
-        px = cam.img_from_cam(Xc)
-        inside = (
-            (Xc[:, 2] > 0)
-            & np.all(np.isfinite(px), axis=1)
-            & (px[:, 0] >= 0)
-            & (px[:, 1] >= 0)
-            & (px[:, 0] <= cam.width)
-            & (px[:, 1] <= cam.height)
-        )
-        for c, p in zip(vis[inside], px[inside], strict=True):
+        keep, px = _observations(block, i, X[vis])
+        for c, p in zip(vis[keep], px, strict=True):
             obs[c].append((i, p))
-    return [Point3D(X[c], o) for c, o in enumerate(obs) if len(o) >= 2]
+    points = [Point3D(X[c], o) for c, o in enumerate(obs) if len(o) >= 2]
+    if bundle is not None and stage3 is not None:
+        t = stage3.tracks
+        F = np.column_stack([t.anchor_xy, bundle.facade_heights])
+        fobs: list[list[tuple[int, np.ndarray]]] = [[] for _ in range(len(F))]
+        for k, i in enumerate(stage3.ids):
+            tr = np.unique(t.track[t.image == k])
+            keep, px = _observations(block, i, F[tr])
+            for j, p in zip(tr[keep], px, strict=True):
+                fobs[j].append((i, p))
+        points += [Point3D(F[j], o) for j, o in enumerate(fobs) if len(o) >= 2]
+    return points
 
 
 def run_report(

@@ -95,6 +95,12 @@ class BundleOptions:
     parameter_tolerance: float = 1e-8
     #: Refine the focal length(s) of every camera.
     refine_focal_length: bool = True
+    #: Refine fx and fy of two-focal models (PINHOLE, OPENCV) independently;
+    #: False moves them together (aspect ratio kept, as the paper's). The map
+    #: has no heights, so a vertical stretch of the whole scene is nearly a
+    #: gauge freedom that fx != fy would absorb (measured: fx and fy drifted
+    #: 8 % apart on the sample with 2 images per camera).
+    refine_aspect_ratio: bool = False
     #: Refine the principal point of every camera.
     refine_principal_point: bool = True
     #: Refine the distortion parameters of every camera.
@@ -374,6 +380,25 @@ def image_components(
 # --------------------------------------------------------------------------
 
 
+def _intrinsics_basis(model: str, params: np.ndarray, opts: BundleOptions):
+    """(P, Q) basis of the refined steps of one camera's P parameters."""
+    focal, pp, extra = res.focal_principal_extra_indices(model)
+    cols = []
+    if opts.refine_focal_length:
+        if len(focal) == 2 and not opts.refine_aspect_ratio:
+            col = np.zeros(len(params))
+            col[focal[0]] = 1.0
+            col[focal[1]] = params[focal[1]] / params[focal[0]]
+            cols.append(col)
+        else:
+            cols += [np.eye(len(params))[i] for i in focal]
+    if opts.refine_principal_point:
+        cols += [np.eye(len(params))[i] for i in pp]
+    if opts.refine_extra_params:
+        cols += [np.eye(len(params))[i] for i in extra]
+    return np.array(cols).T.reshape(len(params), len(cols))
+
+
 class _Setup:
     """Static layout: residual order, parameter columns, groups, gauge."""
 
@@ -416,37 +441,32 @@ class _Setup:
         for k in self.active_images:
             self.pose_col[k] = col
             col += 6
+        # Per camera a (P, Q) basis of its refined parameter steps:
+        # params += basis @ step (one column per free parameter; fx and fy
+        # share one column unless the aspect ratio is refined).
         self.refined: list[np.ndarray] = []
         self.intr_col = np.full(len(self.camera_ids), -1)
         active_cams = set(self.img_cam[self.active_images].tolist())
         for s, cid in enumerate(self.camera_ids):
-            focal, pp, extra = res.focal_principal_extra_indices(P.cameras[cid].model)
-            sel = (
-                (focal if opts.refine_focal_length else [])
-                + (pp if opts.refine_principal_point else [])
-                + (extra if opts.refine_extra_params else [])
-            )
-            sel = (
-                np.array(sorted(sel), np.int64)
-                if s in active_cams
-                else np.zeros(0, np.int64)
-            )
-            self.refined.append(sel)
-            if len(sel):
+            cam = P.cameras[cid]
+            basis = _intrinsics_basis(cam.model, cam.params, opts)
+            if s not in active_cams:
+                basis = basis[:, :0]
+            self.refined.append(basis)
+            if basis.shape[1]:
                 self.intr_col[s] = col
-                col += len(sel)
+                col += basis.shape[1]
         self.n_red = col
-        self.L = 6 + max((len(r) for r in self.refined), default=0)
+        self.L = 6 + max((b.shape[1] for b in self.refined), default=0)
         # (N, L) global columns of each residual's camera-side Jacobian; the
         # padding column n_red is dropped after assembly.
         N = len(self.img)
         cols = np.full((N, self.L), self.n_red)
         cols[:, :6] = self.pose_col[self.img][:, None] + np.arange(6)
-        for s, sel in enumerate(self.refined):
+        for s, basis in enumerate(self.refined):
+            q = basis.shape[1]
             m = self.cam == s
-            cols[np.ix_(m, 6 + np.arange(len(sel)))] = self.intr_col[s] + np.arange(
-                len(sel)
-            )
+            cols[np.ix_(m, 6 + np.arange(q))] = self.intr_col[s] + np.arange(q)
         self.cols = cols
         self.image_cols = [cols[self.img_start[k]] for k in self.active_images]
 
@@ -525,9 +545,9 @@ def _evaluate(setup: _Setup, st: _State, jac: bool):
         if jac:
             Jc[idx, :6] = out.d_pose
             for s, rows in per_cam:
-                sel = setup.refined[s]
-                if len(sel) and len(rows):
-                    Jc[idx[rows], 6 : 6 + len(sel)] = out.d_params[rows][:, sel]
+                basis = setup.refined[s]
+                if basis.shape[1] and len(rows):
+                    Jc[idx[rows], 6 : 6 + basis.shape[1]] = out.d_params[rows] @ basis
             Jh[idx] = out.d_height
     if jac:
         Jh[~setup.has_h] = 0.0
@@ -786,8 +806,8 @@ def _apply(S: _Setup, st: _State, dc: np.ndarray, dh: np.ndarray) -> _State:
     blocks = dc[S.pose_col[k][:, None] + np.arange(6)]  # (K_active, 6)
     new.R[k] = res.rotation_exp(blocks[:, :3]) @ st.R[k]
     new.c[k] = st.c[k] + blocks[:, 3:]
-    for s, sel in enumerate(S.refined):
-        if len(sel):
-            new.params[s][sel] += dc[S.intr_col[s] + np.arange(len(sel))]
+    for s, basis in enumerate(S.refined):
+        if basis.shape[1]:
+            new.params[s] += basis @ dc[S.intr_col[s] + np.arange(basis.shape[1])]
     new.heights = st.heights + dh
     return new
