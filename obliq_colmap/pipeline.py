@@ -23,6 +23,7 @@ exception: it is named in a warning and left out of the model.
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import logging
 import math
@@ -58,7 +59,12 @@ from obliq_colmap.errors import InputError
 from obliq_colmap.facades import FacadeEdges, FacadeOptions, facade_edges
 from obliq_colmap.geometry import Camera, Pose, lines_through
 from obliq_colmap.lines import Segments
-from obliq_colmap.matching import FacadeTracks, MatchingOptions, match_facade_edges
+from obliq_colmap.matching import (
+    FacadeTracks,
+    MatchingOptions,
+    match_facade_edges,
+    triangulate_tracks,
+)
 from obliq_colmap.registration import (
     RegistrationOptions,
     RegistrationResult,
@@ -112,8 +118,30 @@ class PipelineOptions:
     registration: RegistrationOptions = field(default_factory=RegistrationOptions)
     facades: FacadeOptions = field(default_factory=FacadeOptions)
     matching: MatchingOptions = field(default_factory=MatchingOptions)
+    #: Bundle rounds after the first that drop the constraints whose residual
+    #: exceeds ``outlier_factor`` robust standard deviations (of their kind)
+    #: and at least ``outlier_floor_px``, then solve again from the result.
+    outlier_rounds: int = 5
+    #: Huber scale (px) of the first bundle round (then the bundle's own
+    #: loss); 0 uses the bundle's own loss throughout.
+    initial_loss_scale_px: float = 0.0
+    #: Between rounds: re-triangulate each facade track as a 3D horizontal
+    #: line near its wall (roof rims overhang), and weight the two residual
+    #: kinds by their robust standard deviations.
+    track_lines: bool = True
+    variance_components: bool = True
+    #: Prior 1-sigma (m) of a track's offset from its wall (weak: measured at
+    #: the true cameras, tracks as free 3D lines fit to 0.035 px median,
+    #: pinned to the wall to 0.23 px).
+    track_offset_sigma_m: float = 10.0
+    outlier_factor: float = 3.0
+    outlier_floor_px: float = 1.0
     #: The bundle (its corner points are always fixed: vertical_constraints).
-    bundle: BundleOptions = field(default_factory=BundleOptions)
+    #: Cauchy at 1 px: the facade tracks fit to ~0.15 px, so a wrong match is
+    #: many scales out and must lose its pull.
+    bundle: BundleOptions = field(
+        default_factory=lambda: BundleOptions(loss="cauchy", loss_scale_px=1.0)
+    )
     cadastre: CadastreOptions = field(default_factory=CadastreOptions)
 
     def __post_init__(self) -> None:
@@ -536,34 +564,9 @@ def run_register(
     bundle_result: BundleResult | None = None
     stage3: Stage3 | None = None
     if options.stop_after == "bundle" and registered:
-        t0 = time.perf_counter()
-        stage3 = facade_stage(inputs, state, by_id, options)
-        timings["facades"] = time.perf_counter() - t0
-        t0 = time.perf_counter()
-        if stage3.tracks.num_observations == 0:
-            # Corner-to-vertical-line constraints alone cannot observe a
-            # camera's height nor its focal/distance trade-off (measured: the
-            # solve drifts by tens of metres): without facade constraints the
-            # per-image registration is the better result.
-            logger.warning(
-                "no facade-edge constraints: the bundle is skipped and the "
-                "per-image registration is written"
-            )
-        else:
-            state = state.with_datum_correction(
-                dict(zip(stage3.ids, stage3.tracks.datum_correction, strict=True))
-            )
-            problem = build_bundle_problem(inputs, by_id, state, stage3)
-            try:
-                bundle_result = solve_bundle(
-                    problem, _replace(options.bundle, corner_heights="fixed")
-                )
-            except ValueError as exc:
-                logger.warning("bundle failed (%s): the per-image result is kept", exc)
-            else:
-                logger.info("%s", bundle_result.summary.brief())
-                state = state.with_bundle(bundle_result, problem.image_camera)
-        timings["bundle"] = time.perf_counter() - t0
+        state, bundle_result, stage3 = bundle_stage(
+            inputs, by_id, state, options, timings
+        )
     ground = block_ground_height([o.registration for o in registered], 1)
     z0 = float(np.round(ground)) if ground is not None else 0.0
     georef = Georef(
@@ -591,6 +594,218 @@ def run_register(
     }
     report["num_points3D"] = len(points)
     return RunResult(block, georef, points, by_id, report, bundle_result)
+
+
+def bundle_stage(
+    inputs: Inputs,
+    outcomes: dict[int, ImageOutcome],
+    state: BlockState,
+    options: PipelineOptions,
+    timings: dict[str, float],
+) -> tuple[BlockState, BundleResult | None, Stage3]:
+    """Stage 3: facade edges, matching, datum corrections and the bundle.
+
+    Returns the block as it stands after it (the per-image state when there
+    are no facade constraints or the solve fails), the bundle's result or
+    None, and the facade edges and tracks.
+    """
+    t0 = time.perf_counter()
+    stage3 = facade_stage(inputs, state, outcomes, options)
+    timings["facades"] = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    result = None
+    if stage3.tracks.num_observations == 0:
+        # Corner-to-vertical-line constraints alone cannot observe a camera's
+        # height nor its focal/distance trade-off (measured: the solve drifts
+        # by tens of metres): without facade constraints the per-image
+        # registration is the better result.
+        logger.warning(
+            "no facade-edge constraints: the bundle is skipped and the "
+            "per-image registration is written"
+        )
+    else:
+        state = state.with_datum_correction(
+            dict(zip(stage3.ids, stage3.tracks.datum_correction, strict=True))
+        )
+        problem = build_bundle_problem(inputs, outcomes, state, stage3)
+        bundle_options = _replace(options.bundle, corner_heights="fixed")
+        try:
+            # A wide loss first: after stage 2 and the datum corrections some
+            # images still sit metres too high or low (tens of pixels), where
+            # a tight robust loss has no gradient left to pull them in.
+            first = bundle_options
+            if options.initial_loss_scale_px > 0:
+                first = _replace(
+                    bundle_options,
+                    loss="huber",
+                    loss_scale_px=max(
+                        options.initial_loss_scale_px, bundle_options.loss_scale_px
+                    ),
+                )
+            result = solve_bundle(problem, first)
+            # Per horizontal row: the track observation it is (facade rows)
+            # or -1 (ground rows); filtered with the rows.
+            obs = stage3.row_obs
+            for _ in range(options.outlier_rounds):
+                problem, kv, kh = without_outliers(
+                    problem, result, options.outlier_factor, options.outlier_floor_px
+                )
+                obs = obs[kh]
+                if options.track_lines:
+                    problem = with_track_lines(
+                        problem, result, inputs, stage3, obs, options
+                    )
+                if options.variance_components:
+                    # Each kind weighted by its own noise (map corners ~1 px,
+                    # facade edges ~0.15 px).
+                    problem, bundle_options = with_variance_components(
+                        problem, result, bundle_options, obs, kh
+                    )
+                result = solve_bundle(problem, bundle_options)
+                if kv.all() and kh.all():
+                    break
+        except ValueError as exc:
+            logger.warning("bundle failed (%s): the per-image result is kept", exc)
+            result = None
+        else:
+            state = state.with_bundle(result, problem.image_camera)
+    timings["bundle"] = time.perf_counter() - t0
+    return state, result, stage3
+
+
+def _robust_sigma(r: np.ndarray, default: float) -> float:
+    """1.4826 MAD of residuals (px), at least 0.05; ``default`` when empty."""
+    return float(max(1.4826 * np.median(np.abs(r)), 0.05)) if len(r) else default
+
+
+def with_variance_components(
+    problem: BundleProblem,
+    result: BundleResult,
+    options: BundleOptions,
+    obs: np.ndarray,
+    kept: np.ndarray,
+) -> tuple[BundleProblem, BundleOptions]:
+    """Each residual kind weighted by its robust standard deviation in the
+    last solve: vertical (map corners), facade tracks, and other horizontal
+    rows (``obs < 0``). ``kept``: the horizontal rows of the last solve still in
+    ``problem``."""
+    rh = result.horizontal_residuals_px[kept]
+    facade = obs >= 0
+    sigma = np.where(
+        facade,
+        _robust_sigma(rh[facade], options.horizontal_sigma_px),
+        _robust_sigma(rh[~facade], options.horizontal_sigma_px),
+    )
+    options = _replace(
+        options,
+        vertical_sigma_px=_robust_sigma(
+            result.vertical_residuals_px, options.vertical_sigma_px
+        ),
+    )
+    return dataclasses.replace(problem, horizontal_sigma_px=sigma), options
+
+
+def with_track_lines(
+    problem: BundleProblem,
+    result: BundleResult,
+    inputs: Inputs,
+    stage3: Stage3,
+    obs: np.ndarray,
+    options: PipelineOptions,
+) -> BundleProblem:
+    """The problem with each track re-triangulated as a 3D horizontal line.
+
+    The facade constraint's point ``x_j + h_j z`` sits on the map edge; a
+    roof rim overhangs it and a parapet stands back, so the point is moved
+    to the track's line (:func:`matching.triangulate_tracks`, with the
+    solved cameras) and its height restarted there. ``obs``: indices into
+    the tracks' observations of the problem's horizontal constraints.
+    """
+    t = stage3.tracks
+    ids = problem.image_ids
+    cams = [result.cameras[problem.image_camera[i]] for i in ids]
+    poses = [result.poses[i] for i in ids]
+    o = obs[obs >= 0]
+    px_per_m = np.concatenate([f.px_per_m for f in stage3.facades])
+    offset = np.cumsum([0] + [len(f) for f in stage3.facades])
+    ppm = px_per_m[offset[t.image[o]] + t.row[o]]
+    normal = inputs.cadastre.edge_normal[t.edge]
+    d, h = triangulate_tracks(
+        t.image[o],
+        t.track[o],
+        stage3.ends_raw[o],
+        cams,
+        poses,
+        t.anchor_xy,
+        normal,
+        ppm,
+        offset_sigma_m=options.track_offset_sigma_m,
+    )
+    J = t.num_tracks
+    heights = result.facade_heights.copy()
+    heights[:J] = np.where(np.isfinite(h), h, heights[:J])
+    anchor = problem.horizontal_anchor_xy.copy()
+    rows = obs >= 0
+    moved = t.anchor_xy + d[:, None] * normal
+    anchor[rows] = moved[problem.horizontal_height[rows]]
+    return dataclasses.replace(
+        problem,
+        cameras=result.cameras,
+        poses=result.poses,
+        facade_heights=heights,
+        horizontal_anchor_xy=anchor,
+    )
+
+
+def without_outliers(
+    problem: BundleProblem, result: BundleResult, factor: float, floor_px: float
+) -> tuple[BundleProblem, np.ndarray, np.ndarray]:
+    """The problem without the constraints the solved block rejects.
+
+    A residual is an outlier when it exceeds ``factor`` robust standard
+    deviations (1.4826 MAD) of the residuals of its kind, and ``floor_px``.
+    Facade heights no longer observed keep their slot (unobserved heights
+    are eliminated per residual anyway). Returns the reduced problem, started
+    at the result, and the masks of the kept vertical and horizontal
+    constraints.
+    """
+
+    def keep(r: np.ndarray) -> np.ndarray:
+        if len(r) == 0:
+            return np.ones(0, bool)
+        sigma = 1.4826 * np.median(np.abs(r))
+        return np.abs(r) <= max(factor * sigma, floor_px)
+
+    kv = keep(result.vertical_residuals_px)
+    kh = keep(result.horizontal_residuals_px)
+    p = problem
+    reduced = BundleProblem(
+        cameras=result.cameras,
+        poses=result.poses,
+        image_camera=p.image_camera,
+        image_ids=p.image_ids,
+        corner_xy=p.corner_xy,
+        corner_heights=p.corner_heights,
+        vertical_image=p.vertical_image[kv],
+        vertical_corner=p.vertical_corner[kv],
+        vertical_line=p.vertical_line[kv],
+        facade_heights=result.facade_heights,
+        horizontal_image=p.horizontal_image[kh],
+        horizontal_height=p.horizontal_height[kh],
+        horizontal_anchor_xy=p.horizontal_anchor_xy[kh],
+        horizontal_line=p.horizontal_line[kh],
+        horizontal_sigma_px=None
+        if p.horizontal_sigma_px is None
+        else p.horizontal_sigma_px[kh],
+    )
+    logger.info(
+        "bundle: %d of %d vertical and %d of %d horizontal constraints rejected",
+        (~kv).sum(),
+        len(kv),
+        (~kh).sum(),
+        len(kh),
+    )
+    return reduced, kv, kh
 
 
 def rescue_heights(
@@ -762,11 +977,18 @@ class Stage3:
         image indices.
     facades : list of FacadeEdges, per image.
     tracks : FacadeTracks.
+    ends_raw : (H, 2, 2) array, each track observation's segment in raw
+        pixels (set by :func:`build_bundle_problem`).
+    row_obs : (R,) int array, per horizontal row of the bundle problem the
+        track observation it holds (set by :func:`build_bundle_problem`;
+        rows of other kinds would hold -1).
     """
 
     ids: tuple[int, ...]
     facades: list[FacadeEdges]
     tracks: FacadeTracks
+    ends_raw: np.ndarray = field(default_factory=lambda: np.zeros((0, 2, 2)))
+    row_obs: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
 
     def report(self, outcomes: dict[int, ImageOutcome]) -> dict[str, Any]:
         t = self.tracks
@@ -927,18 +1149,23 @@ def build_bundle_problem(
     the track's point on its map edge. Lines in RAW pixels (the bundle
     projects through the full camera model). The corner points are fixed
     (``BundleOptions.corner_heights = "fixed"``, see
-    :func:`vertical_constraints`).
+    :func:`vertical_constraints`). Sets ``stage3.ends_raw`` and
+    ``stage3.row_obs``.
     """
     ids = stage3.ids
     v = vertical_constraints(inputs, outcomes, state, ids)
     t = stage3.tracks
-    lines = np.zeros((t.num_observations, 3))
+    ends = np.zeros((t.num_observations, 2, 2))
     for k, i in enumerate(ids):
         sel = np.flatnonzero(t.image == k)
         if len(sel) == 0:
             continue
         camera = inputs.priors.cameras[inputs.priors.images[i].camera_id]
-        lines[sel] = _raw_lines(camera, stage3.facades[k].endpoints[t.row[sel]])
+        und = stage3.facades[k].endpoints[t.row[sel]]
+        ends[sel] = camera.distort_pixels(und.reshape(-1, 2)).reshape(-1, 2, 2)
+    stage3.ends_raw = ends
+    lines = lines_through(ends[:, 0], ends[:, 1])
+    stage3.row_obs = np.arange(t.num_observations)
     cameras = _group_cameras(inputs, state)
     return BundleProblem(
         cameras=cameras,

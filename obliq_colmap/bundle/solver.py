@@ -87,6 +87,13 @@ class BundleOptions:
     loss: str = "huber"
     #: Scale of the robust loss, pixels (residuals below it count fully).
     loss_scale_px: float = 2.0
+    #: A priori standard deviations (px) of the two residual kinds: each
+    #: residual's cost is weighted by 1 / sigma^2 (the robust loss keeps its
+    #: scale in pixels). Variance components, e.g. re-estimated from a first
+    #: solve's residuals: map corners carry the map's vertex noise (~1 px),
+    #: facade edges only the image noise (~0.3 px).
+    vertical_sigma_px: float = 1.0
+    horizontal_sigma_px: float = 1.0
     #: Maximum number of Levenberg-Marquardt iterations (accepted or not).
     max_iterations: int = 100
     #: Stop when an accepted step lowers the cost by less than this fraction.
@@ -134,6 +141,8 @@ class BundleOptions:
                 )
         if self.loss_scale_px <= 0:
             raise ValueError(f"loss_scale_px must be > 0, got {self.loss_scale_px}")
+        if self.vertical_sigma_px <= 0 or self.horizontal_sigma_px <= 0:
+            raise ValueError("vertical_sigma_px and horizontal_sigma_px must be > 0")
         if self.corner_height_prior_m is not None and self.corner_height_prior_m <= 0:
             raise ValueError("corner_height_prior_m must be > 0 or None")
 
@@ -175,6 +184,9 @@ class BundleProblem:
         Map-edge anchor ``(x, y)`` of each (the edge centre), metres.
     horizontal_line : (H, 3) array
         Homogeneous horizontal image line (pixels) of each.
+    horizontal_sigma_px : (H,) array or None
+        Standard deviation (px) of each horizontal residual; None: all
+        ``BundleOptions.horizontal_sigma_px``.
     """
 
     cameras: dict[int, Camera]
@@ -191,6 +203,7 @@ class BundleProblem:
     horizontal_anchor_xy: np.ndarray
     horizontal_line: np.ndarray
     image_ids: tuple[int, ...] | None = None
+    horizontal_sigma_px: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         if self.image_ids is None:
@@ -222,6 +235,14 @@ class BundleProblem:
             self.horizontal_anchor_xy, (2,), "horizontal_anchor_xy"
         )
         self.horizontal_line = _as(self.horizontal_line, (3,), "horizontal_line")
+        if self.horizontal_sigma_px is not None:
+            self.horizontal_sigma_px = _as(
+                self.horizontal_sigma_px, (), "horizontal_sigma_px"
+            )
+            if len(self.horizontal_sigma_px) != len(self.horizontal_image) or not (
+                np.all(self.horizontal_sigma_px > 0)
+            ):
+                raise ValueError("horizontal_sigma_px: one positive value per row")
         nc, ni, nj = len(self.corner_xy), len(self.image_ids), len(self.facade_heights)
         checks = [
             ("corner_heights", len(self.corner_heights) == nc),
@@ -431,6 +452,16 @@ class _Setup:
         self.cam = self.img_cam[self.img]
         self.n_heights = nJ + (len(P.corner_xy) if free else 0)
         self.has_h = self.hidx >= 0
+        # Cost weight of each residual: 1 / sigma^2 (of its kind, or its own).
+        sigma = np.concatenate(
+            [
+                np.full(nv, opts.vertical_sigma_px),
+                P.horizontal_sigma_px
+                if P.horizontal_sigma_px is not None
+                else np.full(nh, opts.horizontal_sigma_px),
+            ]
+        )
+        self.weight = 1.0 / sigma[order] ** 2
 
         # Active images and cameras; parameter columns of the camera block.
         counts = np.bincount(self.img, minlength=K)
@@ -607,7 +638,7 @@ def _solve(problem: BundleProblem, opts: BundleOptions) -> BundleResult:
 
     def cost_of(r: np.ndarray, heights: np.ndarray) -> float:
         rho, _ = _loss(opts.loss, opts.loss_scale_px, r * r)
-        c = 0.5 * float(np.sum(rho))
+        c = 0.5 * float(np.sum(S.weight * rho))
         if prior_w:
             dh = (heights - heights0)[prior_mask]
             c += 0.5 * prior_w * float(dh @ dh)
@@ -633,6 +664,7 @@ def _solve(problem: BundleProblem, opts: BundleOptions) -> BundleResult:
         if not S.n_heights:
             break
         _, w = _loss(opts.loss, opts.loss_scale_px, r * r)
+        w = w * S.weight
         Hh = np.bincount(S.hidx[S.has_h], (w * Jh * Jh)[S.has_h], S.n_heights)
         gh = np.bincount(S.hidx[S.has_h], (w * Jh * r)[S.has_h], S.n_heights)
         Hh = Hh + prior_w * prior_mask
@@ -655,6 +687,7 @@ def _solve(problem: BundleProblem, opts: BundleOptions) -> BundleResult:
         it += 1
         if need_build:
             _, w = _loss(opts.loss, opts.loss_scale_px, r * r)
+            w = w * S.weight
             H_cc, g_c, H_hh, g_h, E = _normal_equations(S, Jc, Jh, r, w)
             H_hh = H_hh + prior_w * prior_mask
             g_h = g_h + prior_w * prior_mask * (st.heights - heights0)

@@ -12,10 +12,10 @@ Writes the COLMAP binary model, ``georef.json`` and ``report.json`` directly in
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import logging
 from pathlib import Path
 
-from obliq_colmap.bundle import BundleOptions
 from obliq_colmap.colmap_io import check_output_path
 from obliq_colmap.geometry import SUPPORTED_MODELS
 from obliq_colmap.pipeline import (
@@ -100,7 +100,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "(default: estimated per image)",
     )
     bundle = parser.add_argument_group("Bundle")
-    bdefaults = BundleOptions()
+    bdefaults = PipelineOptions().bundle
     bundle.add_argument(
         "--camera_model",
         choices=sorted(SUPPORTED_MODELS),
@@ -131,7 +131,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--loss_scale",
         type=float,
         default=bdefaults.loss_scale_px,
-        help="scale of the robust (Huber) loss, px (default %(default)s)",
+        help="scale of the robust loss, px (default %(default)s)",
     )
 
 
@@ -152,7 +152,8 @@ def run(args: argparse.Namespace) -> int:
             prior_focal_sigma=args.prior_focal_sigma,
             ground_height=args.ground_height,
         ),
-        bundle=BundleOptions(
+        bundle=dataclasses.replace(
+            PipelineOptions().bundle,
             refine_focal_length=args.refine_focal_length,
             refine_principal_point=args.refine_principal_point,
             refine_extra_params=args.refine_extra_params,
