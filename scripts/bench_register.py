@@ -94,6 +94,9 @@ def bench_scene(scene: Path, args: argparse.Namespace) -> dict:
         "registered_by_run": run.report["num_registered"],
         "num_points3D": len(run.points3D),
         "bundle": run.report.get("bundle"),
+        "facades": {
+            k: v for k, v in run.report.get("facades", {}).items() if k != "images"
+        },
         "full": _summary(full),
         "across_vertical": _summary(across),
         "baseline_priors": _summary(base),
@@ -119,6 +122,8 @@ def _print_row(row: dict) -> None:
             f" max {s['deviation_max_px']:.3f}; rotation {s['rotation_median_deg']:.4f}"
             f" deg, centre {s['center_median_m']:.3f} m"
         )
+    if row["facades"]:
+        print(f"  facades: {row['facades']}")
     if row["bundle"]:
         print("  " + row["bundle"]["brief"])
 
