@@ -659,7 +659,12 @@ def bundle_stage(
                     # Each kind weighted by its own noise (map corners ~1 px,
                     # facade edges ~0.15 px).
                     problem, bundle_options = with_variance_components(
-                        problem, result, bundle_options, obs, kh
+                        problem,
+                        result,
+                        bundle_options,
+                        obs,
+                        kh,
+                        2 if options.track_lines else 1,
                     )
                 result = solve_bundle(problem, bundle_options)
                 if kv.all() and kh.all():
@@ -684,16 +689,31 @@ def with_variance_components(
     options: BundleOptions,
     obs: np.ndarray,
     kept: np.ndarray,
+    unknowns_per_track: int,
 ) -> tuple[BundleProblem, BundleOptions]:
     """Each residual kind weighted by its robust standard deviation in the
     last solve: vertical (map corners), facade tracks, and other horizontal
-    rows (``obs < 0``). ``kept``: the horizontal rows of the last solve still in
-    ``problem``."""
+    rows (``obs < 0``).
+    ``kept``: the horizontal rows of the last solve still in ``problem``.
+
+    A track of n observations fits ``unknowns_per_track`` of them exactly
+    (a 3D line: offset and height), so its residuals are shrunk by
+    sqrt((n - u) / n): they are scaled back, and tracks with n <= u (no
+    redundancy, zero residuals) do not count. Without that the spread of the
+    two-image tracks, half of all, reads as ~0 and the facade lines get
+    hundreds of times the weight their noise deserves.
+    """
     rh = result.horizontal_residuals_px[kept]
     facade = obs >= 0
+    track = problem.horizontal_height
+    n = np.bincount(track[facade], minlength=len(problem.facade_heights))[track]
+    u = unknowns_per_track
+    redundant = facade & (n > u)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        scaled = rh * np.sqrt(n / np.maximum(n - u, 1))
     sigma = np.where(
         facade,
-        _robust_sigma(rh[facade], options.horizontal_sigma_px),
+        _robust_sigma(scaled[redundant], options.horizontal_sigma_px),
         _robust_sigma(rh[~facade], options.horizontal_sigma_px),
     )
     options = _replace(
@@ -701,6 +721,11 @@ def with_variance_components(
         vertical_sigma_px=_robust_sigma(
             result.vertical_residuals_px, options.vertical_sigma_px
         ),
+    )
+    logger.info(
+        "bundle: sigma px: map corners %.3f, facade lines %.3f",
+        options.vertical_sigma_px,
+        float(sigma[facade][0]) if facade.any() else math.nan,
     )
     return dataclasses.replace(problem, horizontal_sigma_px=sigma), options
 
