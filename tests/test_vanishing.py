@@ -537,3 +537,93 @@ def test_second_pass_reaches_the_ends_of_edges():
             assert abs(e[0] - y0) < 1.0 and abs(e[1] - y1) < 1.0, (y0, y1, e)
     short = vertical_segments(img, vp, SecondPassOptions(extend_max_px=0))
     assert np.sum(short.lengths) < np.sum(segs.lengths) - 2 * len(bands) * 2
+
+
+def strip_pencil_case(rng, sigma=0.25):
+    """Verticals, a street orthogonal to them, and a bigger false pencil.
+
+    The false pencil (110 segments in a strip, converging far below the
+    image, 37 deg from the vertical) outnumbers the 40 verticals, as a street
+    with its cars and a facade's window rows did in a rendered image; the
+    street's 60 lines meet at a horizontal direction orthogonal to the true
+    vertical only.
+    """
+    vp = np.array([330.0, 1000.0, 1.0])
+    dv = np.linalg.solve(CAMERA.K, vp)
+    dh = np.cross(dv, [1.0, 0.0, 0.0])
+    street = CAMERA.K @ dh
+    false = np.array([320.0 + 0.05 * 20000.0, 20000.0, 1.0])
+    segs = noisy_segments(vp, rng, n_in=40, n_out=0, sigma=sigma)
+    ends = [segs.endpoints]
+    for target, n, (x0, x1) in ((street, 60, (80, 560)), (false, 110, (380, 560))):
+        for _ in range(n):
+            q = np.array([rng.uniform(x0, x1), rng.uniform(60, H - 60)])
+            y0, y1 = q[1] - rng.uniform(15, 40), q[1] + rng.uniform(15, 40)
+            e = np.array(
+                [
+                    [point_on_line_at_y(target, q, y0), y0],
+                    [point_on_line_at_y(target, q, y1), y1],
+                ]
+            )
+            ends.append((e + rng.normal(0, sigma, (2, 2)))[None])
+    ends = np.concatenate(ends)
+    return (
+        vp,
+        false,
+        Segments(ends, np.tile([1.0, 0.0], (len(ends), 1)), np.ones(len(ends))),
+    )
+
+
+def test_orthogonal_partner_picks_the_vertical_over_a_bigger_strip_pencil():
+    for trial in range(4):
+        rng = np.random.default_rng(200 + trial)
+        vp, false, segs = strip_pencil_case(rng)
+        assert direction_error_deg(false, vp) > 30
+        res = estimate_vertical_vp(
+            segs, (W, H), VanishingOptions(seed=trial), CAMERA, VPPrior.aerial()
+        )
+        assert res.status == "ok", res.message
+        # Within 4 predicted sigmas of the verticals alone (0.25 px noise).
+        err = direction_error_deg(res.vp, vp)
+        assert err < 4 * res.direction_std_deg, (err, res.direction_std_deg)
+        # Significance alone takes the false pencil.
+        plain = estimate_vertical_vp(
+            segs,
+            (W, H),
+            VanishingOptions(seed=trial, orthogonal_support_tol_deg=0),
+            CAMERA,
+            VPPrior.aerial(),
+        )
+        assert direction_error_deg(plain.vp, false) < 2.0
+
+
+def test_split_by_pencil_recovers_a_wall_edge_joined_to_a_roof_edge():
+    # A bright wall whose vertical left edge (y 250..400) continues upwards
+    # into a slanted edge of the same polarity (a roof's gable edge, 6 deg
+    # off): one connected chain, whose least-squares line through the VP fits
+    # neither part.
+    rng = np.random.default_rng(1)
+    ss = 4
+    hi = np.full((H * ss, W * ss), 70, np.uint8)
+    poly = [(200, 400), (200, 250), (220, 60), (500, 60), (500, 400)]
+    pts = np.round((np.array(poly, float) * ss - 0.5) * 16).astype(np.int32)
+    cv2.fillPoly(hi, [pts], 180, shift=4)
+    img = cv2.resize(hi, (W, H), interpolation=cv2.INTER_AREA).astype(float)
+    img = cv2.GaussianBlur(img, (0, 0), 0.7) + rng.normal(0, 2.0, (H, W))
+    img = np.clip(img, 0, 255).astype(np.uint8)
+    vp = np.array([0.0, 1.0, 0.0])
+
+    def wall_edges(split_rounds):
+        segs = vertical_segments(img, vp, SecondPassOptions(split_rounds=split_rounds))
+        return [
+            np.sort(e[:, 1])
+            for e in segs.endpoints
+            if np.abs(e[:, 0] - 200).max() < 0.5 and np.ptp(e[:, 1]) > 50
+        ]
+
+    assert wall_edges(0) == []
+    (edge,) = wall_edges(1)
+    # The bottom end exactly; the top where the gable edge leaves the
+    # 1.5 px band (14 px above the junction at 6 deg).
+    assert abs(edge[1] - 400) < 1.0
+    assert 230 < edge[0] < 252
