@@ -1221,9 +1221,20 @@ def _with_competitors(
     # outscore the buildings in pair-RANSAC; if a competitor the prior allows
     # is more significant, the two swap roles.
     allowed = prior_ok(np.array(vps))
-    sig = np.array([significance_of(h) for h in vps])
+    use_ortho = intrinsics_known and options.orthogonal_support_tol_deg > 0
+    need = allowed.copy()
+    if use_ortho:
+        d = direction(np.array(vps))
+        ortho = np.abs(d @ d.T) <= np.sin(
+            np.radians(options.orthogonal_support_tol_deg)
+        )
+        need |= (ortho & allowed[:, None]).any(axis=0)
+    # Significance only where it is used (each costs three pencil fits).
+    sig = np.full(len(vps), -np.inf)
+    for i in np.flatnonzero(need):
+        sig[i] = significance_of(vps[i])
     score = np.where(allowed, sig, -np.inf)
-    if intrinsics_known and options.orthogonal_support_tol_deg > 0:
+    if use_ortho:
         # With intrinsics, the vertical is orthogonal to the horizontal
         # directions (streets, facades) whose pencils compete with it; a
         # pencil of street lines and facade rows that merely looks vertical
@@ -1232,9 +1243,6 @@ def _with_competitors(
         # with the significance of its best orthogonal partner added, and a
         # candidate with a significant orthogonal partner goes before any
         # without one.
-        d = direction(np.array(vps))
-        c = np.abs(d @ d.T)
-        ortho = c <= np.sin(np.radians(options.orthogonal_support_tol_deg))
         partner = np.where(ortho, np.maximum(sig, 0.0)[None, :], 0.0).max(axis=1)
         score = np.where(allowed, sig + partner, -np.inf)
         paired = allowed & (partner >= options.ok_min_significance)
