@@ -188,6 +188,13 @@ class SecondPassOptions:
     #: merge pieces whose brighter sides differ (the background behind a
     #: building corner changes from brighter to darker than the wall).
     merge_across_polarity: bool = False
+    #: a lower hysteresis threshold for weak chains (grey levels/px; None:
+    #: off): a chain whose largest derivative stays below ``high`` is kept
+    #: only with at least ``weak_min_length_px`` length and at most
+    #: ``weak_max_rms_px`` RMS distance to its line through the VP.
+    weak_high: float | None = None
+    weak_min_length_px: float = 25.0
+    weak_max_rms_px: float = 0.3
     #: segment ends are moved outwards along their line to where the
     #: contrast across it halves, by at most this much, px (0: off).
     extend_max_px: float = 6.0
@@ -767,6 +774,9 @@ class _SecondPass:
 
     segments: Segments
     scatter: np.ndarray  # (G, 3, 3)
+    #: (G,) bool, chains that reach the hysteresis threshold ``high`` (the
+    #: others were kept by ``weak_high``); None: all.
+    strong: np.ndarray | None = None
 
     def through(self, vp: np.ndarray, T: np.ndarray) -> Segments:
         """The same segments refitted through another (nearby) VP."""
@@ -811,7 +821,9 @@ def _second_pass(
         gy,
         across_vp_line,
         options.low,
-        options.high,
+        options.high
+        if options.weak_high is None
+        else min(options.high, options.weak_high),
         options.max_gradient_angle_deg,
     )
     empty = _SecondPass(Segments(), np.zeros((0, 3, 3)))
@@ -860,17 +872,19 @@ def _second_pass(
         last = np.r_[first[1:], len(group)] - 1
         trim = options.end_trim_px / s
         w = (pos - pos[first][group] >= trim) & (pos[last][group] - pos >= trim)
-        short = np.bincount(group, weights=w, minlength=G) < 3
-        w = (w | short[group]).astype(float)
-        Sc = scatter_matrices(xy, group, G, weights=w)
     else:
-        Sc = scatter_matrices(xy, group, G)
+        w = np.ones(len(group), bool)
+    short = np.bincount(group, weights=w, minlength=G) < 3
+    w = (w | short[group]).astype(float)
+    Sc = scatter_matrices(xy, group, G, weights=w)
     cost, lines = _pencil_fit(Sc, vn)
     ends = _extents_on(xy, group, lines, G)
     length = np.linalg.norm(ends[:, 1] - ends[:, 0], axis=1) * s
     rms = np.sqrt(cost / np.maximum(Sc[:, 2, 2], 1)) * s
     sign = np.bincount(group, weights=d_sign, minlength=G)
     strength = np.bincount(group, weights=absd, minlength=G) / np.maximum(count, 1)
+    peak = np.zeros(G)
+    np.maximum.at(peak, group, absd)
     # Fragments shorter than a quarter of the minimum length (at most 3 px)
     # are noise far more often than pieces of a broken edge.
     keep = (
@@ -880,7 +894,7 @@ def _second_pass(
     )
     # Merge pieces of one line through the VP before the length test.
     if options.merge:
-        Sc, ends, sign, strength, count, lines = _merge_pencil(
+        Sc, ends, sign, strength, count, lines, peak = _merge_pencil(
             Sc[keep],
             ends[keep],
             sign[keep],
@@ -892,6 +906,7 @@ def _second_pass(
             options.merge_max_gap_px / s,
             options.merge_window,
             options.merge_across_polarity,
+            peak[keep],
         )
         keep = np.ones(len(Sc), bool)
     Tinv = np.linalg.inv(T)
@@ -911,7 +926,20 @@ def _second_pass(
         )
     length = np.linalg.norm(ends_px[:, 1] - ends_px[:, 0], axis=1)
     keep &= (length >= options.min_length_px) & (count >= options.min_density * length)
-    return _SecondPass(Segments(ends_px[keep], normal[keep], strength[keep]), Sc[keep])
+    if options.weak_high is not None and options.weak_high < options.high:
+        # Chains that never reach ``high`` (weak contrast) need more
+        # geometric evidence: length and straightness through the VP.
+        cost_w, _ = _pencil_fit(Sc, vn)
+        rms_w = np.sqrt(cost_w / np.maximum(Sc[:, 2, 2], 1)) * s
+        weak_ok = (length >= options.weak_min_length_px) & (
+            rms_w <= options.weak_max_rms_px
+        )
+        keep &= (peak >= options.high) | weak_ok
+    return _SecondPass(
+        Segments(ends_px[keep], normal[keep], strength[keep]),
+        Sc[keep],
+        (peak >= options.high)[keep],
+    )
 
 
 def _split_by_pencil(
@@ -1027,6 +1055,7 @@ def _merge_pencil(
     max_gap,
     window=6,
     across_polarity=False,
+    peak=None,
 ):
     """Merge segments on (nearly) the same line through the VP, same polarity.
 
@@ -1036,8 +1065,10 @@ def _merge_pencil(
     groups refitted through the VP from the summed scatter matrices.
     """
     n = len(Sc)
+    if peak is None:
+        peak = strength
     if n < 2:
-        return Sc, ends, sign, strength, count, lines
+        return Sc, ends, sign, strength, count, lines, peak
     U = _tangent_basis(vn)
     x = lines @ U  # (n, 2) pencil coordinates of each line
     ang = np.arctan2(x[:, 1], x[:, 0]) % np.pi
@@ -1064,7 +1095,7 @@ def _merge_pencil(
         pj.append(j[ok])
     G, grp = connected_pairs(n, np.concatenate(pi), np.concatenate(pj))
     if n == G:
-        return Sc, ends, sign, strength, count, lines
+        return Sc, ends, sign, strength, count, lines, peak
     S2 = np.zeros((G, 3, 3))
     np.add.at(S2, grp, Sc)
     _, lines2 = _pencil_fit(S2, vn)
@@ -1073,7 +1104,9 @@ def _merge_pencil(
     count2 = np.bincount(grp, weights=count, minlength=G)
     sign2 = np.bincount(grp, weights=sign, minlength=G)
     strength2 = np.bincount(grp, weights=strength * count, minlength=G) / count2
-    return S2, ends2, sign2, strength2, count2, lines2
+    peak2 = np.zeros(G)
+    np.maximum.at(peak2, grp, peak)
+    return S2, ends2, sign2, strength2, count2, lines2, peak2
 
 
 def vertical_segments(
@@ -1550,9 +1583,16 @@ def detect_vertical_vp(
             for c in comps:
                 other = np.minimum(other, _pencil_fit(sp.scatter, c)[0] / n_pts)
             cost = _pencil_fit(sp.scatter, v_n)[0] / n_pts
-            use = (cost <= max_cost) & (cost <= np.maximum(other, 0.25 * max_cost))
+            # Chains kept only by the weak threshold (``weak_high``) extend the
+            # returned set but do not refine the VP.
+            strong = np.ones(len(cost), bool) if sp.strong is None else sp.strong
+            use = (
+                (cost <= max_cost)
+                & (cost <= np.maximum(other, 0.25 * max_cost))
+                & strong
+            )
             if use.sum() < 3:
-                use[:] = True
+                use[:] = strong if strong.sum() >= 3 else True
             for _ in range(max(options.refine_rounds, 1) + 2):
                 v_n, _, _, _ = refine_vp(sp.scatter[use], v_n)
                 cost = _pencil_fit(sp.scatter, v_n)[0] / n_pts
@@ -1564,7 +1604,7 @@ def detect_vertical_vp(
                 # equally well).
                 scale2 = (1.4826 * np.median(np.sqrt(cost[use]))) ** 2
                 thr = min(max_cost, options.second_pass_rms_factor**2 * scale2)
-                new = (cost <= thr) & (cost - other <= scale2)
+                new = (cost <= thr) & (cost - other <= scale2) & strong
                 if np.array_equal(new, use) or new.sum() < 3:
                     break
                 use = new

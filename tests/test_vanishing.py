@@ -627,3 +627,29 @@ def test_split_by_pencil_recovers_a_wall_edge_joined_to_a_roof_edge():
     # 1.5 px band (14 px above the junction at 6 deg).
     assert abs(edge[1] - 400) < 1.0
     assert 230 < edge[0] < 252
+
+
+def test_weak_threshold_keeps_long_straight_low_contrast_edges_only():
+    # A band 14 grey levels brighter than its surround (noise 2): its peak
+    # derivative (~4 grey/px after the optics and the 1 px smoothing) stays
+    # below ``high`` = 6. A long band (300 px) and a short one (18 px).
+    rng = np.random.default_rng(3)
+    ss = 4
+    hi = np.full((H * ss, W * ss), 100, np.uint8)
+    for x0, y0, y1 in ((200, 100, 400), (400, 100, 118)):
+        poly = [(x0, y0), (x0 + 60, y0), (x0 + 60, y1), (x0, y1)]
+        pts = np.round((np.array(poly, float) * ss - 0.5) * 16).astype(np.int32)
+        cv2.fillPoly(hi, [pts], 114, shift=4)
+    img = cv2.resize(hi, (W, H), interpolation=cv2.INTER_AREA).astype(float)
+    img = cv2.GaussianBlur(img, (0, 0), 0.7) + rng.normal(0, 2.0, (H, W))
+    img = np.clip(img, 0, 255).astype(np.uint8)
+    vp = np.array([0.0, 1.0, 0.0])
+    assert len(vertical_segments(img, vp, SecondPassOptions())) == 0
+    segs = vertical_segments(img, vp, SecondPassOptions(weak_high=4.0))
+    xs = sorted(float(e[:, 0].mean()) for e in segs.endpoints)
+    # Both long edges, sub-pixel (the short band's edges are below
+    # weak_min_length_px and stay out). fillPoly fills the right boundary's
+    # column of the 4x image too: that edge is at 260.25.
+    assert len(xs) == 2
+    np.testing.assert_allclose(xs, [200.0, 260.25], atol=0.15)
+    assert np.all(segs.lengths > 290)
