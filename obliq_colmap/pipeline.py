@@ -796,10 +796,7 @@ def without_outliers(
     """
 
     def keep(r: np.ndarray) -> np.ndarray:
-        if len(r) == 0:
-            return np.ones(0, bool)
-        sigma = 1.4826 * np.median(np.abs(r))
-        return np.abs(r) <= max(factor * sigma, floor_px)
+        return np.abs(r) <= max(factor * _robust_sigma(r, 0.0), floor_px)
 
     kv = keep(result.vertical_residuals_px)
     kh = keep(result.horizontal_residuals_px)
