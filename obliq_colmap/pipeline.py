@@ -674,8 +674,27 @@ def bundle_stage(
             result = None
         else:
             state = state.with_bundle(result, problem.image_camera)
+            stage3.bundle_rms = _rms_per_image(problem, result)
     timings["bundle"] = time.perf_counter() - t0
     return state, result, stage3
+
+
+def _rms_per_image(
+    problem: BundleProblem, result: BundleResult
+) -> dict[int, tuple[float, float]]:
+    """Image id -> RMS (px) of its vertical and horizontal residuals."""
+    out = {}
+    for kind, img, r in (
+        (0, problem.vertical_image, result.vertical_residuals_px),
+        (1, problem.horizontal_image, result.horizontal_residuals_px),
+    ):
+        n = np.bincount(img, minlength=len(problem.image_ids))
+        ss = np.bincount(img, r * r, minlength=len(problem.image_ids))
+        with np.errstate(invalid="ignore", divide="ignore"):
+            rms = np.sqrt(ss / n)
+        for k, i in enumerate(problem.image_ids):
+            out.setdefault(i, [math.nan, math.nan])[kind] = float(rms[k])
+    return {i: (v[0], v[1]) for i, v in out.items()}
 
 
 def _robust_sigma(r: np.ndarray, default: float) -> float:
@@ -1011,6 +1030,8 @@ class Stage3:
     tracks: FacadeTracks
     ends_raw: np.ndarray = field(default_factory=lambda: np.zeros((0, 2, 2)))
     row_obs: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
+    #: Per image id: RMS (px) of its final vertical and horizontal residuals.
+    bundle_rms: dict[int, tuple[float, float]] = field(default_factory=dict)
 
     def report(self, outcomes: dict[int, ImageOutcome]) -> dict[str, Any]:
         t = self.tracks
@@ -1026,6 +1047,9 @@ class Stage3:
                     "walls": f.num_walls,
                     "observations": int(obs[k]),
                     "datum_correction_m": _finite(t.datum_correction[k]),
+                    "bundle_rms_px": [
+                        _finite(x) for x in self.bundle_rms.get(i, (math.nan,) * 2)
+                    ],
                 }
                 for k, (i, f) in enumerate(zip(self.ids, self.facades, strict=True))
             },
@@ -1367,12 +1391,16 @@ def _finite(x: float) -> float | None:
 
 def summary_table(report: dict[str, Any]) -> str:
     """The closing table of a run, one line per image."""
-    rows = [("image", "vp", "segments", "corners", "rms px", "status")]
+    facades = report.get("facades", {}).get("images", {})
+    head = ("image", "vp", "segments", "corners", "rms px", "facade obs", "bundle v/h")
+    rows = [(*head, "status")]
     for name, r in report["images"].items():
         rms = r["residual_rms_px"]
         status = r["status"] + (" (rescued)" if r["rescued"] else "")
         if r["message"]:
             status += f": {r['message']}"
+        f = facades.get(name, {})
+        brms = [x for x in f.get("bundle_rms_px", []) if x is not None]
         rows.append(
             (
                 name,
@@ -1380,14 +1408,17 @@ def summary_table(report: dict[str, Any]) -> str:
                 str(r["num_segments"]),
                 str(r["num_inlier_corners"]),
                 f"{rms:.2f}" if rms is not None else "-",
+                str(f["observations"]) if f else "-",
+                "/".join(f"{x:.2f}" for x in brms) if len(brms) == 2 else "-",
                 status,
             )
         )
-    widths = [max(len(row[k]) for row in rows) for k in range(5)]
+    n = len(head)
+    widths = [max(len(row[k]) for row in rows) for k in range(n)]
     lines = [
-        "  ".join(c.ljust(w) for c, w in zip(row[:5], widths, strict=True))
+        "  ".join(c.ljust(w) for c, w in zip(row[:n], widths, strict=True))
         + "  "
-        + row[5]
+        + row[n]
         for row in rows
     ]
     lines.append(
