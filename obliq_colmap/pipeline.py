@@ -996,7 +996,8 @@ def _result_block(inputs: Inputs, state: BlockState) -> Block:
     images, cameras = {}, {}
     for i, pose in state.poses.items():
         prior = inputs.priors.images[i]
-        cam = state.cameras[i]
+        # in the result's camera model (--camera_model), as after the bundle
+        cam = state.cameras[i].with_model(inputs.cameras[prior.camera_id].model)
         cid = prior.camera_id if state.shared else i
         cameras[cid] = Camera(cam.model, cam.width, cam.height, cam.params, cid)
         images[i] = ImageRecord(i, prior.name, cid, pose)
