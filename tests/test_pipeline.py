@@ -92,7 +92,8 @@ def test_initial_registration_is_within_the_per_image_target(initial_run):
 def test_bundle_makes_the_images_agree_in_height(initial_run, bundle_run):
     """Stage 2 leaves every image in its own height datum (the prior camera
     height is held; tens of px along the verticals); the bundle over facade
-    tracks puts them in one. Across the verticals it keeps stage 2's level."""
+    tracks puts them in one, below the 2 px of "registered". Across the
+    verticals it keeps stage 2's level."""
     full = {}
     for key, (out, _) in (("initial", initial_run), ("bundle", bundle_run)):
         full[key] = evaluate_model(out, SAMPLE, EvaluateOptions()).summary
@@ -100,6 +101,10 @@ def test_bundle_makes_the_images_agree_in_height(initial_run, bundle_run):
         bundle_run[0], SAMPLE, EvaluateOptions(across_vertical=True)
     )
     assert full["bundle"].num_missing == full["initial"].num_missing == 0
+    # measured 16 / 16 below 2 px, median 0.79 px (stage 2 alone: 12-31 px); with
+    # the priors' own noise as the options (bench_register) 14 / 16, 1.29 px
+    assert full["bundle"].num_registered >= 0.8 * full["bundle"].num_total
+    assert full["bundle"].deviation_median_px < 1.5
     assert full["bundle"].deviation_median_px < full["initial"].deviation_median_px / 3
     assert across.summary.deviation_median_px < 0.6
     report = bundle_run[1].report
@@ -120,7 +125,7 @@ def test_bundle_output_has_facade_points_seen_by_several_images(bundle_run):
 
     out, run = bundle_run
     rec = pycolmap.Reconstruction(str(out))
-    assert rec.num_reg_images() == 8
+    assert rec.num_reg_images() == len(read_model(SAMPLE / "priors").images)
     origin = run.georef.origin
     cad = load_cadastre(SAMPLE / "cadastre.geojson", origin=[origin[0], origin[1], 0])
     xy = np.array([p.xyz[:2] for p in rec.points3D.values()])
