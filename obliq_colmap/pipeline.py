@@ -9,10 +9,11 @@ Stages (paper 000, sections 2.1-2.3), each a module of its own:
    Images whose registration is weak (few inlier corners: their own
    ground-height search is the usual culprit) are registered once more with
    the block's ground height (all priors share one vertical datum).
-2. ``bundle``: horizontal facade edges per image (:mod:`obliq_colmap.facades`),
-   matched across images into height constraints (:mod:`obliq_colmap.matching`),
-   and one bundle adjustment over all cameras, intrinsics and heights
-   (:mod:`obliq_colmap.bundle`).
+2. ``bundle`` (:mod:`obliq_colmap.adjustment`): horizontal facade edges per
+   image (:mod:`obliq_colmap.facades`), matched across images into tracks
+   (:mod:`obliq_colmap.matching`), and the bundle adjustment over all
+   cameras, intrinsics and track heights (:mod:`obliq_colmap.bundle`) in
+   rounds.
 3. Output (:func:`write_run`): the COLMAP model and ``georef.json`` in a local
    frame, constrained points with tracks, and ``report.json``, written
    atomically.
@@ -39,8 +40,14 @@ from typing import Any
 import numpy as np
 
 from obliq_colmap import __version__
-from obliq_colmap.bundle import BundleOptions, BundleProblem, BundleResult, solve_bundle
-from obliq_colmap.bundle import residuals as res
+from obliq_colmap.adjustment import (
+    AdjustmentOptions,
+    BlockState,
+    Stage3,
+    _finite,
+    bundle_stage,
+)
+from obliq_colmap.bundle import BundleResult
 from obliq_colmap.cadastre import (
     Cadastre,
     CadastreOptions,
@@ -56,15 +63,8 @@ from obliq_colmap.colmap_io import (
     write_result,
 )
 from obliq_colmap.errors import InputError
-from obliq_colmap.facades import FacadeEdges, FacadeOptions, facade_edges
-from obliq_colmap.geometry import Camera, Pose, lines_through
+from obliq_colmap.geometry import Camera, Pose
 from obliq_colmap.lines import Segments
-from obliq_colmap.matching import (
-    FacadeTracks,
-    MatchingOptions,
-    match_facade_edges,
-    triangulate_tracks,
-)
 from obliq_colmap.registration import (
     RegistrationOptions,
     RegistrationResult,
@@ -116,32 +116,8 @@ class PipelineOptions:
     progress: bool = True
     vanishing: VanishingOptions = field(default_factory=VanishingOptions)
     registration: RegistrationOptions = field(default_factory=RegistrationOptions)
-    facades: FacadeOptions = field(default_factory=FacadeOptions)
-    matching: MatchingOptions = field(default_factory=MatchingOptions)
-    #: Bundle rounds after the first that drop the constraints whose residual
-    #: exceeds ``outlier_factor`` robust standard deviations (of their kind)
-    #: and at least ``outlier_floor_px``, then solve again from the result.
-    outlier_rounds: int = 5
-    #: Huber scale (px) of the first bundle round (then the bundle's own
-    #: loss); 0 uses the bundle's own loss throughout.
-    initial_loss_scale_px: float = 0.0
-    #: Between rounds: re-triangulate each facade track as a 3D horizontal
-    #: line near its wall (roof rims overhang), and weight the two residual
-    #: kinds by their robust standard deviations.
-    track_lines: bool = True
-    variance_components: bool = True
-    #: Prior 1-sigma (m) of a track's offset from its wall (weak: measured at
-    #: the true cameras, tracks as free 3D lines fit to 0.035 px median,
-    #: pinned to the wall to 0.23 px).
-    track_offset_sigma_m: float = 10.0
-    outlier_factor: float = 3.0
-    outlier_floor_px: float = 1.0
-    #: The bundle (its corner points are always fixed: vertical_constraints).
-    #: Cauchy at 1 px: the facade tracks fit to ~0.15 px, so a wrong match is
-    #: many scales out and must lose its pull.
-    bundle: BundleOptions = field(
-        default_factory=lambda: BundleOptions(loss="cauchy", loss_scale_px=1.0)
-    )
+    #: Stage 3: facade edges, matching and the bundle's rounds.
+    adjustment: AdjustmentOptions = field(default_factory=AdjustmentOptions)
     cadastre: CadastreOptions = field(default_factory=CadastreOptions)
 
     def __post_init__(self) -> None:
@@ -363,7 +339,6 @@ def overlay_name(image_name: str) -> str:
 
 
 def _replace(options, **changes):
-    import dataclasses
 
     return dataclasses.replace(options, **changes)
 
@@ -565,7 +540,7 @@ def run_register(
     stage3: Stage3 | None = None
     if options.stop_after == "bundle" and registered:
         state, bundle_result, stage3 = bundle_stage(
-            inputs, by_id, state, options, timings
+            inputs, by_id, state, options.adjustment, timings
         )
     ground = block_ground_height([o.registration for o in registered], 1)
     z0 = float(np.round(ground)) if ground is not None else 0.0
@@ -594,259 +569,6 @@ def run_register(
     }
     report["num_points3D"] = len(points)
     return RunResult(block, georef, points, by_id, report, bundle_result)
-
-
-def bundle_stage(
-    inputs: Inputs,
-    outcomes: dict[int, ImageOutcome],
-    state: BlockState,
-    options: PipelineOptions,
-    timings: dict[str, float],
-) -> tuple[BlockState, BundleResult | None, Stage3]:
-    """Stage 3: facade edges, matching, datum corrections and the bundle.
-
-    Returns the block as it stands after it (the per-image state when there
-    are no facade constraints or the solve fails), the bundle's result or
-    None, and the facade edges and tracks.
-    """
-    t0 = time.perf_counter()
-    stage3 = facade_stage(inputs, state, outcomes, options)
-    timings["facades"] = time.perf_counter() - t0
-    t0 = time.perf_counter()
-    result = None
-    if stage3.tracks.num_observations == 0:
-        # Corner-to-vertical-line constraints alone cannot observe a camera's
-        # height nor its focal/distance trade-off (measured: the solve drifts
-        # by tens of metres): without facade constraints the per-image
-        # registration is the better result.
-        logger.warning(
-            "no facade-edge constraints: the bundle is skipped and the "
-            "per-image registration is written"
-        )
-    else:
-        state = state.with_datum_correction(
-            dict(zip(stage3.ids, stage3.tracks.datum_correction, strict=True))
-        )
-        problem = build_bundle_problem(inputs, outcomes, state, stage3)
-        bundle_options = _replace(options.bundle, corner_heights="fixed")
-        try:
-            # A wide loss first: after stage 2 and the datum corrections some
-            # images still sit metres too high or low (tens of pixels), where
-            # a tight robust loss has no gradient left to pull them in.
-            first = bundle_options
-            if options.initial_loss_scale_px > 0:
-                first = _replace(
-                    bundle_options,
-                    loss="huber",
-                    loss_scale_px=max(
-                        options.initial_loss_scale_px, bundle_options.loss_scale_px
-                    ),
-                )
-            result = solve_bundle(problem, first)
-            # Per horizontal row: the track observation it is (facade rows)
-            # or -1 (ground rows); filtered with the rows.
-            obs = stage3.row_obs
-            for _ in range(options.outlier_rounds):
-                problem, kv, kh = without_outliers(
-                    problem, result, options.outlier_factor, options.outlier_floor_px
-                )
-                obs = obs[kh]
-                if options.track_lines:
-                    problem = with_track_lines(
-                        problem, result, inputs, stage3, obs, options
-                    )
-                if options.variance_components:
-                    # Each kind weighted by its own noise (map corners ~1 px,
-                    # facade edges ~0.15 px).
-                    problem, bundle_options = with_variance_components(
-                        problem,
-                        result,
-                        bundle_options,
-                        obs,
-                        kh,
-                        2 if options.track_lines else 1,
-                    )
-                result = solve_bundle(problem, bundle_options)
-                if kv.all() and kh.all():
-                    break
-        except ValueError as exc:
-            logger.warning("bundle failed (%s): the per-image result is kept", exc)
-            result = None
-        else:
-            state = state.with_bundle(result, problem.image_camera)
-            stage3.bundle_rms = _rms_per_image(problem, result)
-    timings["bundle"] = time.perf_counter() - t0
-    return state, result, stage3
-
-
-def _rms_per_image(
-    problem: BundleProblem, result: BundleResult
-) -> dict[int, tuple[float, float]]:
-    """Image id -> RMS (px) of its vertical and horizontal residuals."""
-    out = {}
-    for kind, img, r in (
-        (0, problem.vertical_image, result.vertical_residuals_px),
-        (1, problem.horizontal_image, result.horizontal_residuals_px),
-    ):
-        n = np.bincount(img, minlength=len(problem.image_ids))
-        ss = np.bincount(img, r * r, minlength=len(problem.image_ids))
-        with np.errstate(invalid="ignore", divide="ignore"):
-            rms = np.sqrt(ss / n)
-        for k, i in enumerate(problem.image_ids):
-            out.setdefault(i, [math.nan, math.nan])[kind] = float(rms[k])
-    return {i: (v[0], v[1]) for i, v in out.items()}
-
-
-def _robust_sigma(r: np.ndarray, default: float) -> float:
-    """1.4826 MAD of residuals (px), at least 0.05; ``default`` when empty."""
-    return float(max(1.4826 * np.median(np.abs(r)), 0.05)) if len(r) else default
-
-
-def with_variance_components(
-    problem: BundleProblem,
-    result: BundleResult,
-    options: BundleOptions,
-    obs: np.ndarray,
-    kept: np.ndarray,
-    unknowns_per_track: int,
-) -> tuple[BundleProblem, BundleOptions]:
-    """Each residual kind weighted by its robust standard deviation in the
-    last solve: vertical (map corners), facade tracks, and other horizontal
-    rows (``obs < 0``).
-    ``kept``: the horizontal rows of the last solve still in ``problem``.
-
-    A track of n observations fits ``unknowns_per_track`` of them exactly
-    (a 3D line: offset and height), so its residuals are shrunk by
-    sqrt((n - u) / n): they are scaled back, and tracks with n <= u (no
-    redundancy, zero residuals) do not count. Without that the spread of the
-    two-image tracks, half of all, reads as ~0 and the facade lines get
-    hundreds of times the weight their noise deserves.
-    """
-    rh = result.horizontal_residuals_px[kept]
-    facade = obs >= 0
-    track = problem.horizontal_height
-    n = np.bincount(track[facade], minlength=len(problem.facade_heights))[track]
-    u = unknowns_per_track
-    redundant = facade & (n > u)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        scaled = rh * np.sqrt(n / np.maximum(n - u, 1))
-    sigma = np.where(
-        facade,
-        _robust_sigma(scaled[redundant], options.horizontal_sigma_px),
-        _robust_sigma(rh[~facade], options.horizontal_sigma_px),
-    )
-    options = _replace(
-        options,
-        vertical_sigma_px=_robust_sigma(
-            result.vertical_residuals_px, options.vertical_sigma_px
-        ),
-    )
-    logger.info(
-        "bundle: sigma px: map corners %.3f, facade lines %.3f",
-        options.vertical_sigma_px,
-        float(sigma[facade][0]) if facade.any() else math.nan,
-    )
-    return dataclasses.replace(problem, horizontal_sigma_px=sigma), options
-
-
-def with_track_lines(
-    problem: BundleProblem,
-    result: BundleResult,
-    inputs: Inputs,
-    stage3: Stage3,
-    obs: np.ndarray,
-    options: PipelineOptions,
-) -> BundleProblem:
-    """The problem with each track re-triangulated as a 3D horizontal line.
-
-    The facade constraint's point ``x_j + h_j z`` sits on the map edge; a
-    roof rim overhangs it and a parapet stands back, so the point is moved
-    to the track's line (:func:`matching.triangulate_tracks`, with the
-    solved cameras) and its height restarted there. ``obs``: indices into
-    the tracks' observations of the problem's horizontal constraints.
-    """
-    t = stage3.tracks
-    ids = problem.image_ids
-    cams = [result.cameras[problem.image_camera[i]] for i in ids]
-    poses = [result.poses[i] for i in ids]
-    o = obs[obs >= 0]
-    px_per_m = np.concatenate([f.px_per_m for f in stage3.facades])
-    offset = np.cumsum([0] + [len(f) for f in stage3.facades])
-    ppm = px_per_m[offset[t.image[o]] + t.row[o]]
-    normal = inputs.cadastre.edge_normal[t.edge]
-    d, h = triangulate_tracks(
-        t.image[o],
-        t.track[o],
-        stage3.ends_raw[o],
-        cams,
-        poses,
-        t.anchor_xy,
-        normal,
-        ppm,
-        offset_sigma_m=options.track_offset_sigma_m,
-    )
-    J = t.num_tracks
-    heights = result.facade_heights.copy()
-    heights[:J] = np.where(np.isfinite(h), h, heights[:J])
-    anchor = problem.horizontal_anchor_xy.copy()
-    rows = obs >= 0
-    moved = t.anchor_xy + d[:, None] * normal
-    anchor[rows] = moved[problem.horizontal_height[rows]]
-    return dataclasses.replace(
-        problem,
-        cameras=result.cameras,
-        poses=result.poses,
-        facade_heights=heights,
-        horizontal_anchor_xy=anchor,
-    )
-
-
-def without_outliers(
-    problem: BundleProblem, result: BundleResult, factor: float, floor_px: float
-) -> tuple[BundleProblem, np.ndarray, np.ndarray]:
-    """The problem without the constraints the solved block rejects.
-
-    A residual is an outlier when it exceeds ``factor`` robust standard
-    deviations (1.4826 MAD) of the residuals of its kind, and ``floor_px``.
-    Facade heights no longer observed keep their slot (unobserved heights
-    are eliminated per residual anyway). Returns the reduced problem, started
-    at the result, and the masks of the kept vertical and horizontal
-    constraints.
-    """
-
-    def keep(r: np.ndarray) -> np.ndarray:
-        return np.abs(r) <= max(factor * _robust_sigma(r, 0.0), floor_px)
-
-    kv = keep(result.vertical_residuals_px)
-    kh = keep(result.horizontal_residuals_px)
-    p = problem
-    reduced = BundleProblem(
-        cameras=result.cameras,
-        poses=result.poses,
-        image_camera=p.image_camera,
-        image_ids=p.image_ids,
-        corner_xy=p.corner_xy,
-        corner_heights=p.corner_heights,
-        vertical_image=p.vertical_image[kv],
-        vertical_corner=p.vertical_corner[kv],
-        vertical_line=p.vertical_line[kv],
-        facade_heights=result.facade_heights,
-        horizontal_image=p.horizontal_image[kh],
-        horizontal_height=p.horizontal_height[kh],
-        horizontal_anchor_xy=p.horizontal_anchor_xy[kh],
-        horizontal_line=p.horizontal_line[kh],
-        horizontal_sigma_px=None
-        if p.horizontal_sigma_px is None
-        else p.horizontal_sigma_px[kh],
-    )
-    logger.info(
-        "bundle: %d of %d vertical and %d of %d horizontal constraints rejected",
-        (~kv).sum(),
-        len(kv),
-        (~kh).sum(),
-        len(kh),
-    )
-    return reduced, kv, kh
 
 
 def rescue_heights(
@@ -925,67 +647,6 @@ def _rescue(
     return names
 
 
-# --------------------------------------------------------------------------
-# The block as it stands (per-image stage, then the bundle)
-# --------------------------------------------------------------------------
-
-
-@dataclass
-class BlockState:
-    """Poses, intrinsics and ground planes of the registered images.
-
-    Attributes
-    ----------
-    poses : dict image_id -> Pose, ``cam_from_world``, local frame.
-    cameras : dict image_id -> Camera, the intrinsics each pose belongs to
-        (per image after stage 2, which refines the focal length per image;
-        the shared camera of the image's head after the bundle).
-    planes : dict image_id -> (3,) ground plane ``z = a x + b y + c``.
-    shared : bool, the cameras are shared per camera_id (after the bundle).
-    """
-
-    poses: dict[int, Pose]
-    cameras: dict[int, Camera]
-    planes: dict[int, np.ndarray]
-    shared: bool = False
-
-    @classmethod
-    def from_outcomes(cls, registered: Sequence[ImageOutcome]) -> BlockState:
-        return cls(
-            poses={o.image_id: o.registration.cam_from_world for o in registered},
-            cameras={o.image_id: o.camera for o in registered},
-            planes={o.image_id: o.registration.height_plane.copy() for o in registered},
-        )
-
-    def ground(self, image_id: int) -> Callable[[np.ndarray], np.ndarray]:
-        """The image's ground plane as a function of (N, 2) local xy."""
-        p = self.planes[image_id]
-        return lambda xy: xy @ p[:2] + p[2]
-
-    def with_datum_correction(self, correction: dict[int, float]) -> BlockState:
-        """Cameras and planes lowered by each image's height datum error (m)."""
-        poses, planes = dict(self.poses), {k: v.copy() for k, v in self.planes.items()}
-        for i, e in correction.items():
-            if not math.isfinite(e):
-                continue
-            pose = poses[i]
-            poses[i] = Pose.from_center(pose.rotation, pose.center - np.r_[0, 0, e])
-            planes[i][2] -= e
-        return BlockState(poses, dict(self.cameras), planes, self.shared)
-
-    def with_bundle(
-        self, result: BundleResult, image_camera: dict[int, int]
-    ) -> BlockState:
-        """The bundle's poses and shared cameras; ground planes follow each
-        camera's height change (the heights an image sees move with it)."""
-        planes = {}
-        for i, p in self.planes.items():
-            dz = result.poses[i].center[2] - self.poses[i].center[2]
-            planes[i] = p + np.r_[0.0, 0.0, dz]
-        cameras = {i: result.cameras[image_camera[i]] for i in result.poses}
-        return BlockState(dict(result.poses), cameras, planes, shared=True)
-
-
 def _result_block(inputs: Inputs, state: BlockState) -> Block:
     """The registered images with their poses and intrinsics.
 
@@ -1002,234 +663,6 @@ def _result_block(inputs: Inputs, state: BlockState) -> Block:
         cameras[cid] = Camera(cam.model, cam.width, cam.height, cam.params, cid)
         images[i] = ImageRecord(i, prior.name, cid, pose)
     return Block(dict(sorted(cameras.items())), images)
-
-
-# --------------------------------------------------------------------------
-# Stage 3: facade edges, matching, the bundle problem
-# --------------------------------------------------------------------------
-
-
-@dataclass
-class Stage3:
-    """Facade edges of every registered image and their tracks.
-
-    Attributes
-    ----------
-    ids : tuple of image ids, the order of ``facades`` and of the tracks'
-        image indices.
-    facades : list of FacadeEdges, per image.
-    tracks : FacadeTracks.
-    ends_raw : (H, 2, 2) array, each track observation's segment in raw
-        pixels (set by :func:`build_bundle_problem`).
-    row_obs : (R,) int array, per horizontal row of the bundle problem the
-        track observation it holds (set by :func:`build_bundle_problem`;
-        rows of other kinds would hold -1).
-    """
-
-    ids: tuple[int, ...]
-    facades: list[FacadeEdges]
-    tracks: FacadeTracks
-    ends_raw: np.ndarray = field(default_factory=lambda: np.zeros((0, 2, 2)))
-    row_obs: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
-    #: Per image id: RMS (px) of its final vertical and horizontal residuals.
-    bundle_rms: dict[int, tuple[float, float]] = field(default_factory=dict)
-
-    def report(self, outcomes: dict[int, ImageOutcome]) -> dict[str, Any]:
-        t = self.tracks
-        obs = np.bincount(t.image, minlength=len(self.ids))
-        return {
-            "num_tracks": t.num_tracks,
-            "num_observations": t.num_observations,
-            "num_image_pairs": len(t.pairs),
-            "num_pair_matches": int(sum(p.num_matches for p in t.pairs)),
-            "images": {
-                outcomes[i].name: {
-                    "facade_segments": len(f),
-                    "walls": f.num_walls,
-                    "observations": int(obs[k]),
-                    "datum_correction_m": _finite(t.datum_correction[k]),
-                    "bundle_rms_px": [
-                        _finite(x) for x in self.bundle_rms.get(i, (math.nan,) * 2)
-                    ],
-                }
-                for k, (i, f) in enumerate(zip(self.ids, self.facades, strict=True))
-            },
-        }
-
-
-def facade_stage(
-    inputs: Inputs,
-    state: BlockState,
-    outcomes: dict[int, ImageOutcome],
-    options: PipelineOptions,
-) -> Stage3:
-    """Horizontal facade edges per image, matched across images into tracks."""
-    ids = tuple(sorted(state.poses))
-    facades = []
-    for i in ids:
-        seg = outcomes[i].line_segments
-        facades.append(
-            facade_edges(
-                seg.endpoints,
-                seg.normal,
-                state.cameras[i],
-                state.poses[i],
-                state.ground(i),
-                inputs.cadastre,
-                options.facades,
-            )
-        )
-    grounds = np.array([state.planes[i] for i in ids]).reshape(-1, 3)
-    tracks = match_facade_edges(facades, grounds, inputs.cadastre, options.matching)
-    logger.info(
-        "facade edges: %d segments on walls, %d tracks with %d observations",
-        sum(len(f) for f in facades),
-        tracks.num_tracks,
-        tracks.num_observations,
-    )
-    return Stage3(ids, facades, tracks)
-
-
-def _raw_lines(camera: Camera, segments_undistorted: np.ndarray) -> np.ndarray:
-    """(N, 3) unit lines through segments' endpoints in RAW (distorted) pixels."""
-    ends = camera.distort_pixels(segments_undistorted.reshape(-1, 2)).reshape(-1, 2, 2)
-    return lines_through(ends[:, 0], ends[:, 1])
-
-
-def _heights_on_vertical(
-    camera: Camera, pose: Pose, xy: np.ndarray, pixels: np.ndarray
-) -> np.ndarray:
-    """(N,) heights where the rays through undistorted pixels (N, 2) pass
-    closest to the verticals over map points xy (N, 2)."""
-    rays = camera.cam_from_img(camera.distort_pixels(pixels))
-    d = np.column_stack([rays, np.ones(len(rays))]) @ pose.rotation  # world
-    c = pose.center
-    lam = np.sum(d[:, :2] * (xy - c[:2]), axis=1) / np.sum(d[:, :2] ** 2, axis=1)
-    return c[2] + lam * d[:, 2]
-
-
-def vertical_constraints(
-    inputs: Inputs,
-    outcomes: dict[int, ImageOutcome],
-    state: BlockState,
-    image_ids: Sequence[int],
-) -> dict[str, np.ndarray]:
-    """Corner-to-vertical-line constraints from the registrations' inliers.
-
-    Each inlier pair (map corner, vertical segment) gives TWO point-to-line
-    residuals: the corner's vertical at the heights of the segment's two
-    endpoints (fixed, from the start pose), projected, to the segment's line.
-    Together they say that the segment lies on the image of the corner's
-    vertical: its position AND its direction, i.e. the vanishing point,
-    which is what holds the block's tilt (with one point per segment, or a
-    free corner height, a tilted block fits the lines nearly as well:
-    measured on the sample, 3 deg drift from the truth). The heights only
-    place the points near the segment; sliding along the vertical does not
-    change a distance to a line through the vanishing point.
-
-    Returns
-    -------
-    dict with ``xy`` (M, 2) corner positions, ``height`` (M,), ``image`` (M,)
-    index into ``image_ids``, ``line`` (M, 3) raw pixels, ``corner`` (M,)
-    cadastre corner ids.
-    """
-    cad = inputs.cadastre
-    parts: dict[str, list[np.ndarray]] = {
-        k: [] for k in ("xy", "height", "image", "line", "corner")
-    }
-    for k, image_id in enumerate(image_ids):
-        r = outcomes[image_id].registration
-        if r is None or not r.success or len(r.inlier_pairs) == 0:
-            continue
-        prior_cam = inputs.priors.cameras[inputs.priors.images[image_id].camera_id]
-        c = r.inlier_pairs[:, 0]
-        ends = r.inlier_segments_px  # (K, 2, 2) undistorted
-        xy = np.repeat(cad.corner_xy[c], 2, axis=0)
-        h = _heights_on_vertical(
-            prior_cam, state.poses[image_id], xy, ends.reshape(-1, 2)
-        )
-        parts["xy"].append(xy)
-        parts["height"].append(h)
-        parts["image"].append(np.full(len(xy), k))
-        parts["line"].append(np.repeat(_raw_lines(prior_cam, ends), 2, axis=0))
-        parts["corner"].append(np.repeat(c, 2))
-    if not parts["xy"]:
-        return dict(
-            xy=np.zeros((0, 2)),
-            height=np.zeros(0),
-            image=np.zeros(0, np.int64),
-            line=np.zeros((0, 3)),
-            corner=np.zeros(0, np.int64),
-        )
-    return {k: np.concatenate(v) for k, v in parts.items()}
-
-
-def _group_cameras(inputs: Inputs, state: BlockState) -> dict[int, Camera]:
-    """Start intrinsics per camera_id: the result model's camera with the
-    median of its images' per-image focal lengths (stage 2 refines the focal
-    per image; the images of one head share one)."""
-    ratios: dict[int, list[float]] = {}
-    for i, cam in state.cameras.items():
-        cid = inputs.priors.images[i].camera_id
-        prior = inputs.priors.cameras[cid]
-        ratios.setdefault(cid, []).append(cam.params[0] / prior.params[0])
-    out = {}
-    for cid, r in ratios.items():
-        cam = inputs.cameras[cid]
-        focal, _, _ = res.focal_principal_extra_indices(cam.model)
-        params = cam.params.copy()
-        params[focal] *= float(np.median(r))
-        out[cid] = Camera(cam.model, cam.width, cam.height, params, cid)
-    return out
-
-
-def build_bundle_problem(
-    inputs: Inputs,
-    outcomes: dict[int, ImageOutcome],
-    state: BlockState,
-    stage3: Stage3,
-) -> BundleProblem:
-    """The global bundle over the registered images (paper eq. 3).
-
-    Vertical constraints: the registrations' inlier corner-to-segment pairs;
-    horizontal ones: every observation of every facade track, anchored at
-    the track's point on its map edge. Lines in RAW pixels (the bundle
-    projects through the full camera model). The corner points are fixed
-    (``BundleOptions.corner_heights = "fixed"``, see
-    :func:`vertical_constraints`). Sets ``stage3.ends_raw`` and
-    ``stage3.row_obs``.
-    """
-    ids = stage3.ids
-    v = vertical_constraints(inputs, outcomes, state, ids)
-    t = stage3.tracks
-    ends = np.zeros((t.num_observations, 2, 2))
-    for k, i in enumerate(ids):
-        sel = np.flatnonzero(t.image == k)
-        if len(sel) == 0:
-            continue
-        camera = inputs.priors.cameras[inputs.priors.images[i].camera_id]
-        und = stage3.facades[k].endpoints[t.row[sel]]
-        ends[sel] = camera.distort_pixels(und.reshape(-1, 2)).reshape(-1, 2, 2)
-    stage3.ends_raw = ends
-    lines = lines_through(ends[:, 0], ends[:, 1])
-    stage3.row_obs = np.arange(t.num_observations)
-    cameras = _group_cameras(inputs, state)
-    return BundleProblem(
-        cameras=cameras,
-        poses={i: state.poses[i] for i in ids},
-        image_camera={i: inputs.priors.images[i].camera_id for i in ids},
-        image_ids=ids,
-        corner_xy=v["xy"],
-        corner_heights=v["height"],
-        vertical_image=v["image"],
-        vertical_corner=np.arange(len(v["xy"])),
-        vertical_line=v["line"],
-        facade_heights=t.height,
-        horizontal_image=t.image,
-        horizontal_height=t.track,
-        horizontal_anchor_xy=t.anchor_xy[t.track],
-        horizontal_line=lines,
-    )
 
 
 # --------------------------------------------------------------------------
@@ -1384,10 +817,6 @@ def run_report(
             "components": [list(c) for c in s.components],
         }
     return report
-
-
-def _finite(x: float) -> float | None:
-    return float(x) if x is not None and math.isfinite(x) else None
 
 
 def summary_table(report: dict[str, Any]) -> str:

@@ -32,6 +32,7 @@ from pathlib import Path
 import numpy as np
 import scipy.sparse as sp
 
+from obliq_colmap import adjustment as adj
 from obliq_colmap import pipeline as pl
 from obliq_colmap.bundle import residuals as res
 from obliq_colmap.bundle import solver as sv
@@ -169,15 +170,16 @@ def main(argv: list[str] | None = None) -> int:
     t0 = time.perf_counter()
     inputs, outcomes, options = _stage2(scene, args.num_workers)
     reg = [o for o in outcomes.values() if o.registered]
-    state = pl.BlockState.from_outcomes(reg)
-    stage3 = pl.facade_stage(inputs, state, outcomes, options)
+    state = adj.BlockState.from_outcomes(reg)
+    stage3 = adj.facade_stage(inputs, state, outcomes, options.adjustment)
     state = state.with_datum_correction(
         dict(zip(stage3.ids, stage3.tracks.datum_correction, strict=True))
     )
-    problem = pl.build_bundle_problem(inputs, outcomes, state, stage3)
+    problem = adj.build_bundle_problem(inputs, outcomes, state, stage3)
     print(f"{scene.name}: {len(reg)} images, {stage3.tracks.num_tracks} tracks")
     track_residuals_at_truth(scene, inputs, stage3, problem)
-    conditioning(problem, dataclasses.replace(options.bundle, corner_heights="fixed"))
+    bundle = dataclasses.replace(options.adjustment.bundle, corner_heights="fixed")
+    conditioning(problem, bundle)
     print(f"  ({time.perf_counter() - t0:.0f} s, {time.strftime('%Y-%m-%d')})")
     return 0
 

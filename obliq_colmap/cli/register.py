@@ -16,6 +16,7 @@ import dataclasses
 import logging
 from pathlib import Path
 
+from obliq_colmap.adjustment import AdjustmentOptions
 from obliq_colmap.colmap_io import check_output_path
 from obliq_colmap.geometry import SUPPORTED_MODELS
 from obliq_colmap.pipeline import (
@@ -100,7 +101,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "(default: estimated per image)",
     )
     bundle = parser.add_argument_group("Bundle")
-    bdefaults = PipelineOptions().bundle
+    bdefaults = AdjustmentOptions().bundle
     bundle.add_argument(
         "--camera_model",
         choices=sorted(SUPPORTED_MODELS),
@@ -152,12 +153,14 @@ def run(args: argparse.Namespace) -> int:
             prior_focal_sigma=args.prior_focal_sigma,
             ground_height=args.ground_height,
         ),
-        bundle=dataclasses.replace(
-            PipelineOptions().bundle,
-            refine_focal_length=args.refine_focal_length,
-            refine_principal_point=args.refine_principal_point,
-            refine_extra_params=args.refine_extra_params,
-            loss_scale_px=args.loss_scale,
+        adjustment=AdjustmentOptions(
+            bundle=dataclasses.replace(
+                AdjustmentOptions().bundle,
+                refine_focal_length=args.refine_focal_length,
+                refine_principal_point=args.refine_principal_point,
+                refine_extra_params=args.refine_extra_params,
+                loss_scale_px=args.loss_scale,
+            )
         ),
     )
     result = run_register(args.image_path, args.cadastre_path, args.input_path, options)
