@@ -180,8 +180,7 @@ class Stage3:
     ends_raw : (H, 2, 2) array, each track observation's segment in raw
         pixels (set by :func:`build_bundle_problem`).
     row_obs : (R,) int array, per horizontal row of the bundle problem the
-        track observation it holds (set by :func:`build_bundle_problem`;
-        rows of other kinds would hold -1).
+        track observation it holds (set by :func:`build_bundle_problem`).
     """
 
     ids: tuple[int, ...]
@@ -452,13 +451,9 @@ def bundle_stage(
                 if options.variance_components:
                     # Each kind weighted by its own noise (map corners ~1 px,
                     # facade edges ~0.15 px).
+                    unknowns = 2 if options.track_lines else 1
                     problem, bundle_options = with_variance_components(
-                        problem,
-                        result,
-                        bundle_options,
-                        obs,
-                        kh,
-                        2 if options.track_lines else 1,
+                        problem, result, bundle_options, kh, unknowns
                     )
                 result = solve_bundle(problem, bundle_options)
                 if kv.all() and kh.all():
@@ -500,13 +495,11 @@ def with_variance_components(
     problem: BundleProblem,
     result: BundleResult,
     options: BundleOptions,
-    obs: np.ndarray,
     kept: np.ndarray,
     unknowns_per_track: int,
 ) -> tuple[BundleProblem, BundleOptions]:
-    """Each residual kind weighted by its robust standard deviation in the
-    last solve: vertical (map corners), facade tracks, and other horizontal
-    rows (``obs < 0``).
+    """Both residual kinds weighted by their robust standard deviation in
+    the last solve: vertical (map corners) and horizontal (facade tracks).
     ``kept``: the horizontal rows of the last solve still in ``problem``.
 
     A track of n observations fits ``unknowns_per_track`` of them exactly
@@ -517,30 +510,23 @@ def with_variance_components(
     hundreds of times the weight their noise deserves.
     """
     rh = result.horizontal_residuals_px[kept]
-    facade = obs >= 0
     track = problem.horizontal_height
-    n = np.bincount(track[facade], minlength=len(problem.facade_heights))[track]
+    n = np.bincount(track, minlength=len(problem.facade_heights))[track]
     u = unknowns_per_track
-    redundant = facade & (n > u)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        scaled = rh * np.sqrt(n / np.maximum(n - u, 1))
-    sigma = np.where(
-        facade,
-        _robust_sigma(scaled[redundant], options.horizontal_sigma_px),
-        _robust_sigma(rh[~facade], options.horizontal_sigma_px),
-    )
+    scaled = rh * np.sqrt(n / np.maximum(n - u, 1))
     options = dataclasses.replace(
         options,
         vertical_sigma_px=_robust_sigma(
             result.vertical_residuals_px, options.vertical_sigma_px
         ),
+        horizontal_sigma_px=_robust_sigma(scaled[n > u], options.horizontal_sigma_px),
     )
     logger.info(
         "bundle: sigma px: map corners %.3f, facade lines %.3f",
         options.vertical_sigma_px,
-        float(sigma[facade][0]) if facade.any() else math.nan,
+        options.horizontal_sigma_px,
     )
-    return dataclasses.replace(problem, horizontal_sigma_px=sigma), options
+    return problem, options
 
 
 def with_track_lines(
@@ -563,7 +549,7 @@ def with_track_lines(
     ids = problem.image_ids
     cams = [result.cameras[problem.image_camera[i]] for i in ids]
     poses = [result.poses[i] for i in ids]
-    o = obs[obs >= 0]
+    o = obs
     px_per_m = np.concatenate([f.px_per_m for f in stage3.facades])
     offset = np.cumsum([0] + [len(f) for f in stage3.facades])
     ppm = px_per_m[offset[t.image[o]] + t.row[o]]
@@ -582,10 +568,7 @@ def with_track_lines(
     J = t.num_tracks
     heights = result.facade_heights.copy()
     heights[:J] = np.where(np.isfinite(h), h, heights[:J])
-    anchor = problem.horizontal_anchor_xy.copy()
-    rows = obs >= 0
-    moved = t.anchor_xy + d[:, None] * normal
-    anchor[rows] = moved[problem.horizontal_height[rows]]
+    anchor = (t.anchor_xy + d[:, None] * normal)[problem.horizontal_height]
     return dataclasses.replace(
         problem,
         cameras=result.cameras,
@@ -629,9 +612,6 @@ def without_outliers(
         horizontal_height=p.horizontal_height[kh],
         horizontal_anchor_xy=p.horizontal_anchor_xy[kh],
         horizontal_line=p.horizontal_line[kh],
-        horizontal_sigma_px=None
-        if p.horizontal_sigma_px is None
-        else p.horizontal_sigma_px[kh],
     )
     logger.info(
         "bundle: %d of %d vertical and %d of %d horizontal constraints rejected",

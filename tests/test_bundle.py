@@ -628,3 +628,33 @@ def test_optimum_agrees_with_ceres():
         )
     ours_h = np.concatenate([ours.facade_heights, ours.corner_heights])
     np.testing.assert_allclose(ours_h, heights, atol=1e-5, rtol=0)
+
+
+def test_fx_fy_move_together_unless_the_aspect_ratio_is_refined():
+    """PINHOLE / OPENCV: one focal step keeps fx / fy at its start value (the
+    map has no heights, so a vertical stretch is nearly a gauge freedom)."""
+    syn = make_synthetic_problem(
+        seed=5, buildings=(5, 5), stations=(2, 2), models=("PINHOLE",) * 4
+    )
+    start = {c: cam.params.copy() for c, cam in syn.problem.cameras.items()}
+    out = solve_bundle(syn.problem, dataclasses.replace(EXACT, corner_heights="fixed"))
+    for cid, cam in out.cameras.items():
+        ratio0 = start[cid][0] / start[cid][1]
+        assert cam.params[0] / cam.params[1] == pytest.approx(ratio0, rel=1e-12)
+        assert cam.params[0] != pytest.approx(start[cid][0], rel=1e-6)  # it moved
+    free = solve_bundle(
+        syn.problem,
+        dataclasses.replace(EXACT, corner_heights="fixed", refine_aspect_ratio=True),
+    )
+    assert free.summary.num_camera_params == out.summary.num_camera_params + 4
+
+
+def test_residual_kinds_are_weighted_by_their_sigmas(noisy):
+    """A small horizontal sigma buys horizontal fit at the vertical's cost."""
+    base = BundleOptions(loss="none", corner_heights="fixed")
+    even = solve_bundle(noisy.problem, base).summary
+    heavy = solve_bundle(
+        noisy.problem, dataclasses.replace(base, horizontal_sigma_px=0.05)
+    ).summary
+    assert heavy.final_rmse_horizontal_px < even.final_rmse_horizontal_px
+    assert heavy.final_rmse_vertical_px > even.final_rmse_vertical_px

@@ -184,9 +184,6 @@ class BundleProblem:
         Map-edge anchor ``(x, y)`` of each (the edge centre), metres.
     horizontal_line : (H, 3) array
         Homogeneous horizontal image line (pixels) of each.
-    horizontal_sigma_px : (H,) array or None
-        Standard deviation (px) of each horizontal residual; None: all
-        ``BundleOptions.horizontal_sigma_px``.
     """
 
     cameras: dict[int, Camera]
@@ -203,7 +200,6 @@ class BundleProblem:
     horizontal_anchor_xy: np.ndarray
     horizontal_line: np.ndarray
     image_ids: tuple[int, ...] | None = None
-    horizontal_sigma_px: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         if self.image_ids is None:
@@ -235,14 +231,6 @@ class BundleProblem:
             self.horizontal_anchor_xy, (2,), "horizontal_anchor_xy"
         )
         self.horizontal_line = _as(self.horizontal_line, (3,), "horizontal_line")
-        if self.horizontal_sigma_px is not None:
-            self.horizontal_sigma_px = _as(
-                self.horizontal_sigma_px, (), "horizontal_sigma_px"
-            )
-            if len(self.horizontal_sigma_px) != len(self.horizontal_image) or not (
-                np.all(self.horizontal_sigma_px > 0)
-            ):
-                raise ValueError("horizontal_sigma_px: one positive value per row")
         nc, ni, nj = len(self.corner_xy), len(self.image_ids), len(self.facade_heights)
         checks = [
             ("corner_heights", len(self.corner_heights) == nc),
@@ -452,16 +440,9 @@ class _Setup:
         self.cam = self.img_cam[self.img]
         self.n_heights = nJ + (len(P.corner_xy) if free else 0)
         self.has_h = self.hidx >= 0
-        # Cost weight of each residual: 1 / sigma^2 (of its kind, or its own).
-        sigma = np.concatenate(
-            [
-                np.full(nv, opts.vertical_sigma_px),
-                P.horizontal_sigma_px
-                if P.horizontal_sigma_px is not None
-                else np.full(nh, opts.horizontal_sigma_px),
-            ]
-        )
-        self.weight = 1.0 / sigma[order] ** 2
+        # Cost weight of each residual: 1 / sigma^2 of its kind.
+        sigma = np.array([opts.vertical_sigma_px, opts.horizontal_sigma_px])
+        self.weight = 1.0 / sigma[self.kind] ** 2
 
         # Active images and cameras; parameter columns of the camera block.
         counts = np.bincount(self.img, minlength=K)
