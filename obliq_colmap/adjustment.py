@@ -324,7 +324,15 @@ def vertical_constraints(
 def _group_cameras(inputs: Inputs, state: BlockState) -> dict[int, Camera]:
     """Start intrinsics per camera_id: the result model's camera with the
     median of its images' per-image focal lengths (stage 2 refines the focal
-    per image; the images of one head share one)."""
+    per image; the images of one head share one). After a bundle
+    (``state.shared``) the heads' solved cameras, as they stand."""
+    if state.shared:
+        return {
+            inputs.priors.images[i].camera_id: dataclasses.replace(
+                cam, camera_id=inputs.priors.images[i].camera_id
+            )
+            for i, cam in state.cameras.items()
+        }
     ratios: dict[int, list[float]] = {}
     for i, cam in state.cameras.items():
         cid = inputs.priors.images[i].camera_id

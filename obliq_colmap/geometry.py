@@ -70,6 +70,14 @@ def rotation_from_axis_angle(rotvec: np.ndarray) -> np.ndarray:
     return np.eye(3) + np.sin(theta) * Kx + (1.0 - np.cos(theta)) * (Kx @ Kx)
 
 
+def axis_angle_from_rotation(R: np.ndarray) -> np.ndarray:
+    """(3, 3) rotation to its (3,) axis * angle (radians), the inverse of
+    :func:`rotation_from_axis_angle` (angles up to pi)."""
+    from scipy.spatial.transform import Rotation
+
+    return Rotation.from_matrix(np.asarray(R, dtype=float)).as_rotvec()
+
+
 def skew(v: np.ndarray) -> np.ndarray:
     """(3,) vector to its (3, 3) cross-product matrix."""
     x, y, z = np.asarray(v, dtype=float)

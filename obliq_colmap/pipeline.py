@@ -63,7 +63,12 @@ from obliq_colmap.colmap_io import (
     write_result,
 )
 from obliq_colmap.errors import InputError
-from obliq_colmap.geometry import Camera, Pose
+from obliq_colmap.geometry import (
+    Camera,
+    Pose,
+    axis_angle_from_rotation,
+    rotation_from_axis_angle,
+)
 from obliq_colmap.lines import Segments
 from obliq_colmap.registration import (
     RegistrationOptions,
@@ -108,6 +113,11 @@ class PipelineOptions:
     #: Images with fewer inlier corners are registered again with the block's
     #: ground height (0 disables the rescue).
     rescue_min_inliers: int = 20
+    #: Images that failed per image are registered once more after the
+    #: bundle, against the solved block (their head's solved camera, the
+    #: block's ground, the head's significant systematic prior offset), and
+    #: the bundle is solved again with those that succeed.
+    reregister_failed: bool = True
     #: COLMAP camera model of the result (None: the priors' model).
     camera_model: str | None = None
     #: Write one overlay PNG per image here (None: none).
@@ -165,6 +175,8 @@ class ImageOutcome:
     camera : Camera or None, the intrinsics the registered pose belongs to
         (the priors' camera with the focal length refined for this image).
     rescued : the result comes from the second try with the block's ground.
+    reregistered : the result comes from the try against the solved block
+        (:func:`reregister_failed`), after the first bundle.
     time_s : wall time per step, seconds.
     """
 
@@ -179,6 +191,7 @@ class ImageOutcome:
     registration: RegistrationResult | None = None
     camera: Camera | None = None
     rescued: bool = False
+    reregistered: bool = False
     time_s: dict[str, float] = field(default_factory=dict)
 
     @property
@@ -458,6 +471,25 @@ def load_inputs(
 # --------------------------------------------------------------------------
 
 
+def image_tasks(inputs: Inputs, options: PipelineOptions) -> list[_ImageTask]:
+    """The per-image work of the priors' images, in image id order."""
+    return [
+        _ImageTask(
+            image_id=im.image_id,
+            name=im.name,
+            path=inputs.image_path / im.name,
+            # The per-image stages keep the priors' model: a model change
+            # only adds parameters that start at zero.
+            camera=inputs.priors.cameras[im.camera_id],
+            prior=im.cam_from_world,
+            cone_deg=options.cone_deg,
+            vanishing=options.vanishing,
+            registration=options.registration,
+        )
+        for im in sorted(inputs.priors.images.values(), key=lambda im: im.image_id)
+    ]
+
+
 def run_register(
     image_path: str | Path,
     cadastre_path: str | Path,
@@ -487,21 +519,7 @@ def run_register(
     timings: dict[str, float] = {}
     inputs = load_inputs(image_path, cadastre_path, input_path, options)
     cad = inputs.cadastre
-    tasks = [
-        _ImageTask(
-            image_id=im.image_id,
-            name=im.name,
-            path=inputs.image_path / im.name,
-            # The per-image stages keep the priors' model: a model change
-            # only adds parameters that start at zero.
-            camera=inputs.priors.cameras[im.camera_id],
-            prior=im.cam_from_world,
-            cone_deg=options.cone_deg,
-            vanishing=options.vanishing,
-            registration=options.registration,
-        )
-        for im in sorted(inputs.priors.images.values(), key=lambda im: im.image_id)
-    ]
+    tasks = image_tasks(inputs, options)
     logger.info(
         "%d images, %d cameras, map: %d buildings, %d corners (origin %s, %s)",
         len(tasks),
@@ -538,10 +556,31 @@ def run_register(
     state = BlockState.from_outcomes(registered)
     bundle_result: BundleResult | None = None
     stage3: Stage3 | None = None
+    reregistered: list[str] = []
     if options.stop_after == "bundle" and registered:
         state, bundle_result, stage3 = bundle_stage(
             inputs, by_id, state, options.adjustment, timings
         )
+        if options.reregister_failed and bundle_result is not None:
+            t0 = time.perf_counter()
+            with _Workers(workers, init_args, cad, options.progress) as pool:
+                state, reregistered = reregister_failed(
+                    pool, tasks, outcomes, state, options
+                )
+            timings["reregistration"] = time.perf_counter() - t0
+            if reregistered:
+                logger.info(
+                    "%d image(s) registered against the solved block (%s): "
+                    "the bundle is solved again",
+                    len(reregistered),
+                    ", ".join(reregistered),
+                )
+                first_bundle = timings["bundle"]
+                state, bundle_result, stage3 = bundle_stage(
+                    inputs, by_id, state, options.adjustment, timings
+                )
+                timings["bundle"] += first_bundle
+        registered = [o for o in outcomes if o.registered]
     ground = block_ground_height([o.registration for o in registered], 1)
     z0 = float(np.round(ground)) if ground is not None else 0.0
     georef = Georef(
@@ -559,6 +598,7 @@ def run_register(
         p.xyz = p.xyz - np.array([0.0, 0.0, z0])
     timings["total"] = time.perf_counter() - t_run
     report = run_report(inputs, outcomes, rescued, bundle_result, georef, timings)
+    report["reregistered"] = reregistered
     if stage3 is not None:
         report["facades"] = stage3.report(by_id)
     report["options"] = {
@@ -645,6 +685,210 @@ def _rescue(
             outcomes[i].rescued = True
             names.append(outcomes[i].name)
     return names
+
+
+def _robust_offsets(groups: Sequence[np.ndarray]) -> list[np.ndarray]:
+    """Per group of (N_g, D) samples, the (D,) per-component median where it
+    differs from zero by more than 3 standard errors, else 0.
+
+    The spread is the pooled standard deviation of all groups (each sample
+    about its group's mean, N - G degrees of freedom): the heads of one
+    system share their GPS/INS noise, and the spread of a head's three or
+    four images alone is too noisy for a test (measured with a MAD per
+    group: 25 % false detections with 3 samples, 5 % with 9). A group with
+    fewer than 3 samples gets 0. A head's prior errors have a systematic
+    part (boresight, lever arm, datum) and a random one; only a part that
+    stands out of the random scatter is worth applying to an image that the
+    block could not check.
+    """
+    meds = [np.median(g, axis=0) for g in groups]
+    dof = sum(len(g) - 1 for g in groups if len(g))
+    if dof < 2:
+        return [np.zeros(g.shape[1]) for g in groups]
+    ss = sum(np.sum((g - g.mean(axis=0)) ** 2, axis=0) for g in groups if len(g))
+    spread = np.sqrt(ss / dof)
+    out = []
+    for g, m in zip(groups, meds, strict=True):
+        stderr = 1.2533 * spread / math.sqrt(len(g))
+        ok = len(g) >= 3
+        out.append(np.where(ok & (np.abs(m) > 3.0 * stderr), m, 0.0))
+    return out
+
+
+def _block_ground_at(state: BlockState, xy: np.ndarray) -> float:
+    """Median over the solved images' ground planes of the height at xy (2,)."""
+    planes = np.array(list(state.planes.values()))
+    return float(np.median(planes[:, :2] @ xy + planes[:, 2]))
+
+
+def _footprint_xy(prior: Pose, ground: float) -> np.ndarray:
+    """(2,) where the prior's optical axis meets the level z = ground
+    (the camera's own xy when the axis does not point down)."""
+    axis = prior.rotation[2]  # viewing direction in the world
+    c = prior.center
+    if axis[2] >= -1e-3:
+        return c[:2].copy()
+    return c[:2] + (ground - c[2]) / axis[2] * axis[:2]
+
+
+def _in_camera(
+    segments: np.ndarray,
+    vertical: np.ndarray | None,
+    old: Camera,
+    new: Camera,
+) -> tuple[np.ndarray, np.ndarray | None]:
+    """Undistorted segments (N, 2, 2) and vertical direction (3,) of
+    ``old``'s intrinsics re-expressed for ``new``'s: the same raw pixels and
+    the same vanishing point (n ~ K^-1 v), which a different focal length
+    reads as a different direction."""
+    raw = old.distort_pixels(segments.reshape(-1, 2))
+    segs = new.undistort_pixels(raw).reshape(-1, 2, 2)
+    if vertical is None:
+        return segs, None
+    n = np.linalg.solve(new.K, old.K @ vertical)
+    n /= np.linalg.norm(n)
+    return segs, n if n @ vertical > 0 else -n
+
+
+def _head_task(
+    task: _ImageTask,
+    camera: Camera,
+    offset: tuple[np.ndarray, np.ndarray],
+    options: RegistrationOptions,
+) -> _ImageTask:
+    """The task of a failed image set up against the solved block: its head's
+    solved camera (held: ``refine_focal`` off, no focal search window) and its
+    prior corrected by the head's systematic offset (rotation vector, centre
+    xy)."""
+    rotvec, dxy = offset
+    R = rotation_from_axis_angle(rotvec) @ task.prior.rotation
+    c = task.prior.center + np.r_[dxy, 0.0]
+    registration = _replace(options, refine_focal=False, prior_focal_sigma=0.0)
+    return dataclasses.replace(
+        task, camera=camera, prior=Pose.from_center(R, c), registration=registration
+    )
+
+
+def reregister_failed(
+    pool: _Workers,
+    tasks: list[_ImageTask],
+    outcomes: list[ImageOutcome],
+    state: BlockState,
+    options: PipelineOptions,
+) -> tuple[BlockState, list[str]]:
+    """Register failed and weak images again, against the solved block.
+
+    What the solved block knows that one image's priors do not: the
+    intrinsics of the image's head (the priors' focal may be percents off,
+    which a weak image cannot resolve by itself), the ground height around
+    the image, and the systematic part of its head's prior errors (the median
+    correction of the head's confident images, where it is significant).
+    Each image that failed per image, or registered with fewer than
+    ``options.rescue_min_inliers`` inlier corners, is registered once more
+    with these and its head's camera held; the new result is kept when it
+    succeeds with more inliers than before (the caller then solves the
+    bundle again).
+
+    Returns
+    -------
+    The block with the new registrations (per-image poses, their head's
+    camera) and the names of the images concerned.
+    """
+    by_id = {o.image_id: o for o in outcomes}
+    head_of = {t.image_id: t.camera.camera_id for t in tasks}
+
+    def weak(o: ImageOutcome) -> bool:
+        return (
+            not o.registered or o.registration.num_inliers < options.rescue_min_inliers
+        )
+
+    confident = [i for i in state.poses if by_id[i].registered and not weak(by_id[i])]
+    todo = [
+        k
+        for k, o in enumerate(outcomes)
+        if o.registration is not None
+        and weak(o)
+        and len(o.segments) >= options.registration.min_segments
+        and any(head_of[i] == tasks[k].camera.camera_id for i in confident)
+    ]
+    if not todo:
+        return state, []
+    task_of = {t.image_id: t for t in tasks}
+    heads: dict[int, list[_ImageTask]] = {}
+    for i in confident:
+        heads.setdefault(head_of[i], []).append(task_of[i])
+    offsets = _head_offsets(state, heads)
+    ground0 = float(np.median([p[2] for p in state.planes.values()]))
+    jobs = []
+    for k in todo:
+        cid = tasks[k].camera.camera_id
+        camera = state.cameras[heads[cid][0].image_id]
+        task = _head_task(tasks[k], camera, offsets[cid], options.registration)
+        ground = _block_ground_at(state, _footprint_xy(task.prior, ground0))
+        segs, vertical = _in_camera(
+            outcomes[k].segments,
+            outcomes[k].vertical_direction,
+            tasks[k].camera,
+            camera,
+        )
+        jobs.append((task, segs, vertical, ground))
+    logger.info(
+        "%d failed or weak image(s) registered again against the solved block",
+        len(jobs),
+    )
+    tries = pool.map(_reregister, jobs, "against the block")
+    poses, cameras = dict(state.poses), dict(state.cameras)
+    planes = {i: p.copy() for i, p in state.planes.items()}
+    names = []
+    for k, job, result in zip(todo, jobs, tries, strict=True):
+        o = outcomes[k]
+        before = o.registration.num_inliers if o.registered else -1
+        if not result.success or result.num_inliers <= before:
+            if not o.registered:
+                o.message += f"; against the solved block: {result.message}"
+            continue
+        _set_registration(o, result)
+        o.camera = job[0].camera
+        o.reregistered = True
+        poses[o.image_id] = result.cam_from_world
+        cameras[o.image_id] = job[0].camera
+        planes[o.image_id] = result.height_plane.copy()
+        names.append(o.name)
+    return BlockState(poses, cameras, planes, state.shared), names
+
+
+def _head_offsets(
+    state: BlockState, heads: dict[int, Sequence[_ImageTask]]
+) -> dict[int, tuple[np.ndarray, np.ndarray]]:
+    """Per head (camera id) its significant systematic prior error: (3,)
+    rotation vector in the camera frame (a boresight: solved = R(rotvec) @
+    prior, as ``cam_from_world`` rotations) and (2,) centre xy shift (m),
+    from its confident images' solved poses against their priors."""
+    ids = list(heads)
+    rot = [
+        np.array(
+            [
+                axis_angle_from_rotation(
+                    state.poses[t.image_id].rotation @ t.prior.rotation.T
+                )
+                for t in heads[c]
+            ]
+        )
+        for c in ids
+    ]
+    dxy = [
+        np.array(
+            [state.poses[t.image_id].center[:2] - t.prior.center[:2] for t in heads[c]]
+        )
+        for c in ids
+    ]
+    return dict(
+        zip(
+            ids,
+            zip(_robust_offsets(rot), _robust_offsets(dxy), strict=True),
+            strict=True,
+        )
+    )
 
 
 def _result_block(inputs: Inputs, state: BlockState) -> Block:
@@ -786,6 +1030,7 @@ def run_report(
             "residual_rms_px": _finite(r.residual_rms_px) if r is not None else None,
             "ground_height_m": _finite(r.ground_height) if r is not None else None,
             "rescued": o.rescued,
+            "reregistered": o.reregistered,
             "time_s": {k: round(v, 4) for k, v in o.time_s.items()},
         }
     report: dict[str, Any] = {
@@ -827,6 +1072,7 @@ def summary_table(report: dict[str, Any]) -> str:
     for name, r in report["images"].items():
         rms = r["residual_rms_px"]
         status = r["status"] + (" (rescued)" if r["rescued"] else "")
+        status += " (against the block)" if r.get("reregistered") else ""
         if r["message"]:
             status += f": {r['message']}"
         f = facades.get(name, {})
