@@ -27,11 +27,17 @@ One thread everywhere (cv2.setNumThreads(1), BLAS via threadpoolctl).
 Example::
 
     python scripts/bench_vanishing.py --sections yud,peer --split train
+    python scripts/bench_vanishing.py --sections yud --set second_pass.weak_high=4
+
+``--set PATH=VALUE`` (repeatable) overrides one field of ``VanishingOptions``
+(dotted path into the nested options, VALUE a Python literal) for ablations.
 """
 
 from __future__ import annotations
 
 import argparse
+import ast
+import dataclasses
 import json
 import platform
 import sys
@@ -499,20 +505,49 @@ def bench_synthetic(scene_path: str, options: VanishingOptions) -> dict:
     }
 
 
+def with_overrides(options: VanishingOptions, items: list[str]) -> VanishingOptions:
+    """``options`` with ``PATH=VALUE`` overrides (``second_pass.weak_high=4``)."""
+    for item in items:
+        path, _, text = item.partition("=")
+        keys = path.strip().split(".")
+        value = ast.literal_eval(text.strip())
+
+        def replace(obj, keys, value=value, path=path):
+            if not dataclasses.is_dataclass(obj) or keys[0] not in {
+                f.name for f in dataclasses.fields(obj)
+            }:
+                raise SystemExit(f"--set {path}: no option {keys[0]!r}")
+            if len(keys) == 1:
+                return dataclasses.replace(obj, **{keys[0]: value})
+            inner = replace(getattr(obj, keys[0]), keys[1:])
+            return dataclasses.replace(obj, **{keys[0]: inner})
+
+        options = replace(options, keys)
+    return options
+
+
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--sections", default="yud,peer,ecd,timing")
     parser.add_argument("--split", default="train", choices=["train", "test"])
     parser.add_argument("--scene", default=None, help="synthetic scene folder")
     parser.add_argument("--output", default=None, help="write the figures as JSON")
+    parser.add_argument(
+        "--set",
+        action="append",
+        default=[],
+        metavar="PATH=VALUE",
+        help="override an option, e.g. second_pass.weak_high=4 (repeatable)",
+    )
     args = parser.parse_args(argv)
     cv2.setNumThreads(1)
-    options = VanishingOptions()
+    options = with_overrides(VanishingOptions(), args.set)
     sections = args.sections.split(",")
     results = {
         "machine": platform.processor() or platform.machine(),
         "date": time.strftime("%Y-%m-%d %H:%M"),
         "split": args.split,
+        "overrides": args.set,
     }
     with threadpool_limits(1):
         if "yud" in sections:
