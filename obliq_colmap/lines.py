@@ -247,6 +247,7 @@ class EdgePoints:
 
 # Neighbour steps of the four quantised NMS directions (dx, dy).
 _NMS_STEPS = np.array([[1, 0], [1, 1], [0, 1], [-1, 1]])
+_TAN_22_5 = np.float32(np.tan(np.pi / 8))
 
 
 def edge_points(
@@ -259,12 +260,11 @@ def edge_points(
 ) -> EdgePoints:
     """Canny-style edge points of a directional derivative.
 
-    1. Candidates: pixels whose gradient magnitude reaches ``low``.
-    2. ``normal_at(x, y, gx, gy)`` gives the unit direction ``(nx, ny)`` along
-       which the derivative D = g . normal is taken; pixels whose gradient
-       leaves that direction by more than ``max_angle_deg`` or with
-       |D| < ``low`` are dropped (this suppresses strong but wrongly oriented
-       gradients).
+    1. ``normal_at(x, y, gx, gy)`` gives the unit direction field
+       ``(nx, ny)`` along which the derivative D = g . normal is taken.
+    2. Candidates: pixels with |D| >= ``low`` whose gradient leaves the
+       normal by at most ``max_angle_deg`` (this suppresses strong but wrongly
+       oriented gradients).
     3. Non-maximum suppression of |D| along the normal quantised to the 8
        neighbours, and a Gaussian through the three values for the sub-pixel
        position (the peak along any direction that crosses a straight edge
@@ -272,11 +272,16 @@ def edge_points(
     4. Hysteresis: 8-connected chains of equal sign are kept when their
        largest |D| reaches ``high``.
 
+    Steps 1 and 2 run on whole images (contiguous float32 arithmetic, no
+    gathers): cheaper than selecting the candidates first, since half of a
+    textured image passes the gradient threshold.
+
     Parameters
     ----------
     gx, gy : (H, W) float32 arrays, grey levels per pixel (:func:`gradients`).
-    normal_at : callable ``(x, y, gx, gy) -> (nx, ny)``, all (M,) float32
-        arrays; x, y in COLMAP pixels.
+    normal_at : callable ``(x, y, gx, gy) -> (nx, ny)``: x (1, W) and y (H, 1)
+        float32 pixel-centre coordinates (COLMAP pixels), gx, gy as above;
+        nx, ny float32 arrays broadcastable to (H, W).
     low, high : float, thresholds on |D|, grey levels per pixel.
     max_angle_deg : float, largest angle between gradient and normal.
 
@@ -289,21 +294,30 @@ def edge_points(
     # Stay one pixel off the border so that every neighbour exists.
     mag[0, :] = mag[-1, :] = 0
     mag[:, 0] = mag[:, -1] = 0
-    idx = np.flatnonzero(mag >= low)
-    gxf, gyf = gx.reshape(-1), gy.reshape(-1)
-    gxi, gyi = gxf[idx], gyf[idx]
-    rows, cols = np.divmod(idx, W)
-    x = cols.astype(np.float32) + np.float32(PIXEL_CENTER_OFFSET)
-    y = rows.astype(np.float32) + np.float32(PIXEL_CENTER_OFFSET)
-    nx, ny = normal_at(x, y, gxi, gyi)
-    d0 = gxi * nx + gyi * ny
+    x = np.arange(W, dtype=np.float32)[None, :] + np.float32(PIXEL_CENTER_OFFSET)
+    y = np.arange(H, dtype=np.float32)[:, None] + np.float32(PIXEL_CENTER_OFFSET)
+    nxg, nyg = normal_at(x, y, gx, gy)
+    nxg = np.broadcast_to(nxg, (H, W))
+    nyg = np.broadcast_to(nyg, (H, W))
+    D = gx * nxg
+    D += gy * nyg
+    ad = np.abs(D)
     cos_min = np.float32(np.cos(np.radians(max_angle_deg)))
-    ad = np.abs(d0)
-    keep = np.flatnonzero((ad >= low) & (ad >= cos_min * mag.reshape(-1)[idx] - 1e-6))
-    idx, x, y, nx, ny, d0 = idx[keep], x[keep], y[keep], nx[keep], ny[keep], d0[keep]
+    cand = mag >= low
+    cand &= ad >= low
+    cand &= ad >= cos_min * mag - 1e-6
+    idx = np.flatnonzero(cand)
+    gxf, gyf = gx.reshape(-1), gy.reshape(-1)
+    d0 = D.reshape(-1)[idx]
+    nx = nxg.reshape(-1)[idx] if nxg.flags.c_contiguous else nxg.flat[idx]
+    ny = nyg.reshape(-1)[idx] if nyg.flags.c_contiguous else nyg.flat[idx]
 
-    # 3. NMS along the quantised normal (directions mod pi -> 4 bins).
-    k = np.rint(np.arctan2(ny, nx) * np.float32(4 / np.pi)).astype(np.int64) % 4
+    # 3. NMS along the quantised normal (directions mod pi -> 4 bins of
+    # 45 deg centred on 0, 45, 90, 135 deg; comparisons instead of arctan2).
+    anx, any_ = np.abs(nx), np.abs(ny)
+    k = np.where(nx * ny > 0, 1, 3)
+    k[any_ <= _TAN_22_5 * anx] = 0
+    k[anx < _TAN_22_5 * any_] = 2
     sx, sy = _NMS_STEPS[k, 0], _NMS_STEPS[k, 1]
     off = sx + sy * W
     s = np.sign(d0)
@@ -312,8 +326,11 @@ def edge_points(
     c = gxf[idx + off] * snx + gyf[idx + off] * sny
     b = np.abs(d0)
     peak = np.flatnonzero((b >= c) & (b > a))
-    idx, x, y, nx, ny, d0 = idx[peak], x[peak], y[peak], nx[peak], ny[peak], d0[peak]
+    idx, nx, ny, d0 = idx[peak], nx[peak], ny[peak], d0[peak]
     a, b, c, sx, sy = a[peak], b[peak], c[peak], sx[peak], sy[peak]
+    rows, cols = np.divmod(idx, W)
+    x = cols.astype(np.float32) + np.float32(PIXEL_CENTER_OFFSET)
+    y = rows.astype(np.float32) + np.float32(PIXEL_CENTER_OFFSET)
     # Gaussian peak (a parabola through the logarithms): exact for the
     # Gaussian-blurred step, whose plain parabola fit is biased by up to
     # ~0.05 px depending on the sub-pixel phase; plain parabola where a
@@ -425,6 +442,21 @@ def _extents(
     )
 
 
+def _group_order(group: np.ndarray, s: np.ndarray) -> np.ndarray:
+    """The permutation sorting points by (group, s), (M,) int.
+
+    One argsort of the float key ``group * span + (s - min s)`` with ``span``
+    twice the range of s (groups cannot interleave): several times faster
+    than ``np.lexsort((s, group))``; points of one group whose s agree to
+    ~1e-16 of the key may come in either order.
+    """
+    if len(s) == 0:
+        return np.zeros(0, np.int64)
+    lo = s.min()
+    span = 2.0 * (s.max() - lo) + 1e-12
+    return np.argsort(group * span + (s - lo))
+
+
 def split_at_gaps(
     xy: np.ndarray, group: np.ndarray, tangent: np.ndarray, max_gap: float
 ) -> tuple[np.ndarray, np.ndarray]:
@@ -440,8 +472,9 @@ def split_at_gaps(
     new_group : (M,) compact ids; order : (M,) the permutation sorting the
         points by (group, position) that the ids refer to (``xy[order]``).
     """
-    s = np.sum(xy * tangent[group], axis=1)
-    order = np.lexsort((s, group))
+    t = tangent[group]
+    s = xy[:, 0] * t[:, 0] + xy[:, 1] * t[:, 1]
+    order = _group_order(group, s)
     g, s = group[order], s[order]
     brk = np.ones(len(g), bool)
     brk[1:] = (g[1:] != g[:-1]) | (np.diff(s) > max_gap)
@@ -455,19 +488,27 @@ def split_at_gaps(
 
 def _bilinear(img: np.ndarray, xy: np.ndarray) -> np.ndarray:
     """Bilinear samples of (H, W) ``img`` at (K, 2) COLMAP pixel positions."""
-    H, W = img.shape
+    return _bilinear_many((img,), xy)[0]
+
+
+def _bilinear_many(imgs, xy: np.ndarray) -> list[np.ndarray]:
+    """Bilinear samples (K,) of each (H, W) image of ``imgs`` at (K, 2) positions.
+
+    The images share one shape; indices and weights are computed once.
+    """
+    H, W = imgs[0].shape
     x = np.clip(xy[:, 0] - PIXEL_CENTER_OFFSET, 0, W - 1.001)
     y = np.clip(xy[:, 1] - PIXEL_CENTER_OFFSET, 0, H - 1.001)
     x0, y0 = x.astype(np.int64), y.astype(np.int64)
     fx, fy = x - x0, y - y0
     i = y0 * W + x0
-    f = img.reshape(-1)
-    return (
-        f[i] * (1 - fx) * (1 - fy)
-        + f[i + 1] * fx * (1 - fy)
-        + f[i + W] * (1 - fx) * fy
-        + f[i + W + 1] * fx * fy
-    )
+    w00, w01 = (1 - fx) * (1 - fy), fx * (1 - fy)
+    w10, w11 = (1 - fx) * fy, fx * fy
+    out = []
+    for img in imgs:
+        f = img.reshape(-1)
+        out.append(f[i] * w00 + f[i + 1] * w01 + f[i + W] * w10 + f[i + W + 1] * w11)
+    return out
 
 
 def polarity_and_strength(
@@ -488,7 +529,7 @@ def polarity_and_strength(
     f = (np.arange(n_samples) + 0.5) / n_samples
     pts = p0[:, None, :] + f[None, :, None] * (p1 - p0)[:, None, :]  # (N, S, 2)
     flat = pts.reshape(-1, 2)
-    g = np.stack([_bilinear(gx, flat), _bilinear(gy, flat)], axis=1)
+    g = np.stack(_bilinear_many((gx, gy), flat), axis=1)
     cross = np.sum(g.reshape(len(d), n_samples, 2) * left[:, None, :], axis=2).mean(1)
     sign = np.where(cross >= 0, 1.0, -1.0)
     return left * sign[:, None], np.abs(cross)
@@ -620,9 +661,9 @@ def _detect_canny(
 ) -> Segments:
     """Canny edge points -> orientation-consistent chains -> LSQ lines."""
 
-    def along_gradient(x, y, gxi, gyi):
-        m = np.maximum(np.hypot(gxi, gyi), np.float32(1e-12))
-        return gxi / m, gyi / m
+    def along_gradient(x, y, gx_, gy_):
+        m = np.maximum(np.hypot(gx_, gy_), np.float32(1e-12))
+        return gx_ / m, gy_ / m
 
     pts = edge_points(gx, gy, along_gradient, options.canny_low, options.canny_high)
     if len(pts.xy) == 0:
