@@ -866,8 +866,14 @@ def _second_pass(
         # is enough for a direction; v scaled so nothing overflows.
         ux = np.float32(vx) - x * np.float32(vw)
         uy = np.float32(vy) - y * np.float32(vw)
-        inv = 1.0 / np.maximum(np.sqrt(ux * ux + uy * uy), np.float32(1e-30))
-        return -uy * inv, ux * inv
+        # In place: two full-image arrays instead of six.
+        inv = ux * ux + uy * uy
+        np.sqrt(inv, out=inv)
+        np.maximum(inv, np.float32(1e-30), out=inv)
+        np.divide(np.float32(1.0), inv, out=inv)
+        nx = np.multiply(-uy, inv)
+        inv *= ux
+        return nx, inv
 
     pts: EdgePoints = edge_points(
         gx,
