@@ -17,7 +17,10 @@ Sections (``--sections``, comma separated):
   vertical segments and the lines from their midpoints to the estimated VP
   (parameter-free), with the dataset's own zenith as reference.
 - ``timing``: time per image, both passes, at 640x480, 2004x1336 and
-  4008x2672 (Rennes oblique aerial photos resampled), aerial prior.
+  4008x2672 (Rennes oblique aerial photos resampled), aerial prior, and on
+  the 51 YorkUrbanDB training images (640x480); with ``--reference TREE`` (a
+  copy of another revision, ``git archive REV | tar -x -C TREE``) that code
+  runs alternately in the same process and the ratios are reported.
 - ``synthetic``: a scene of ``obliq_colmap.synthetic`` (``--scene``): vertical
   direction error with the TRUE intrinsics and with the priors' focal;
   second-pass recall on visible building-corner edges longer than 20 px and
@@ -38,9 +41,13 @@ from __future__ import annotations
 import argparse
 import ast
 import dataclasses
+import importlib
 import json
+import os
 import platform
+import shutil
 import sys
+import tempfile
 import time
 from pathlib import Path
 
@@ -262,31 +269,114 @@ def bench_ecd(options: VanishingOptions, peer: bool) -> dict:
 # --------------------------------------------------------------------------
 
 
-def bench_timing(options: VanishingOptions, repeats: int = 3) -> dict:
+def load_reference(tree: Path):
+    """The ``vanishing`` and ``geometry`` modules of another source tree.
+
+    ``tree`` holds an ``obliq_colmap`` package (e.g. ``git archive REV | tar
+    -x -C DIR``); it is copied to a temporary folder as package
+    ``obliq_reference`` (imports renamed) so that both versions run in one
+    process, alternately, under the same machine load.
+    """
+    tmp = Path(tempfile.mkdtemp(prefix="obliq_reference_"))
+    shutil.copytree(tree / "obliq_colmap", tmp / "obliq_reference")
+    for f in (tmp / "obliq_reference").rglob("*.py"):
+        f.write_text(f.read_text().replace("obliq_colmap", "obliq_reference"))
+    sys.path.insert(0, str(tmp))
+    return (
+        importlib.import_module("obliq_reference.vanishing"),
+        importlib.import_module("obliq_reference.geometry"),
+    )
+
+
+def _timing_jobs():
+    """(set name, image, camera parameters or None, prior kind) to time."""
     files = sorted((DATA / "rennes_oblique_aerial" / "images").glob("*.jpg"))
-    out = {}
     for size in [(640, 480), (2004, 1336), (4008, 2672)]:
-        per_image, parts = [], {}
         for f in files:
             img = cv2.imread(str(f), cv2.IMREAD_GRAYSCALE)
             interp = cv2.INTER_AREA if size[0] < img.shape[1] else cv2.INTER_CUBIC
-            img = cv2.resize(img, size, interpolation=interp)
-            runs = []
-            for _ in range(repeats):
-                t = time.perf_counter()
-                r = detect_vertical_vp(img, options, prior=VPPrior.aerial())
-                runs.append(time.perf_counter() - t)
-                for k, v in r.time_s.items():
-                    parts.setdefault(k, []).append(v)
-            per_image.append(min(runs))
-            n_sp = 0 if r.vertical_segments is None else len(r.vertical_segments)
-            out.setdefault("status", {})[f"{f.name}@{size[0]}"] = (
-                f"{r.status}, {r.n_inliers} inliers, {n_sp} segments"
+            yield (
+                f"{size[0]}x{size[1]}",
+                f.name,
+                cv2.resize(img, size, interpolation=interp),
+                None,
+                "aerial",
             )
-        out[f"{size[0]}x{size[1]}"] = {
-            "time_s_median_of_best": float(np.median(per_image)),
-            "parts_s_median": {k: float(np.median(v)) for k, v in parts.items()},
-        }
+    for name, img, K, _, _ in yud_images("train"):
+        params = [K[0, 0], K[1, 1], K[0, 2] - 0.5, K[1, 2] - 0.5]
+        yield "yud_train_640x480", name, img, params, "none"
+
+
+def bench_timing(
+    options: VanishingOptions, repeats: int = 3, reference: Path | None = None
+) -> dict:
+    """Time per image, both passes: the best of ``repeats`` runs per image.
+
+    Sets: the Rennes oblique photos resampled to 640x480, 2004x1336 and
+    4008x2672 (aerial prior) and the 51 YorkUrbanDB training images (640x480,
+    known K, no prior). With ``reference`` (a source tree) its code runs
+    alternately with this one on each image, and the ratios are reported.
+    """
+    versions = [("ours", detect_vertical_vp, VPPrior, Camera, options)]
+    if reference is not None:
+        ref_v, ref_g = load_reference(reference)
+        versions.append(
+            (
+                "reference",
+                ref_v.detect_vertical_vp,
+                ref_v.VPPrior,
+                ref_g.Camera,
+                ref_v.VanishingOptions(),
+            )
+        )
+    best: dict = {}
+    parts: dict = {}
+    out: dict = {"status": {}}
+    for set_name, name, img, params, prior_kind in _timing_jobs():
+        H, W = img.shape
+        for _ in range(repeats):
+            for tag, detect, prior_cls, cam_cls, opts in versions:
+                cam = None if params is None else cam_cls("PINHOLE", W, H, params)
+                prior = prior_cls.aerial() if prior_kind == "aerial" else None
+                t = time.perf_counter()
+                r = detect(img, opts, camera=cam, prior=prior)
+                dt = time.perf_counter() - t
+                key = (set_name, name, tag)
+                best[key] = min(best.get(key, np.inf), dt)
+                for k, v in r.time_s.items():
+                    parts.setdefault((set_name, tag), {}).setdefault(k, []).append(v)
+                if tag == "ours" and not set_name.startswith("yud"):
+                    n_sp = (
+                        0 if r.vertical_segments is None else len(r.vertical_segments)
+                    )
+                    out["status"][f"{name}@{W}"] = (
+                        f"{r.status}, {r.n_inliers} inliers, {n_sp} segments"
+                    )
+    for set_name in dict.fromkeys(k[0] for k in best):
+        row = {}
+        for tag, *_ in versions:
+            t = np.array(
+                [v for k, v in best.items() if k[0] == set_name and k[2] == tag]
+            )
+            row[tag] = {
+                "time_s_median_of_best": float(np.median(t)),
+                "parts_s_median": {
+                    k: float(np.median(v)) for k, v in parts[(set_name, tag)].items()
+                },
+            }
+        if reference is not None:
+            a = np.array(
+                [v for k, v in best.items() if k[0] == set_name and k[2] == "ours"]
+            )
+            b = np.array(
+                [v for k, v in best.items() if k[0] == set_name and k[2] == "reference"]
+            )
+            row["ratio_ours_over_reference"] = {
+                "of_sums": float(a.sum() / b.sum()),
+                "median_per_image": float(np.median(a / b)),
+            }
+        out[set_name] = row
+    out["load_average_after"] = os.getloadavg()
     return out
 
 
@@ -533,6 +623,12 @@ def main(argv=None) -> int:
     parser.add_argument("--scene", default=None, help="synthetic scene folder")
     parser.add_argument("--output", default=None, help="write the figures as JSON")
     parser.add_argument(
+        "--reference",
+        default=None,
+        help="timing: a source tree (git archive) timed alternately with this code",
+    )
+    parser.add_argument("--repeats", type=int, default=3, help="timing: runs per image")
+    parser.add_argument(
         "--set",
         action="append",
         default=[],
@@ -548,6 +644,7 @@ def main(argv=None) -> int:
         "date": time.strftime("%Y-%m-%d %H:%M"),
         "split": args.split,
         "overrides": args.set,
+        "load_average_start": os.getloadavg(),
     }
     with threadpool_limits(1):
         if "yud" in sections:
@@ -572,7 +669,9 @@ def main(argv=None) -> int:
             results["ecd"] = bench_ecd(options, peer="peer" in sections)
             print("ECD", json.dumps(results["ecd"], indent=1), flush=True)
         if "timing" in sections:
-            results["timing"] = bench_timing(options)
+            results["timing"] = bench_timing(
+                options, args.repeats, Path(args.reference) if args.reference else None
+            )
             print("timing", json.dumps(results["timing"], indent=1), flush=True)
         if "synthetic" in sections:
             if not args.scene:
