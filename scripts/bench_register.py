@@ -15,6 +15,7 @@ Scenes are made with ``obliq-colmap synth --preset paper --seed N --output_path 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import logging
 import os
@@ -28,7 +29,9 @@ from pathlib import Path
 
 import numpy as np
 
+from obliq_colmap.adjustment import AdjustmentOptions
 from obliq_colmap.evaluate import EvaluateOptions, evaluate_model
+from obliq_colmap.geometry import SUPPORTED_MODELS
 from obliq_colmap.pipeline import PipelineOptions, run_register, write_run
 from obliq_colmap.registration import RegistrationOptions
 
@@ -58,15 +61,25 @@ def _summary(ev) -> dict:
 def bench_scene(scene: Path, args: argparse.Namespace) -> dict:
     # A user knows the accuracy of their GPS/INS: take the scene's prior noise.
     noise = json.loads((scene / "scene.json").read_text())["options"]
+    adjustment = AdjustmentOptions()
+    adjustment = dataclasses.replace(
+        adjustment,
+        bundle=dataclasses.replace(
+            adjustment.bundle, refine_extra_params=bool(args.refine_extra_params)
+        ),
+    )
     options = PipelineOptions(
         stop_after=args.stop_after,
         num_workers=args.num_workers,
         progress=False,
+        camera_model=args.camera_model,
         registration=RegistrationOptions(
             prior_position_sigma_m=noise["prior_position_m"],
             prior_rotation_sigma_deg=noise["prior_rotation_deg"],
             prior_focal_sigma=noise["prior_focal_percent"] / 100.0,
+            refine_distortion=bool(args.refine_extra_params),
         ),
+        adjustment=adjustment,
     )
     t0 = time.perf_counter()
     run = run_register(
@@ -87,6 +100,8 @@ def bench_scene(scene: Path, args: argparse.Namespace) -> dict:
     row = {
         "scene": str(scene),
         "stop_after": args.stop_after,
+        "camera_model": args.camera_model,
+        "refine_extra_params": int(args.refine_extra_params),
         "num_workers": options.workers,
         "wall_s": wall,
         "time_s": run.report["time_s"],
@@ -128,14 +143,31 @@ def _print_row(row: dict) -> None:
         print("  " + row["bundle"]["brief"])
 
 
+def add_run_arguments(parser: argparse.ArgumentParser) -> None:
+    """The options of the run, as a user passes them to ``register``."""
+    parser.add_argument("--stop_after", choices=("initial", "bundle"), default="bundle")
+    parser.add_argument("--num_workers", type=int, default=2)
+    parser.add_argument(
+        "--camera_model",
+        choices=sorted(SUPPORTED_MODELS),
+        help="result camera model (register's --camera_model; default the priors')",
+    )
+    parser.add_argument(
+        "--refine_extra_params",
+        type=int,
+        choices=(0, 1),
+        default=0,
+        help="refine the distortion in the bundle (register's option)",
+    )
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument(
         "--scene_path", action="append", required=True, help="synthetic scene folder"
     )
-    parser.add_argument("--stop_after", choices=("initial", "bundle"), default="bundle")
-    parser.add_argument("--num_workers", type=int, default=2)
     parser.add_argument("--output_path", help="write all rows as JSON here")
+    add_run_arguments(parser)
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(message)s")
     rows = []
