@@ -56,6 +56,7 @@ curves in pictures", CACM 15(1), 1972.
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import math
 import time
@@ -192,8 +193,20 @@ class RegistrationOptions:
         (``prior_focal_sigma`` also sets the search window; a tight focal
         prior would hold the focal where the data can move it).
     min_inliers_intrinsics : int
-        The focal length and the vertical move only with at least this many
-        inlier corners.
+        The focal length, the vertical and the distortion move only with at
+        least this many inlier corners.
+    refine_distortion : bool
+        Refine the radial distortion ``k1`` (``k`` of SIMPLE_RADIAL) with the
+        pose when the camera model has it; the other distortion terms are
+        held. A lens the priors do not describe (``k1 = -0.05`` is ~13 px at
+        the corners of a 45 deg image) bends the projected verticals by more
+        than the inlier threshold, which no pose and focal length absorb. The
+        segments are undistorted with the current ``k1`` inside the
+        refinement (consistent residuals), and again after it.
+    distortion_sigma_px : float
+        Prior 1-sigma of the change of the radial distortion, as the
+        displacement it makes at the image corners (px): weak, so that a few
+        inliers cannot drag ``k1`` far.
     seed : int
         Seed of the random generator; the result is a deterministic function
         of the inputs and the seed.
@@ -236,6 +249,8 @@ class RegistrationOptions:
     refine_focal: bool = True
     focal_sigma_min: float = 0.05
     min_inliers_intrinsics: int = 15
+    refine_distortion: bool = False
+    distortion_sigma_px: float = 20.0
     seed: int = 0
 
     def __post_init__(self) -> None:
@@ -255,6 +270,7 @@ class RegistrationOptions:
             "slope_sigma",
             "building_outlier_factor",
             "vertical_sigma_deg",
+            "distortion_sigma_px",
         )
         for name in positive:
             value = getattr(self, name)
@@ -305,7 +321,8 @@ class RegistrationResult:
     inlier_pairs : (K, 2) int array
         (corner index into the cadastre, segment index into the input).
     inlier_segments_px : (K, 2, 2) float array
-        The inlier segments, undistorted pixels (for drawing and checks).
+        The inlier segments, undistorted with the INPUT camera (the frame of
+        ``segments_undistorted``), for drawing and the bundle.
     height_plane : (3,) array
         ``z = a x + b y + c`` (local metres, the priors' datum) fitted to the
         heights of the inlier segments' bottoms; NaN on failure.
@@ -323,7 +340,11 @@ class RegistrationResult:
     timings : dict, wall time per step (s).
     camera : Camera or None
         The intrinsics the pose belongs to: the input camera with the refined
-        focal length (``options.refine_focal``); None on failure.
+        focal length (``options.refine_focal``) and radial distortion
+        (``options.refine_distortion``); None on failure.
+    distortion_refined : bool
+        ``camera``'s radial distortion was refined (enough inliers, a model
+        with a radial term).
     """
 
     success: bool
@@ -343,6 +364,7 @@ class RegistrationResult:
     message: str = ""
     timings: dict = field(default_factory=dict)
     camera: Camera | None = None
+    distortion_refined: bool = False
 
     def __bool__(self) -> bool:
         return self.success
@@ -510,8 +532,16 @@ class _Segments:
 
 
 def _prepare_segments(
-    segments_px: np.ndarray, view: _View, options: RegistrationOptions
+    segments_px: np.ndarray,
+    view: _View,
+    options: RegistrationOptions,
+    index: np.ndarray | None = None,
 ) -> _Segments:
+    """The usable segments of (N, 2, 2) undistorted ``segments_px``.
+
+    ``index`` given: exactly these segments, in this order, without the
+    length and VP tests (the same set again after the camera changed).
+    """
     seg = np.asarray(segments_px, float).reshape(-1, 2, 2)
     finite = np.all(np.isfinite(seg), axis=(1, 2))
     length = np.linalg.norm(seg[:, 1] - seg[:, 0], axis=1)
@@ -526,7 +556,7 @@ def _prepare_segments(
         angle = np.degrees(np.arcsin(np.minimum(1.0, 2.0 * dist / length)))
     keep = finite & (length >= options.min_segment_length_px) & (nrm[:, 0] > 0)
     keep &= angle <= options.vp_tolerance_deg
-    idx = np.flatnonzero(keep)
+    idx = np.flatnonzero(keep) if index is None else np.asarray(index, int)
     seg, line, length, mid = seg[idx], line[idx], length[idx], mid[idx]
     # Bottom: the endpoint whose viewing ray points further down the world.
     rays = np.concatenate([seg, np.ones((len(seg), 2, 1))], axis=2) @ view.Kinv.T
@@ -1184,37 +1214,88 @@ def _perturbed_view(
     return _View(K=K, Kinv=Kinv, R0=dR @ view.R0, n=n / np.linalg.norm(n), c0=view.c0)
 
 
+@dataclass
+class _Lens:
+    """The current camera's distortion, for residuals from RAW segments.
+
+    ``camera``: the current intrinsics (its pinhole part is the view's
+    ``K``); ``k_index``: index of the radial ``k1`` in its params, or None
+    when it is not refined; ``k_prior``, ``k_sigma``: centre and 1-sigma of
+    its prior (unitless).
+    """
+
+    camera: Camera
+    k_index: int | None
+    k_prior: float = 0.0
+    k_sigma: float = math.inf
+
+    def camera_at(self, log_focal: float, dk: float) -> Camera:
+        """The camera with its focal scaled by ``exp(log_focal)`` and ``k1 + dk``."""
+        cam = _scaled_camera(self.camera, math.exp(log_focal))
+        if self.k_index is not None:
+            cam.params[self.k_index] += dk
+        return cam
+
+    def undistorted(self, raw: np.ndarray, log_focal: float, dk: float) -> np.ndarray:
+        """(K, 2, 2) raw endpoints to undistorted pixels of that camera."""
+        cam = self.camera_at(log_focal, dk)
+        return cam.undistort_pixels(raw.reshape(-1, 2)).reshape(raw.shape)
+
+
+def _radial_index(model: str) -> int | None:
+    """Index of the first radial distortion term in a model's params."""
+    from obliq_colmap.geometry import SUPPORTED_MODELS
+
+    names = SUPPORTED_MODELS[model]
+    for name in ("k", "k1"):
+        if name in names:
+            return names.index(name)
+    return None
+
+
 def _residuals(
     params: np.ndarray,
     view: _View,
     corner_rel: np.ndarray,
     ends: np.ndarray,
-    free: tuple[bool, bool],
+    free: tuple[bool, bool, bool],
     tilt_axes: np.ndarray,
     prior_px: np.ndarray,
+    lens: _Lens | None = None,
 ) -> np.ndarray:
     """Distances (px) of both endpoints of each segment to its corner's
-    vertical, then the prior terms of the free focal / tilt (1 px per sigma).
+    vertical, then the prior terms of the free focal / tilt / k1 (1 px per
+    sigma).
 
-    ``params`` = (alpha, c_x, c_y[, log focal][, tilt_1, tilt_2]) as ``free``
-    (focal, vertical) says; ``prior_px`` (3,) = 1 / sigma of (log focal,
-    tilt_1, tilt_2).
+    ``params`` = (alpha, c_x, c_y[, log focal][, tilt_1, tilt_2][, dk1]) as
+    ``free`` (focal, vertical, distortion) says; ``prior_px`` (3,) = 1 / sigma
+    of (log focal, tilt_1, tilt_2). With a ``lens``, ``ends`` are RAW pixels,
+    undistorted here with the candidate focal length and k1 (the distortion
+    depends on both); without, undistorted pixels of the view's ``K``.
     """
     alpha, cx, cy = params[:3]
     v = view
     extra = []
+    k = 3
+    log_f = 0.0
+    if free[0]:
+        log_f = params[k]
+        extra.append(log_f * prior_px[0])
+        k += 1
+    tilt = None
+    if free[1]:
+        tilt = params[k : k + 2]
+        extra += list(tilt * prior_px[1:])
+        k += 2
+    dk = 0.0
+    if free[2]:
+        dk = params[k]
+        k0 = lens.camera.params[lens.k_index]
+        extra.append((k0 + dk - lens.k_prior) / lens.k_sigma)
     if free[0] or free[1]:
-        k = 3
-        log_f = 0.0
-        if free[0]:
-            log_f = params[k]
-            extra.append(log_f * prior_px[0])
-            k += 1
-        tilt = None
-        if free[1]:
-            tilt = params[k : k + 2]
-            extra += list(tilt * prior_px[1:])
         v = _perturbed_view(view, log_f, tilt, tilt_axes)
+    if lens is not None:
+        ends = lens.undistorted(ends, log_f, dk)
     lines = v.corner_lines(np.array([alpha]), np.array([[cx, cy]]), corner_rel)[0]
     r = np.sum(ends * lines[:, None, :2], axis=2) + lines[:, None, 2]  # (K, 2)
     return np.r_[r.ravel(), extra]
@@ -1226,32 +1307,44 @@ def _refine(
     ends: np.ndarray,
     alpha: float,
     c_xy: np.ndarray,
-    free: tuple[bool, bool],
+    free: tuple[bool, bool, bool],
     options: RegistrationOptions,
-) -> tuple[_View, float, np.ndarray, np.ndarray]:
-    """Levenberg-Marquardt over (alpha, c_x, c_y[, focal][, two tilts]) with
-    a Huber loss.
+    lens: _Lens | None = None,
+) -> tuple[_View, Camera | None, float, np.ndarray, np.ndarray]:
+    """Levenberg-Marquardt over (alpha, c_x, c_y[, focal][, two tilts][, k1])
+    with a Huber loss.
 
-    ``free`` = (focal, vertical): which of the extra parameters move. The
-    focal length is observable from one image through the spread of the
-    pencil of projected verticals (a 1-D homography from the azimuths of the
-    corners around the camera); the vertical through the directions of the
-    segments and the positions of corners at different distances. Both get a
-    weak prior (``prior_focal_sigma``, ``vertical_sigma_deg``) so that a few
-    inliers cannot drag them far.
+    ``free`` = (focal, vertical, distortion): which of the extra parameters
+    move. The focal length is observable from one image through the spread
+    of the pencil of projected verticals (a 1-D homography from the azimuths
+    of the corners around the camera); the vertical through the directions
+    of the segments and the positions of corners at different distances; the
+    radial distortion through the cubic growth of the lateral offsets towards
+    the image borders (pose and focal move the verticals affinely). All get
+    a weak prior (``prior_focal_sigma``, ``vertical_sigma_deg``,
+    ``distortion_sigma_px``) so that a few inliers cannot drag them far.
 
-    Returns the (possibly re-focused and re-tilted) view, alpha, c_xy and the
-    final residuals (K, 2) in px.
+    ``lens``: the current camera when it has (or refines) distortion; then
+    ``ends`` are the segments' RAW endpoints (K, 2, 2), else undistorted
+    pixels of ``view.K``.
+
+    Returns the (possibly re-focused and re-tilted) view, the camera with the
+    refined focal and k1 (None without a ``lens``), alpha, c_xy and the final
+    residuals (K, 2) in px.
     """
     from scipy.optimize import least_squares
 
+    free = (free[0], free[1], free[2] and lens is not None and lens.k_index is not None)
     tilt_axes = _tilt_basis(view.n)
-    n_extra = int(free[0]) + 2 * int(free[1])
+    n_extra = int(free[0]) + 2 * int(free[1]) + int(free[2])
     x0 = np.r_[alpha, c_xy, np.zeros(n_extra)]
 
     depth = max(1.0, float(np.median(np.linalg.norm(corner_rel - c_xy, axis=1))))
     x_scale = np.r_[1.0 / view.focal, np.full(2, depth / view.focal)]
-    x_scale = np.r_[x_scale, np.full(n_extra, 1.0 / view.focal)]
+    x_scale = np.r_[x_scale, np.full(n_extra - int(free[2]), 1.0 / view.focal)]
+    if free[2]:
+        # k1 moving the image corners by one pixel.
+        x_scale = np.r_[x_scale, 1.0 / _corner_px_per_k(lens.camera)]
     prior_px = np.array(
         [
             1.0 / max(options.prior_focal_sigma, options.focal_sigma_min),
@@ -1262,7 +1355,7 @@ def _refine(
     sol = least_squares(
         _residuals,
         x0,
-        args=(view, corner_rel, ends, free, tilt_axes, prior_px),
+        args=(view, corner_rel, ends, free, tilt_axes, prior_px, lens),
         loss="huber",
         f_scale=options.inlier_threshold_px,
         x_scale=x_scale,
@@ -1270,12 +1363,25 @@ def _refine(
         method="trf",
     )
     x = sol.x
-    if n_extra:
-        log_f = x[3] if free[0] else 0.0
+    log_f = x[3] if free[0] else 0.0
+    if free[0] or free[1]:
         tilt = x[3 + int(free[0]) : 5 + int(free[0])] if free[1] else None
         view = _perturbed_view(view, log_f, tilt, tilt_axes)
-    r = _residuals(x[:3], view, corner_rel, ends, (False, False), tilt_axes, prior_px)
-    return view, float(x[0]), x[1:3].copy(), r.reshape(-1, 2)
+    camera = None
+    if lens is not None:
+        camera = lens.camera_at(log_f, x[-1] if free[2] else 0.0)
+        lens = _Lens(camera, None)
+    r = _residuals(
+        x[:3], view, corner_rel, ends, (False,) * 3, tilt_axes, prior_px, lens
+    )
+    return view, camera, float(x[0]), x[1:3].copy(), r.reshape(-1, 2)
+
+
+def _corner_px_per_k(camera: Camera) -> float:
+    """Displacement (px) at the image corners per unit of radial ``k1``."""
+    f = float(np.mean(np.diag(camera.K)[:2]))
+    r = 0.5 * math.hypot(camera.width, camera.height) / f  # normalised radius
+    return f * r**3
 
 
 def _final_plane(
@@ -1409,8 +1515,13 @@ def register_image(
 
     # 1. Segments.
     t0 = time.perf_counter()
-    if not segments_undistorted and len(seg) and camera.has_distortion:
-        seg = camera.undistort_pixels(seg.reshape(-1, 2)).reshape(-1, 2, 2)
+    # RAW (as detected) endpoints are kept for a refinement of the distortion.
+    raw = seg
+    if len(seg) and camera.has_distortion:
+        if segments_undistorted:
+            raw = camera.distort_pixels(seg.reshape(-1, 2)).reshape(-1, 2, 2)
+        else:
+            seg = camera.undistort_pixels(seg.reshape(-1, 2)).reshape(-1, 2, 2)
     segs = _prepare_segments(seg, view, options)
     timings["segments"] = time.perf_counter() - t0
     if len(segs) < options.min_segments:
@@ -1597,17 +1708,38 @@ def register_image(
     )
     resid = np.zeros((0, 2))
     f0 = view.focal
+    k_index = _radial_index(camera.model) if options.refine_distortion else None
+    # The current camera when its distortion matters (has or refines one):
+    # the residuals then come from the raw segments, undistorted with it.
+    lens = None
+    if camera.has_distortion or k_index is not None:
+        k_prior = float(camera.params[k_index]) if k_index is not None else 0.0
+        k_sigma = options.distortion_sigma_px / _corner_px_per_k(camera)
+        lens = _Lens(camera, k_index, k_prior, k_sigma)
+    distortion_refined = False
+
+    def refine(free):
+        if lens is None:
+            v, _, a, c, r = _refine(
+                view, corner_rel[ci], segs.ends[sj], alpha, c_xy, free, options
+            )
+            return v, None, a, c, r
+        ends = raw[segs.index[sj]]
+        return _refine(view, corner_rel[ci], ends, alpha, c_xy, free, options, lens)
+
     for _ in range(options.refine_rounds):
         if len(ci) < options.min_inliers:
             break
-        # The focal and the vertical move only with enough inliers.
+        # The focal, the vertical and the distortion move only with enough
+        # inliers.
+        enough = len(ci) >= options.min_inliers_intrinsics
         free = (
-            refine_focal and len(ci) >= options.min_inliers_intrinsics,
-            refine_vertical and len(ci) >= options.min_inliers_intrinsics,
+            refine_focal and enough,
+            refine_vertical and enough,
+            k_index is not None and enough,
         )
-        new_view, alpha, c_xy, resid = _refine(
-            view, corner_rel[ci], segs.ends[sj], alpha, c_xy, free, options
-        )
+        distortion_refined |= free[2]
+        new_view, new_cam, alpha, c_xy, resid = refine(free)
         # Whole buildings that do not fit (a building shifted in the map).
         bld = cadastre.corner_building[vis[ci]]
         res_pair = np.sqrt(np.mean(resid**2, axis=1))
@@ -1621,10 +1753,13 @@ def register_image(
                 bad |= sel
         if bad.any() and (~bad).sum() >= options.min_inliers:
             ci, sj = ci[~bad], sj[~bad]
-            new_view, alpha, c_xy, resid = _refine(
-                view, corner_rel[ci], segs.ends[sj], alpha, c_xy, free, options
-            )
+            new_view, new_cam, alpha, c_xy, resid = refine(free)
         view = new_view
+        if lens is not None:
+            # The segments again, undistorted with the refined camera.
+            lens = dataclasses.replace(lens, camera=new_cam)
+            und = new_cam.undistort_pixels(raw.reshape(-1, 2)).reshape(raw.shape)
+            segs = _prepare_segments(und, view, options, index=segs.index)
         plane = _final_plane(view, segs, corner_rel, ci, sj, alpha, c_xy, options)
         # Re-score every pair near the refined pose.
         ground = _plane_at(plane[None], corner_rel)[0]
@@ -1647,9 +1782,7 @@ def register_image(
             view, segs, corner_rel, cand, alpha, c_xy, plane, options
         )
     if len(ci) >= options.min_inliers:
-        _, alpha, c_xy, resid = _refine(
-            view, corner_rel[ci], segs.ends[sj], alpha, c_xy, (False, False), options
-        )
+        _, _, alpha, c_xy, resid = refine((False, False, False))
         plane = _final_plane(view, segs, corner_rel, ci, sj, alpha, c_xy, options)
     timings["refine"] = time.perf_counter() - t0
     common["num_inliers"] = len(ci)
@@ -1672,14 +1805,18 @@ def register_image(
     )
     rms = float(np.sqrt(np.mean(resid**2))) if resid.size else math.nan
     timings["total"] = time.perf_counter() - t_start
+    result_camera = _scaled_camera(camera, view.focal / f0)
+    if lens is not None and k_index is not None:
+        result_camera.params[k_index] = lens.camera.params[k_index]
     return RegistrationResult(
-        camera=_scaled_camera(camera, view.focal / f0),
+        camera=result_camera,
+        distortion_refined=distortion_refined,
         success=True,
         cam_from_world=pose,
         vertical_direction=view.n.copy(),
         vertical_source="refined" if refine_vertical else vertical_source,
         inlier_pairs=np.column_stack([vis[ci], segs.index[sj]]).astype(int),
-        inlier_segments_px=segs.ends[sj].copy(),
+        inlier_segments_px=seg[segs.index[sj]].copy(),
         height_plane=plane_abs,
         residual_rms_px=rms,
         message=f"{len(ci)} inlier corners of {num_candidates} candidates, "
