@@ -225,9 +225,10 @@ def facade_stage(
     facades = []
     for i in ids:
         seg = outcomes[i].line_segments
+        prior = inputs.priors.cameras[inputs.priors.images[i].camera_id]
         facades.append(
             facade_edges(
-                seg.endpoints,
+                _in_camera(prior, state.cameras[i], seg.endpoints),
                 seg.normal,
                 state.cameras[i],
                 state.poses[i],
@@ -245,6 +246,16 @@ def facade_stage(
         tracks.num_observations,
     )
     return Stage3(ids, facades, tracks)
+
+
+def _in_camera(prior: Camera, camera: Camera, segments: np.ndarray) -> np.ndarray:
+    """(N, 2, 2) segments undistorted with the priors' camera (the frame of the
+    per-image stages' segments) as undistorted pixels of ``camera``, whose
+    distortion stage 2 may have refined (through the raw pixels)."""
+    if not (prior.has_distortion or camera.has_distortion):
+        return segments  # both frames are the raw pixels
+    raw = prior.distort_pixels(segments.reshape(-1, 2))
+    return camera.undistort_pixels(raw).reshape(segments.shape)
 
 
 def _raw_lines(camera: Camera, segments_undistorted: np.ndarray) -> np.ndarray:
@@ -321,10 +332,14 @@ def vertical_constraints(
     return {k: np.concatenate(v) for k, v in parts.items()}
 
 
-def _group_cameras(inputs: Inputs, state: BlockState) -> dict[int, Camera]:
+def _group_cameras(
+    inputs: Inputs, state: BlockState, outcomes: dict[int, ImageOutcome]
+) -> dict[int, Camera]:
     """Start intrinsics per camera_id: the result model's camera with the
     median of its images' per-image focal lengths (stage 2 refines the focal
-    per image; the images of one head share one). After a bundle
+    per image; the images of one head share one), and the median of the
+    distortion of those images whose stage 2 refined it (one lens per head:
+    a much better start than the priors' for the bundle). After a bundle
     (``state.shared``) the heads' solved cameras, as they stand."""
     if state.shared:
         return {
@@ -334,16 +349,23 @@ def _group_cameras(inputs: Inputs, state: BlockState) -> dict[int, Camera]:
             for i, cam in state.cameras.items()
         }
     ratios: dict[int, list[float]] = {}
+    lenses: dict[int, list[np.ndarray]] = {}
     for i, cam in state.cameras.items():
         cid = inputs.priors.images[i].camera_id
         prior = inputs.priors.cameras[cid]
         ratios.setdefault(cid, []).append(cam.params[0] / prior.params[0])
+        r = outcomes[i].registration
+        if r is not None and r.distortion_refined:
+            extra = res.focal_principal_extra_indices(cam.model)[2]
+            lenses.setdefault(cid, []).append(cam.params[extra])
     out = {}
     for cid, r in ratios.items():
         cam = inputs.cameras[cid]
-        focal, _, _ = res.focal_principal_extra_indices(cam.model)
+        focal, _, extra = res.focal_principal_extra_indices(cam.model)
         params = cam.params.copy()
         params[focal] *= float(np.median(r))
+        if cid in lenses and len(lenses[cid][0]) == len(extra):
+            params[extra] = np.median(np.array(lenses[cid]), axis=0)
         out[cid] = Camera(cam.model, cam.width, cam.height, params, cid)
     return out
 
@@ -372,13 +394,16 @@ def build_bundle_problem(
         sel = np.flatnonzero(t.image == k)
         if len(sel) == 0:
             continue
-        camera = inputs.priors.cameras[inputs.priors.images[i].camera_id]
+        # The facade edges are in the frame of the image's own camera
+        # (facade_stage).
         und = stage3.facades[k].endpoints[t.row[sel]]
-        ends[sel] = camera.distort_pixels(und.reshape(-1, 2)).reshape(-1, 2, 2)
+        ends[sel] = (
+            state.cameras[i].distort_pixels(und.reshape(-1, 2)).reshape(-1, 2, 2)
+        )
     stage3.ends_raw = ends
     lines = lines_through(ends[:, 0], ends[:, 1])
     stage3.row_obs = np.arange(t.num_observations)
-    cameras = _group_cameras(inputs, state)
+    cameras = _group_cameras(inputs, state, outcomes)
     return BundleProblem(
         cameras=cameras,
         poses={i: state.poses[i] for i in ids},

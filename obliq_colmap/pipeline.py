@@ -226,6 +226,13 @@ class _ImageTask:
     cone_deg: float
     vanishing: VanishingOptions
     registration: RegistrationOptions
+    #: COLMAP model of the result: stage 2 refines the intrinsics in it.
+    model: str = ""
+
+    @property
+    def result_camera(self) -> Camera:
+        """The priors' camera in the result model (added terms start at 0)."""
+        return self.camera.with_model(self.model or self.camera.model)
 
 
 #: Per-process state: the cadastre, loaded once per worker.
@@ -284,7 +291,7 @@ def _initial_image(task: _ImageTask) -> ImageOutcome:
     result = register_image(
         out.segments,
         out.vertical_direction,
-        task.camera,
+        task.result_camera,
         task.prior,
         _STATE["cadastre"],
         options,
@@ -325,7 +332,7 @@ def _reregister(args: tuple[_ImageTask, np.ndarray, np.ndarray | None, float]):
     return register_image(
         segments,
         vertical,
-        task.camera,
+        task.result_camera,
         task.prior,
         _STATE["cadastre"],
         options,
@@ -478,13 +485,15 @@ def image_tasks(inputs: Inputs, options: PipelineOptions) -> list[_ImageTask]:
             image_id=im.image_id,
             name=im.name,
             path=inputs.image_path / im.name,
-            # The per-image stages keep the priors' model: a model change
-            # only adds parameters that start at zero.
+            # The vanishing stage undistorts with the priors' camera (a model
+            # change only adds parameters that start at zero); stage 2 gets
+            # it in the result model, whose radial term it may refine.
             camera=inputs.priors.cameras[im.camera_id],
             prior=im.cam_from_world,
             cone_deg=options.cone_deg,
             vanishing=options.vanishing,
             registration=options.registration,
+            model=inputs.cameras[im.camera_id].model,
         )
         for im in sorted(inputs.priors.images.values(), key=lambda im: im.image_id)
     ]

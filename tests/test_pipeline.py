@@ -376,3 +376,55 @@ def test_in_camera_keeps_the_raw_pixels_and_the_vanishing_point():
     vp_new = new.K @ n2
     assert np.allclose(vp_old[:2] / vp_old[2], vp_new[:2] / vp_new[2])
     assert n2 @ n > 0 and abs(np.linalg.norm(n2) - 1.0) < 1e-12
+
+
+def test_bundle_starts_each_head_from_the_median_lens_of_its_images():
+    """Stage 2's per-image k1 -> one start lens per camera_id (the median over
+    the images that refined it), the focal as the median ratio to the prior."""
+    from types import SimpleNamespace
+
+    from obliq_colmap.adjustment import _group_cameras, _in_camera
+    from obliq_colmap.colmap_io import Block, ImageRecord
+    from obliq_colmap.geometry import Camera, Pose
+    from obliq_colmap.pipeline import ImageOutcome
+    from obliq_colmap.registration import RegistrationResult
+
+    prior = Camera("PINHOLE", 1000, 667, [1000.0, 1000.0, 500.0, 333.5], 7)
+    images = {i: ImageRecord(i, f"{i}.jpg", 7, Pose()) for i in range(1, 5)}
+    inputs = SimpleNamespace(
+        priors=Block({7: prior}, images), cameras={7: prior.with_model("RADIAL")}
+    )
+    ks = {1: -0.05, 2: -0.04, 3: -0.06, 4: 0.0}  # image 4: too weak to refine
+    focals = {1: 1010.0, 2: 1020.0, 3: 1030.0, 4: 1000.0}
+    state = SimpleNamespace(
+        cameras={
+            i: Camera("RADIAL", 1000, 667, [focals[i], 500.0, 333.5, ks[i], 0.0], 7)
+            for i in images
+        }
+    )
+    outcomes = {
+        i: ImageOutcome(
+            i,
+            f"{i}.jpg",
+            "registered",
+            registration=RegistrationResult(
+                True, Pose(), np.array([0, 0, 1.0]), distortion_refined=i != 4
+            ),
+        )
+        for i in images
+    }
+    cam = _group_cameras(inputs, state, outcomes)[7]
+    assert cam.model == "RADIAL" and cam.camera_id == 7
+    np.testing.assert_allclose(cam.params, [1015.0, 500.0, 333.5, -0.05, 0.0])
+    # Segments in the priors' frame (no distortion: the raw pixels) seen
+    # through the image's own lens: its undistorted pixels; identity
+    # without distortion on either side.
+    seg = np.array([[[100.0, 50.0], [120.0, 300.0]], [[900.0, 600.0], [880.0, 400.0]]])
+    und = _in_camera(prior, state.cameras[1], seg)
+    np.testing.assert_allclose(
+        state.cameras[1].distort_pixels(und.reshape(-1, 2)),
+        seg.reshape(-1, 2),
+        atol=1e-9,
+    )
+    assert np.linalg.norm(und - seg, axis=-1).max() > 5.0  # barrel: 6 px there
+    assert _in_camera(prior, prior, seg) is seg

@@ -126,7 +126,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         type=_bool01,
         default=bdefaults.refine_extra_params,
         metavar="{0,1}",
-        help="refine distortion parameters (default 0)",
+        help="refine the distortion: the radial k1 per image in stage 2 (models "
+        "with a radial term), then every distortion parameter per camera in the "
+        "bundle, from the median of its images' k1 (default 0)",
     )
     bundle.add_argument(
         "--loss_scale",
@@ -152,6 +154,7 @@ def run(args: argparse.Namespace) -> int:
             prior_rotation_sigma_deg=args.prior_rotation_sigma,
             prior_focal_sigma=args.prior_focal_sigma,
             ground_height=args.ground_height,
+            refine_distortion=args.refine_extra_params,
         ),
         adjustment=AdjustmentOptions(
             bundle=dataclasses.replace(
