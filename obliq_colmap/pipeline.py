@@ -228,11 +228,51 @@ class _ImageTask:
     registration: RegistrationOptions
     #: COLMAP model of the result: stage 2 refines the intrinsics in it.
     model: str = ""
+    #: Intrinsics stage 2 starts from (result model), None: the priors'.
+    start: Camera | None = None
 
     @property
     def result_camera(self) -> Camera:
         """The priors' camera in the result model (added terms start at 0)."""
         return self.camera.with_model(self.model or self.camera.model)
+
+
+def _register(
+    task: _ImageTask,
+    segments: np.ndarray,
+    vertical: np.ndarray | None,
+    options: RegistrationOptions,
+) -> RegistrationResult:
+    """Stage 2 of one image from its segments (undistorted with the priors'
+    camera, as the vanishing stage gives them), from ``task.start`` if set.
+
+    Another start lens sees the segments through the raw pixels, and their
+    inliers come back in the priors' frame, which the bundle expects.
+    """
+    if task.start is None:
+        return register_image(
+            segments,
+            vertical,
+            task.result_camera,
+            task.prior,
+            _STATE["cadastre"],
+            options,
+            segments_undistorted=True,
+        )
+    raw = task.camera.distort_pixels(segments.reshape(-1, 2)).reshape(-1, 2, 2)
+    if vertical is not None:
+        # The detected quantity is the vanishing point's pixel: the same
+        # pixel through the start camera's focal length.
+        vertical = np.linalg.solve(task.start.K, task.camera.K @ vertical)
+        vertical = vertical / np.linalg.norm(vertical)
+    result = register_image(
+        raw, vertical, task.start, task.prior, _STATE["cadastre"], options
+    )
+    inl = result.inlier_segments_px.reshape(-1, 2)
+    result.inlier_segments_px = task.camera.undistort_pixels(
+        task.start.distort_pixels(inl)
+    ).reshape(-1, 2, 2)
+    return result
 
 
 #: Per-process state: the cadastre, loaded once per worker.
@@ -288,15 +328,7 @@ def _initial_image(task: _ImageTask) -> ImageOutcome:
         out.segments = vp.segments.endpoints if len(vp.segments) else out.segments
         options = _fallback_options(options)
     t1 = time.perf_counter()
-    result = register_image(
-        out.segments,
-        out.vertical_direction,
-        task.result_camera,
-        task.prior,
-        _STATE["cadastre"],
-        options,
-        segments_undistorted=True,
-    )
+    result = _register(task, out.segments, out.vertical_direction, options)
     out.time_s["registration"] = time.perf_counter() - t1
     _set_registration(out, result)
     out.time_s["total"] = time.perf_counter() - t0
@@ -320,8 +352,10 @@ def _set_registration(out: ImageOutcome, result: RegistrationResult) -> None:
     out.message = "" if result.success else result.message
 
 
-def _reregister(args: tuple[_ImageTask, np.ndarray, np.ndarray | None, float]):
-    """Register one image again with a given ground height."""
+def _reregister(
+    args: tuple[_ImageTask, np.ndarray, np.ndarray | None, float | None],
+) -> RegistrationResult:
+    """Register one image again with a given ground height (None: its own)."""
     task, segments, vertical, ground = args
     options = (
         task.registration
@@ -329,15 +363,7 @@ def _reregister(args: tuple[_ImageTask, np.ndarray, np.ndarray | None, float]):
         else _fallback_options(task.registration)
     )
     options = _replace(options, ground_height=ground)
-    return register_image(
-        segments,
-        vertical,
-        task.result_camera,
-        task.prior,
-        _STATE["cadastre"],
-        options,
-        segments_undistorted=True,
-    )
+    return _register(task, segments, vertical, options)
 
 
 def _draw_overlay(args: tuple[_ImageTask, RegistrationResult, Path]) -> None:
@@ -545,6 +571,10 @@ def run_register(
         t0 = time.perf_counter()
         outcomes = pool.map(_initial_image, tasks, "vanishing + registration")
         timings["initial"] = time.perf_counter() - t0
+        if options.registration.refine_distortion:
+            t0 = time.perf_counter()
+            _head_pass(pool, tasks, outcomes, options)
+            timings["head_pass"] = time.perf_counter() - t0
         t0 = time.perf_counter()
         rescued = _rescue(pool, tasks, outcomes, options)
         timings["rescue"] = time.perf_counter() - t0
@@ -740,41 +770,24 @@ def _footprint_xy(prior: Pose, ground: float) -> np.ndarray:
     return c[:2] + (ground - c[2]) / axis[2] * axis[:2]
 
 
-def _in_camera(
-    segments: np.ndarray,
-    vertical: np.ndarray | None,
-    old: Camera,
-    new: Camera,
-) -> tuple[np.ndarray, np.ndarray | None]:
-    """Undistorted segments (N, 2, 2) and vertical direction (3,) of
-    ``old``'s intrinsics re-expressed for ``new``'s: the same raw pixels and
-    the same vanishing point (n ~ K^-1 v), which a different focal length
-    reads as a different direction."""
-    raw = old.distort_pixels(segments.reshape(-1, 2))
-    segs = new.undistort_pixels(raw).reshape(-1, 2, 2)
-    if vertical is None:
-        return segs, None
-    n = np.linalg.solve(new.K, old.K @ vertical)
-    n /= np.linalg.norm(n)
-    return segs, n if n @ vertical > 0 else -n
-
-
 def _head_task(
     task: _ImageTask,
     camera: Camera,
     offset: tuple[np.ndarray, np.ndarray],
     options: RegistrationOptions,
 ) -> _ImageTask:
-    """The task of a failed image set up against the solved block: its head's
-    solved camera (held: ``refine_focal`` off, no focal search window) and its
-    prior corrected by the head's systematic offset (rotation vector, centre
-    xy)."""
+    """The task of a failed image set up against the solved block: it starts
+    from its head's solved camera, held (no focal or lens refinement, no
+    focal search window), and from its prior corrected by the head's
+    systematic offset (rotation vector, centre xy)."""
     rotvec, dxy = offset
     R = rotation_from_axis_angle(rotvec) @ task.prior.rotation
     c = task.prior.center + np.r_[dxy, 0.0]
-    registration = _replace(options, refine_focal=False, prior_focal_sigma=0.0)
+    registration = _replace(
+        options, refine_focal=False, refine_distortion=False, prior_focal_sigma=0.0
+    )
     return dataclasses.replace(
-        task, camera=camera, prior=Pose.from_center(R, c), registration=registration
+        task, start=camera, prior=Pose.from_center(R, c), registration=registration
     )
 
 
@@ -834,13 +847,9 @@ def reregister_failed(
         camera = state.cameras[heads[cid][0].image_id]
         task = _head_task(tasks[k], camera, offsets[cid], options.registration)
         ground = _block_ground_at(state, _footprint_xy(task.prior, ground0))
-        segs, vertical = _in_camera(
-            outcomes[k].segments,
-            outcomes[k].vertical_direction,
-            tasks[k].camera,
-            camera,
+        jobs.append(
+            (task, outcomes[k].segments, outcomes[k].vertical_direction, ground)
         )
-        jobs.append((task, segs, vertical, ground))
     logger.info(
         "%d failed or weak image(s) registered again against the solved block",
         len(jobs),
@@ -857,10 +866,9 @@ def reregister_failed(
                 o.message += f"; against the solved block: {result.message}"
             continue
         _set_registration(o, result)
-        o.camera = job[0].camera
         o.reregistered = True
         poses[o.image_id] = result.cam_from_world
-        cameras[o.image_id] = job[0].camera
+        cameras[o.image_id] = job[0].start
         planes[o.image_id] = result.height_plane.copy()
         names.append(o.name)
     return BlockState(poses, cameras, planes, state.shared), names
@@ -898,6 +906,78 @@ def _head_offsets(
             strict=True,
         )
     )
+
+
+def head_cameras(
+    tasks: Sequence[_ImageTask], outcomes: Sequence[ImageOutcome], min_inliers: int
+) -> dict[int, Camera]:
+    """Per camera_id, the median intrinsics of its images whose stage 2
+    refined the lens with at least ``min_inliers`` inlier corners.
+
+    The images of one head share one lens and focal length; one image's
+    estimate is weak (focal, k1 and pitch share a near-degenerate mode and
+    the priors pull them back), their median much less so.
+    """
+    params: dict[int, list[np.ndarray]] = {}
+    cams: dict[int, Camera] = {}
+    for t, o in zip(tasks, outcomes, strict=True):
+        r = o.registration
+        if r is None or not (r.success and r.distortion_refined):
+            continue
+        if r.num_inliers < min_inliers or o.camera is None:
+            continue
+        cid = t.camera.camera_id
+        params.setdefault(cid, []).append(o.camera.params)
+        cams[cid] = o.camera
+    return {
+        cid: Camera(
+            cams[cid].model,
+            cams[cid].width,
+            cams[cid].height,
+            np.median(np.array(p), axis=0),
+            cid,
+        )
+        for cid, p in params.items()
+    }
+
+
+def _head_pass(
+    pool: _Workers,
+    tasks: list[_ImageTask],
+    outcomes: list[ImageOutcome],
+    options: PipelineOptions,
+) -> list[str]:
+    """Register every image again from its head's median lens and focal
+    (:func:`head_cameras`); keep the result with more inlier corners. The
+    tasks keep that start (for the rescue). Returns the improved images."""
+    heads = head_cameras(tasks, outcomes, options.rescue_min_inliers)
+    todo = [
+        k
+        for k, (t, o) in enumerate(zip(tasks, outcomes, strict=True))
+        if o.registration is not None
+        and t.camera.camera_id in heads
+        and len(o.segments) >= options.registration.min_segments
+    ]
+    if not todo:
+        return []
+    logger.info(
+        "stage 2 again from the heads' lenses: %s",
+        {cid: np.round(c.params, 4).tolist() for cid, c in heads.items()},
+    )
+    for k in todo:
+        tasks[k] = _replace(tasks[k], start=heads[tasks[k].camera.camera_id])
+    jobs = [
+        (tasks[k], outcomes[k].segments, outcomes[k].vertical_direction, None)
+        for k in todo
+    ]
+    tries = pool.map(_reregister, jobs, "stage 2, heads' lenses")
+    names = []
+    for k, new in zip(todo, tries, strict=True):
+        old = outcomes[k].registration
+        if new.success and (not old.success or new.num_inliers >= old.num_inliers):
+            _set_registration(outcomes[k], new)
+            names.append(outcomes[k].name)
+    return names
 
 
 def _result_block(inputs: Inputs, state: BlockState) -> Block:

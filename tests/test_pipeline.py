@@ -360,24 +360,6 @@ def test_robust_offsets_apply_only_a_significant_systematic_part():
     assert np.all(_robust_offsets([noise[0, 0, :2] + 5.0])[0] == 0.0)  # too few
 
 
-def test_in_camera_keeps_the_raw_pixels_and_the_vanishing_point():
-    from obliq_colmap.geometry import Camera
-    from obliq_colmap.pipeline import _in_camera
-
-    old = Camera("PINHOLE", 1000, 700, np.array([1200.0, 1200.0, 500.0, 350.0]), 1)
-    new = Camera("SIMPLE_RADIAL", 1000, 700, np.array([1300.0, 510.0, 340.0, -0.05]), 1)
-    segs = np.array([[[100.0, 200.0], [120.0, 600.0]], [[800.0, 50.0], [790.0, 400.0]]])
-    n = np.array([0.05, 0.8, 0.6])
-    n /= np.linalg.norm(n)
-    segs2, n2 = _in_camera(segs, n, old, new)
-    raw = new.distort_pixels(segs2.reshape(-1, 2)).reshape(-1, 2, 2)
-    assert np.allclose(raw, segs, atol=1e-6)
-    vp_old = old.K @ n
-    vp_new = new.K @ n2
-    assert np.allclose(vp_old[:2] / vp_old[2], vp_new[:2] / vp_new[2])
-    assert n2 @ n > 0 and abs(np.linalg.norm(n2) - 1.0) < 1e-12
-
-
 def test_bundle_starts_each_head_from_the_median_lens_of_its_images():
     """Stage 2's per-image k1 -> one start lens per camera_id (the median over
     the images that refined it), the focal as the median ratio to the prior."""
@@ -428,3 +410,51 @@ def test_bundle_starts_each_head_from_the_median_lens_of_its_images():
     )
     assert np.linalg.norm(und - seg, axis=-1).max() > 5.0  # barrel: 6 px there
     assert _in_camera(prior, prior, seg) is seg
+
+
+def test_head_cameras_are_the_median_of_the_confident_refined_images():
+    from pathlib import Path as _P
+
+    from obliq_colmap.geometry import Camera, Pose
+    from obliq_colmap.pipeline import ImageOutcome, _ImageTask, head_cameras
+    from obliq_colmap.registration import RegistrationOptions, RegistrationResult
+
+    prior = Camera("RADIAL", 1000, 667, [1000.0, 500.0, 333.5, 0.0, 0.0], 3)
+    rows = [  # (focal, k1, inliers, refined)
+        (1010.0, -0.05, 40, True),
+        (1030.0, -0.03, 50, True),
+        (1020.0, -0.04, 60, True),
+        (900.0, 0.10, 10, True),  # too few inliers
+        (1200.0, 0.0, 90, False),  # lens not refined
+    ]
+    tasks, outcomes = [], []
+    for i, (f, k, n, refined) in enumerate(rows):
+        tasks.append(
+            _ImageTask(
+                i,
+                f"{i}",
+                _P(f"{i}"),
+                prior,
+                Pose(),
+                10.0,
+                None,
+                RegistrationOptions(),
+                "RADIAL",
+            )
+        )
+        cam = Camera("RADIAL", 1000, 667, [f, 500.0, 333.5, k, 0.0], 3)
+        r = RegistrationResult(
+            True,
+            Pose(),
+            np.array([0, 0, 1.0]),
+            num_inliers=n,
+            distortion_refined=refined,
+            camera=cam,
+        )
+        outcomes.append(
+            ImageOutcome(i, f"{i}", "registered", registration=r, camera=cam)
+        )
+    heads = head_cameras(tasks, outcomes, 20)
+    assert set(heads) == {3}
+    np.testing.assert_allclose(heads[3].params, [1020.0, 500.0, 333.5, -0.04, 0.0])
+    assert head_cameras(tasks, outcomes, 100) == {}
