@@ -379,10 +379,11 @@ def test_bundle_starts_each_head_from_the_median_lens_of_its_images():
     ks = {1: -0.05, 2: -0.04, 3: -0.06, 4: 0.0}  # image 4: too weak to refine
     focals = {1: 1010.0, 2: 1020.0, 3: 1030.0, 4: 1000.0}
     state = SimpleNamespace(
+        shared=False,
         cameras={
             i: Camera("RADIAL", 1000, 667, [focals[i], 500.0, 333.5, ks[i], 0.0], 7)
             for i in images
-        }
+        },
     )
     outcomes = {
         i: ImageOutcome(
