@@ -235,6 +235,7 @@ def facade_stage(
                 state.ground(i),
                 inputs.cadastre,
                 options.facades,
+                seg.pixel_scale,
             )
         )
     grounds = np.array([state.planes[i] for i in ids]).reshape(-1, 3)

@@ -21,6 +21,10 @@ that point). A segment is kept for a wall when
 * the wall is seen at a usable angle (the wall's horizontals are not nearly
   parallel to the projected vertical, where ``dist_z`` is undefined).
 
+Lengths and offsets are in pixels of the image the segments were DETECTED in
+(``Segments.pixel_scale``): the first pass runs LSD on a reduced copy of a
+big image, and its endpoints' noise is about constant in those pixels.
+
 The result is plain arrays, one row per (segment, wall) pair: a segment in
 the bands of two walls (a building behind another) is kept for both; the
 cross-image matching (:mod:`obliq_colmap.matching`) decides.
@@ -56,10 +60,11 @@ class FacadeOptions:
     #: higher here because roof rims of tall buildings are among the best
     #: horizontal edges, and the lower bound covers ground-height errors.
     height_range_m: tuple[float, float] = (-20.0, 60.0)
-    #: Shortest horizontal segment used (px).
+    #: Shortest horizontal segment used (px of the detection image).
     min_length_px: float = 15.0
-    #: A segment's endpoints may lie this far (px) from the wall's horizontal
-    #: through its midpoint (its direction must agree with the wall's).
+    #: A segment's endpoints may lie this far (px of the detection image)
+    #: from the wall's horizontal through its midpoint (its direction must
+    #: agree with the wall's).
     max_endpoint_offset_px: float = 1.5
     #: Walls seen more obliquely than this (angle between the wall's image
     #: horizontal and the projected vertical, deg) are skipped.
@@ -97,6 +102,8 @@ class FacadeEdges:
     px_per_m : (K,) array, image length of one metre of that vertical (px).
     polarity : (K,) int array, +1 when the brighter side is up the wall.
     length : (K,) array, segment length (px).
+    pixel_scale : (K,) array, pixels per pixel of the detection image (the
+        unit of the segment's localisation noise, ``Segments.pixel_scale``).
     """
 
     edge: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
@@ -108,6 +115,7 @@ class FacadeEdges:
     px_per_m: np.ndarray = field(default_factory=lambda: np.zeros(0))
     polarity: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
     length: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    pixel_scale: np.ndarray = field(default_factory=lambda: np.zeros(0))
 
     def __len__(self) -> int:
         return len(self.edge)
@@ -149,6 +157,7 @@ def facade_edges(
     ground: Callable[[np.ndarray], np.ndarray],
     cadastre: Cadastre,
     options: FacadeOptions | None = None,
+    pixel_scale: float = 1.0,
 ) -> FacadeEdges:
     """Horizontal segments on the potentially visible walls of one image.
 
@@ -165,6 +174,9 @@ def facade_edges(
         plane, same datum as the pose).
     cadastre : Cadastre
     options : FacadeOptions
+    pixel_scale : float, pixels of ``endpoints`` per pixel of the image they
+        were detected in (``Segments.pixel_scale``): the unit of the options'
+        pixel tolerances.
 
     Returns
     -------
@@ -174,7 +186,7 @@ def facade_edges(
     ends = np.asarray(endpoints, float).reshape(-1, 2, 2)
     normals = np.asarray(normals, float).reshape(-1, 2)
     seg_len = np.linalg.norm(ends[:, 1] - ends[:, 0], axis=1)
-    keep = np.flatnonzero(seg_len >= options.min_length_px)
+    keep = np.flatnonzero(seg_len >= options.min_length_px * pixel_scale)
     if len(keep) == 0:
         return FacadeEdges()
     lo, hi = options.height_range_m
@@ -214,7 +226,7 @@ def facade_edges(
     rows: list[dict[str, np.ndarray]] = []
     for w0 in range(0, len(walls), options.chunk_walls):
         sl = slice(w0, w0 + options.chunk_walls)
-        r = _match_chunk(H[sl], vp_h[sl], length[sl], mid_h, S, options)
+        r = _match_chunk(H[sl], vp_h[sl], length[sl], mid_h, S, options, pixel_scale)
         r["wall"] = r["wall"] + w0
         rows.append(r)
     wall_idx = np.concatenate([r["wall"] for r in rows])
@@ -238,6 +250,7 @@ def facade_edges(
         px_per_m=ppm,
         polarity=polarity.astype(np.int64),
         length=seg_len[segs],
+        pixel_scale=np.full(len(segs), float(pixel_scale)),
     )
 
 
@@ -248,6 +261,7 @@ def _match_chunk(
     mid_h: np.ndarray,
     S: np.ndarray,
     options: FacadeOptions,
+    pixel_scale: float,
 ) -> dict[str, np.ndarray]:
     """Segments (M) against walls (W) of one chunk; the kept pairs' data."""
     lo, hi = options.height_range_m
@@ -293,7 +307,7 @@ def _match_chunk(
     h_dir = np.column_stack([hline[:, 1], -hline[:, 0]])
     cos_hv = np.abs(np.sum(h_dir * up_hat, axis=1))
     sharp = cos_hv <= math.cos(math.radians(options.min_vertical_angle_deg))
-    good = (offset <= options.max_endpoint_offset_px) & sharp & (ppm > 0)
+    good = (offset <= options.max_endpoint_offset_px * pixel_scale) & sharp & (ppm > 0)
     # Height of the segment's own line on the vertical through its midpoint.
     seg_line = np.cross(ends_h[:, 0], ends_h[:, 1])
     seg_line /= np.linalg.norm(seg_line[:, :2], axis=1, keepdims=True)

@@ -56,11 +56,17 @@ class Segments:
     strength : (N,) float array
         Mean gradient magnitude across the segment, grey levels per pixel
         (0-255 images), measured at the resolution of detection.
+    pixel_scale : float
+        Pixels of ``endpoints`` per pixel of the image the segments were
+        detected in (``max(W, H) / LineOptions.max_image_size_px`` for a big
+        image, else 1). The endpoints' localisation noise is about constant in
+        detection pixels, so tolerances on these segments scale with it.
     """
 
     endpoints: np.ndarray = field(default_factory=lambda: np.zeros((0, 2, 2)))
     normal: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))
     strength: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    pixel_scale: float = 1.0
 
     def __post_init__(self) -> None:
         self.endpoints = np.asarray(self.endpoints, float).reshape(-1, 2, 2)
@@ -96,12 +102,20 @@ class Segments:
 
     def subset(self, index: np.ndarray) -> Segments:
         """The segments selected by a boolean mask or an index array."""
-        return Segments(self.endpoints[index], self.normal[index], self.strength[index])
+        return Segments(
+            self.endpoints[index],
+            self.normal[index],
+            self.strength[index],
+            self.pixel_scale,
+        )
 
     def scaled(self, factor: float) -> Segments:
         """Coordinates multiplied by ``factor`` (a resize in COLMAP pixels)."""
         return Segments(
-            self.endpoints * factor, self.normal.copy(), self.strength.copy()
+            self.endpoints * factor,
+            self.normal.copy(),
+            self.strength.copy(),
+            self.pixel_scale * factor,
         )
 
     def undistorted(self, camera: Camera | None) -> Segments:
@@ -113,7 +127,12 @@ class Segments:
         if camera is None or not camera.has_distortion or len(self) == 0:
             return self
         xy = camera.undistort_pixels(self.endpoints.reshape(-1, 2))
-        out = Segments(xy.reshape(-1, 2, 2), self.normal.copy(), self.strength.copy())
+        out = Segments(
+            xy.reshape(-1, 2, 2),
+            self.normal.copy(),
+            self.strength.copy(),
+            self.pixel_scale,
+        )
         # The bright side keeps its side of the (slightly rotated) segment.
         d = out.directions
         left = np.stack([d[:, 1], -d[:, 0]], axis=1)
@@ -123,13 +142,14 @@ class Segments:
 
     @classmethod
     def concatenate(cls, parts: list[Segments]) -> Segments:
-        """All segments of ``parts`` in one set."""
+        """All segments of ``parts`` in one set (the coarsest ``pixel_scale``)."""
         if not parts:
             return cls()
         return cls(
             np.concatenate([p.endpoints for p in parts]),
             np.concatenate([p.normal for p in parts]),
             np.concatenate([p.strength for p in parts]),
+            max(p.pixel_scale for p in parts),
         )
 
 
@@ -764,6 +784,7 @@ def detect_segments(image: np.ndarray, options: LineOptions | None = None) -> Se
     sx, sy = W / img.shape[1], H / img.shape[0]
     if sx != 1.0 or sy != 1.0:
         segs.endpoints = segs.endpoints * np.array([sx, sy])
+        segs.pixel_scale = max(sx, sy)
     logger.debug(
         "%d segments (%s, detection at %dx%d)",
         len(segs),

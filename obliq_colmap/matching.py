@@ -57,6 +57,8 @@ class MatchingOptions:
     #: Inlier threshold of the planar-offset RANSAC, pixels along the
     #: projected vertical, in the coarser of the two images (the paper: 2 px;
     #: 1 px here: 18/36 -> 36/36 images below 2 px on the `paper` preset).
+    #: Pixels of the image the segments were detected in
+    #: (``FacadeEdges.pixel_scale``: their localisation noise lives there).
     inlier_threshold_px: float = 1.0
     #: Image pairs need this many shared walls with candidates.
     min_shared_walls: int = 3
@@ -268,8 +270,11 @@ def match_pair(
     t = 0.5 * (fa.height[ia] + fb.height[ib])
     dz = fa.height[ia] - fb.height[ib]
     D = _design(xy, t)
-    # Threshold in metres: inlier_threshold_px in the coarser image.
-    thr = options.inlier_threshold_px / np.minimum(fa.px_per_m[ia], fb.px_per_m[ib])
+    # Threshold in metres: inlier_threshold_px (detection pixels) in the
+    # coarser image.
+    thr = options.inlier_threshold_px * np.maximum(
+        fa.pixel_scale[ia] / fa.px_per_m[ia], fb.pixel_scale[ib] / fb.px_per_m[ib]
+    )
     max_slope = math.tan(math.radians(options.max_tilt_deg))
     prior_sigma = np.array(
         [max_slope / 2, max_slope / 2, options.max_offset_m, options.max_scale / 2]

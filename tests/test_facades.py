@@ -124,6 +124,30 @@ def test_horizontal_wall_segments_are_found_at_their_heights(scene):
     )
 
 
+def test_pixel_tolerances_are_in_detection_pixels(scene):
+    """Segments detected at half resolution (``pixel_scale`` 2): the length
+    and direction tolerances are in those pixels, i.e. twice as many pixels
+    of the full image."""
+    cad, cam, (pose, _) = scene
+    px = _project(cam, pose, _south_wall_segments(100.0, -10.0, 10.0, [3.0, 8.0]))
+    d = px[:, 1] - px[:, 0]
+    n = np.column_stack([d[:, 1], -d[:, 0]]) / np.linalg.norm(d, axis=1)[:, None]
+    o = FacadeOptions()
+    # segment 0: one end moved 4 px across, both ends 2 px off the wall's
+    # horizontal through the midpoint (1.5 px allowed at full resolution, 3 px
+    # at half); segment 1: shortened to 20 px (15 / 30 px needed).
+    tilted = px.copy()
+    tilted[0, 1] += 4.0 * n[0]
+    mid = px[1].mean(axis=0)
+    u = d[1] / np.linalg.norm(d[1])
+    tilted[1] = [mid - 10.0 * u, mid + 10.0 * u]
+    z = lambda xy: np.zeros(len(xy))  # noqa: E731
+    full = facade_edges(tilted, n, cam, pose, z, cad, o, pixel_scale=1.0)
+    half = facade_edges(tilted, n, cam, pose, z, cad, o, pixel_scale=2.0)
+    assert set(full.segment) == {1} and set(half.segment) == {0}
+    assert np.all(half.pixel_scale == 2.0) and np.all(full.pixel_scale == 1.0)
+
+
 def test_polarity_says_which_side_is_brighter(scene):
     cad, cam, (pose, _) = scene
     px = _project(cam, pose, _south_wall_segments(100.0, -10.0, 10.0, [5.0]))

@@ -68,6 +68,13 @@ def test_reduced_resolution_returns_full_resolution_pixels(detector):
     # Detection at 1/4 resolution: within a quarter of a detection pixel.
     np.testing.assert_allclose(segs.endpoints[longest, :, 0], 801.0, atol=1.0)
     assert segs.lengths[longest] > 1000
+    # The endpoints' noise unit: 4 full-resolution pixels per detection pixel,
+    # kept by the set's operations.
+    assert segs.pixel_scale == pytest.approx(4.0)
+    assert segs.subset([longest]).pixel_scale == pytest.approx(4.0)
+    assert Segments.concatenate([segs, Segments()]).pixel_scale == pytest.approx(4.0)
+    full = detect_segments(img, LineOptions(detector=detector, max_image_size_px=None))
+    assert full.pixel_scale == 1.0
 
 
 def test_slanted_edge_subpixel():
