@@ -60,7 +60,7 @@ import dataclasses
 import logging
 import math
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -141,7 +141,15 @@ class RegistrationOptions:
         RANSAC candidates: segments within this distance (px) across the
         projected vertical of the coarse pose.
     inlier_threshold_px : float
-        Mahalanobis inlier threshold, in pixels across the segment.
+        Mahalanobis inlier threshold, in pixels across the segment: the
+        least threshold (the segments' localisation, px) ...
+    inlier_threshold_m : float
+        ... and the threshold on the ground (m) for the map's vertex noise,
+        which lives in metres: converted with the image's scale (focal length
+        over the median depth of the corners in view, px per m), the larger
+        of the two is used. 0.3 m is 2 sigma of a map with 0.15 m vertex noise
+        (2 px at 0.15 m/px; 4 px at 0.075 m/px, where a fixed 2 px kept only
+        the inliers within 1 sigma); 0 keeps the threshold in pixels.
     along_segment_stretch : float
         The inlier ellipse is this many times longer along the segment than
         across it (the segment's bottom vs the corner on the height function).
@@ -230,6 +238,7 @@ class RegistrationOptions:
     candidate_height_tolerance_m: float = 12.0
     ransac_radius_px: float = 16.0
     inlier_threshold_px: float = 2.0
+    inlier_threshold_m: float = 0.3
     along_segment_stretch: float = 5.0
     confidence: float = 0.99
     min_trials: int = 200
@@ -280,6 +289,8 @@ class RegistrationOptions:
                 raise ValueError(
                     f"RegistrationOptions.{name} must be > 0, got {value!r}"
                 )
+        if not self.inlier_threshold_m >= 0:
+            raise ValueError("RegistrationOptions.inlier_threshold_m must be >= 0")
         if not self.prior_focal_sigma >= 0:
             raise ValueError("RegistrationOptions.prior_focal_sigma must be >= 0")
         if self.search_radius_px is not None and not self.search_radius_px > 0:
@@ -650,6 +661,23 @@ def _mahalanobis2(
 # --------------------------------------------------------------------------
 # Steps 2-3: Hough votes over (alpha, c_x, c_y[, ground height])
 # --------------------------------------------------------------------------
+
+
+def inlier_threshold_px(options: RegistrationOptions, px_per_m: float) -> float:
+    """The inlier threshold (px) of an image of ``px_per_m`` pixels per metre
+    across its verticals (focal length / depth): the larger of the pixel
+    threshold (edge localisation) and the ground threshold (map noise)."""
+    return max(options.inlier_threshold_px, options.inlier_threshold_m * px_per_m)
+
+
+def _at_image_scale(
+    options: RegistrationOptions, focal_px: float, depth_m: float
+) -> RegistrationOptions:
+    """``options`` with ``inlier_threshold_px`` at the image's scale (the
+    threshold and everything derived from it: RANSAC, inlier assignment,
+    the robust scale of the refinement, the building test, re-scoring)."""
+    thr = inlier_threshold_px(options, focal_px / depth_m)
+    return replace(options, inlier_threshold_px=thr, inlier_threshold_m=0.0)
 
 
 def _search_windows(view: _View, options: RegistrationOptions, depth_m: float):
@@ -1678,6 +1706,7 @@ def register_image(
         best_try.depth_m,
         best_try.cand,
     )
+    options = _at_image_scale(options, view.focal, depth_m)
     alpha_r, c_r, plane_r, n_best, trials = (
         best_try.alpha,
         best_try.c_xy,
@@ -1881,6 +1910,7 @@ def _try_start(
     if len(front) < 3:
         return None
     depth_m = float(np.median(front))
+    options = _at_image_scale(options, view.focal, depth_m)
     # 3. Fine pose vote within two coarse cells, pairs near the ground height.
     band_px = (
         2.0 * coarse.d_c * view.focal / depth_m + 2.0 * coarse.d_alpha * view.focal

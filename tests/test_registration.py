@@ -27,6 +27,7 @@ from obliq_colmap.geometry import (
 from obliq_colmap.registration import (
     RegistrationOptions,
     draw_registration_overlay,
+    inlier_threshold_px,
     register_image,
 )
 
@@ -583,6 +584,19 @@ def test_map_out_of_view_fails(block):
 def test_bad_input_raises(block, segments, n, match):
     with pytest.raises(ValueError, match=match):
         register_image(segments, n, block.camera, block.pose, block.cadastre)
+
+
+def test_inlier_threshold_follows_the_ground_sampling():
+    """The map's vertex noise lives in metres: at twice the pixels per metre
+    the inlier threshold doubles, down to the pixel threshold (edge noise)."""
+    o = RegistrationOptions(inlier_threshold_px=2.0, inlier_threshold_m=0.3)
+    assert inlier_threshold_px(o, 1 / 0.15) == pytest.approx(2.0)
+    assert inlier_threshold_px(o, 1 / 0.075) == pytest.approx(4.0)
+    assert inlier_threshold_px(o, 1 / 0.3) == pytest.approx(2.0)
+    pixels_only = dataclasses.replace(o, inlier_threshold_m=0.0)
+    assert inlier_threshold_px(pixels_only, 1 / 0.075) == pytest.approx(2.0)
+    with pytest.raises(ValueError, match="inlier_threshold_m"):
+        RegistrationOptions(inlier_threshold_m=-1.0)
 
 
 def test_options_validate():
