@@ -74,6 +74,8 @@ class AdjustmentOptions:
     #: Bundle rounds after the first that drop the constraints whose residual
     #: exceeds ``outlier_factor`` robust standard deviations (of their kind)
     #: and at least ``outlier_floor_px``, then solve again from the result.
+    #: The floor is in pixels of the image its segments were detected in (the
+    #: facade lines: ``Segments.pixel_scale``), where their noise lives.
     outlier_rounds: int = 5
     outlier_factor: float = 3.0
     outlier_floor_px: float = 1.0
@@ -473,9 +475,14 @@ def bundle_stage(
             # Per horizontal row: the track observation it is (facade rows)
             # or -1 (ground rows); filtered with the rows.
             obs = stage3.row_obs
+            scale_obs = _observation_pixel_scale(stage3)
             for _ in range(options.outlier_rounds):
                 problem, kv, kh = without_outliers(
-                    problem, result, options.outlier_factor, options.outlier_floor_px
+                    problem,
+                    result,
+                    options.outlier_factor,
+                    options.outlier_floor_px,
+                    horizontal_pixel_scale=scale_obs[obs],
                 )
                 obs = obs[kh]
                 if options.track_lines:
@@ -500,6 +507,14 @@ def bundle_stage(
             stage3.bundle_rms = _rms_per_image(problem, result)
     timings["bundle"] = time.perf_counter() - t0
     return state, result, stage3
+
+
+def _observation_pixel_scale(stage3: Stage3) -> np.ndarray:
+    """(H,) per track observation its segment's ``pixel_scale``."""
+    t = stage3.tracks
+    scale = np.concatenate([f.pixel_scale for f in stage3.facades] + [np.zeros(0)])
+    offset = np.cumsum([0] + [len(f) for f in stage3.facades])
+    return scale[offset[t.image] + t.row] if t.num_observations else np.zeros(0)
 
 
 def _rms_per_image(
@@ -613,23 +628,31 @@ def with_track_lines(
 
 
 def without_outliers(
-    problem: BundleProblem, result: BundleResult, factor: float, floor_px: float
+    problem: BundleProblem,
+    result: BundleResult,
+    factor: float,
+    floor_px: float,
+    horizontal_pixel_scale: np.ndarray | None = None,
 ) -> tuple[BundleProblem, np.ndarray, np.ndarray]:
     """The problem without the constraints the solved block rejects.
 
     A residual is an outlier when it exceeds ``factor`` robust standard
-    deviations (1.4826 MAD) of the residuals of its kind, and ``floor_px``.
+    deviations (1.4826 MAD) of the residuals of its kind, and ``floor_px``
+    (for a horizontal row times its ``horizontal_pixel_scale`` (H,): pixels
+    of the image its segment was detected in; default 1).
     Facade heights no longer observed keep their slot (unobserved heights
     are eliminated per residual anyway). Returns the reduced problem, started
     at the result, and the masks of the kept vertical and horizontal
     constraints.
     """
 
-    def keep(r: np.ndarray) -> np.ndarray:
-        return np.abs(r) <= max(factor * _robust_sigma(r, 0.0), floor_px)
+    def keep(r: np.ndarray, floor: np.ndarray | float) -> np.ndarray:
+        return np.abs(r) <= np.maximum(factor * _robust_sigma(r, 0.0), floor)
 
-    kv = keep(result.vertical_residuals_px)
-    kh = keep(result.horizontal_residuals_px)
+    rh = result.horizontal_residuals_px
+    scale = 1.0 if horizontal_pixel_scale is None else horizontal_pixel_scale
+    kv = keep(result.vertical_residuals_px, floor_px)
+    kh = keep(rh, floor_px * np.broadcast_to(scale, rh.shape))
     p = problem
     reduced = BundleProblem(
         cameras=result.cameras,
