@@ -80,6 +80,7 @@ def bench_scene(scene: Path, args: argparse.Namespace) -> dict:
             refine_distortion=bool(args.refine_extra_params),
         ),
         adjustment=adjustment,
+        reregister_failed=bool(args.reregister_failed),
     )
     t0 = time.perf_counter()
     run = run_register(
@@ -102,6 +103,8 @@ def bench_scene(scene: Path, args: argparse.Namespace) -> dict:
         "stop_after": args.stop_after,
         "camera_model": args.camera_model,
         "refine_extra_params": int(args.refine_extra_params),
+        "reregister_failed": int(args.reregister_failed),
+        "reregistered": run.report.get("reregistered", []),
         "num_workers": options.workers,
         "wall_s": wall,
         "time_s": run.report["time_s"],
@@ -158,6 +161,14 @@ def add_run_arguments(parser: argparse.ArgumentParser) -> None:
         choices=(0, 1),
         default=0,
         help="refine the distortion in the bundle (register's option)",
+    )
+    parser.add_argument(
+        "--reregister_failed",
+        type=int,
+        choices=(0, 1),
+        default=1,
+        help="register failed or weak images again against the solved block "
+        "(PipelineOptions.reregister_failed)",
     )
 
 
