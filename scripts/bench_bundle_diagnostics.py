@@ -97,19 +97,9 @@ def track_residuals_at_truth(scene: Path, inputs, stage3, problem) -> None:
             sigma,
         )
         X = np.column_stack([t.anchor_xy + d[:, None] * normal, h])[t.track]
-        r = np.full(t.num_observations, np.nan)
-        for k in range(len(stage3.ids)):
-            sel = np.flatnonzero(t.image == k)
-            n = len(sel)
-            r[sel] = res.horizontal_residuals(
-                cams[k].model,
-                cams[k].params,
-                np.repeat(poses[k].rotation[None], n, 0),
-                np.repeat(poses[k].center[None], n, 0),
-                X[sel],
-                problem.horizontal_line[sel],
-                jacobians=False,
-            ).residuals
+        r = res.horizontal_residuals_by_image(
+            cams, poses, t.image, X, problem.horizontal_line
+        )
         print(f"  tracks as a {label}: {_percentiles(r)}")
 
 

@@ -298,21 +298,9 @@ def stage3_report(scene, inputs, outcomes, options, gt, gtb, by_name) -> None:
         t.image, t.track, stage3b.ends_raw, cams, poses, t.anchor_xy, normal, ppm, 1e6
     )
     X = np.column_stack([t.anchor_xy + d[:, None] * normal, h])[t.track]
-    rh = np.full(t.num_observations, np.nan)
-    for k in range(len(stage3.ids)):
-        sel = np.flatnonzero(t.image == k)
-        n = len(sel)
-        if n == 0:
-            continue
-        rh[sel] = res.horizontal_residuals(
-            cams[k].model,
-            cams[k].params,
-            np.repeat(poses[k].rotation[None], n, 0),
-            np.repeat(poses[k].center[None], n, 0),
-            X[sel],
-            problem.horizontal_line[sel],
-            jacobians=False,
-        ).residuals
+    rh = res.horizontal_residuals_by_image(
+        cams, poses, t.image, X, problem.horizontal_line
+    )
     cnt = np.bincount(t.track)[t.track]
     print(f"  at the TRUE cameras: vertical ({len(rv)}) {_q(rv)}")
     print(

@@ -658,3 +658,40 @@ def test_residual_kinds_are_weighted_by_their_sigmas(noisy):
     ).summary
     assert heavy.final_rmse_horizontal_px < even.final_rmse_horizontal_px
     assert heavy.final_rmse_vertical_px > even.final_rmse_vertical_px
+
+
+def test_horizontal_residuals_by_image_match_the_per_image_calls():
+    from obliq_colmap.bundle import residuals as res
+    from obliq_colmap.geometry import Camera, Pose, rotation_from_axis_angle
+
+    rng = np.random.default_rng(5)
+    cams = [
+        Camera("PINHOLE", 1000, 700, np.array([1100.0, 1100.0, 500.0, 350.0]), 1),
+        Camera("SIMPLE_RADIAL", 1000, 700, np.array([1200.0, 490.0, 360.0, -0.03]), 2),
+    ]
+    poses = [
+        Pose.from_center(
+            rotation_from_axis_angle([2.3, 0.1, 0.0]), [0.0, -300.0, 300.0]
+        ),
+        Pose.from_center(
+            rotation_from_axis_angle([2.2, 0.0, 0.2]), [50.0, -280.0, 310.0]
+        ),
+    ]
+    image = np.array([1, 0, 1, 0, 0])
+    X = np.column_stack([rng.uniform(-50, 50, (5, 2)), rng.uniform(0, 30, 5)])
+    lines = np.column_stack(
+        [rng.normal(0, 0.05, 5), np.ones(5), -rng.uniform(200, 500, 5)]
+    )
+    r = res.horizontal_residuals_by_image(cams, poses, image, X, lines)
+    for i in range(5):
+        c, p = cams[image[i]], poses[image[i]]
+        one = res.horizontal_residuals(
+            c.model,
+            c.params,
+            p.rotation[None],
+            p.center[None],
+            X[i : i + 1],
+            lines[i : i + 1],
+            jacobians=False,
+        ).residuals
+        assert np.isfinite(r[i]) and r[i] == one[0]

@@ -55,11 +55,12 @@ signed perpendicular distance of the pixel ``p`` from the line.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
 
-from ..geometry import SUPPORTED_MODELS
+from ..geometry import SUPPORTED_MODELS, Camera, Pose
 
 __all__ = [
     "FULL_PARAM_NAMES",
@@ -507,3 +508,33 @@ def horizontal_residuals(
         "ni,nij->nj", g_d, dd_dparams
     )
     return ResidualJacobians(r, d_pose, d_params, np.einsum("ni,ni->n", dr_dX, ez_cam))
+
+
+def horizontal_residuals_by_image(
+    cameras: Sequence[Camera],
+    poses: Sequence[Pose],
+    image: np.ndarray,
+    points_world: np.ndarray,
+    lines: np.ndarray,
+) -> np.ndarray:
+    """(H,) ``dist_z`` residuals (px) of observations in several images.
+
+    ``image`` (H,) indexes ``cameras`` and ``poses`` (one per image);
+    ``points_world`` (H, 3), ``lines`` (H, 3) raw pixels. For diagnostics at
+    given cameras (e.g. the true ones), outside the solver.
+    """
+    r = np.full(len(image), np.nan)
+    for k, (cam, pose) in enumerate(zip(cameras, poses, strict=True)):
+        sel = np.flatnonzero(image == k)
+        if len(sel) == 0:
+            continue
+        r[sel] = horizontal_residuals(
+            cam.model,
+            cam.params,
+            np.repeat(pose.rotation[None], len(sel), 0),
+            np.repeat(pose.center[None], len(sel), 0),
+            points_world[sel],
+            lines[sel],
+            jacobians=False,
+        ).residuals
+    return r
