@@ -113,6 +113,14 @@ def main(argv=None) -> int:
         help="ground height (m) in the PRIOR's vertical datum (stage 2's "
         "--ground_height); default: searched",
     )
+    ap.add_argument(
+        "--allow_vp_in_frame",
+        type=int,
+        choices=(0, 1),
+        default=0,
+        help="1: register although the vertical VP lies inside the frame "
+        "(RegistrationOptions.allow_vp_in_frame; the default refuses near-nadir views)",
+    )
     ap.add_argument("--overlay", help="write the registration overlay PNG here")
     ap.add_argument("--output", help="JSON file for the figures")
     args = ap.parse_args(argv)
@@ -174,6 +182,7 @@ def main(argv=None) -> int:
         height_range_m=(0.0, float(verts[:, 2].max() - ground_z)),
         vp_tolerance_deg=vtol,
         ground_height=args.ground_height,
+        allow_vp_in_frame=bool(args.allow_vp_in_frame),
     )
     t0 = time.perf_counter()
     r = register_image(seg, n, cam, prior, cad, opts, segments_undistorted=True)

@@ -573,6 +573,42 @@ def test_map_out_of_view_fails(block):
     assert result.message
 
 
+def test_near_nadir_view_fails_with_message(block):
+    """A view 2 deg off nadir has its vertical VP inside the frame: the
+    registration refuses it with a message (unless allowed); the oblique
+    test block's VP lies below the frame and passes the check."""
+    nadir = oblique_pose(block.pose.center, 0.0, 2.0)
+    result = register_image(
+        block.segments,
+        vertical_of(nadir),
+        block.camera,
+        nadir,
+        block.cadastre,
+        segments_undistorted=True,
+    )
+    assert not result.success
+    assert "near-nadir view" in result.message and "inside" in result.message
+    allowed = register_image(
+        block.segments,
+        vertical_of(nadir),
+        block.camera,
+        nadir,
+        block.cadastre,
+        RegistrationOptions(allow_vp_in_frame=True),
+        segments_undistorted=True,
+    )
+    assert "near-nadir" not in allowed.message
+    oblique = register_image(
+        block.segments,
+        vertical_of(block.pose),
+        block.camera,
+        perturbed_prior(block.pose, 8),
+        block.cadastre,
+        segments_undistorted=True,
+    )
+    assert oblique.success
+
+
 @pytest.mark.parametrize(
     ("segments", "n", "match"),
     [
