@@ -12,6 +12,11 @@ some of its image observations replaced by exact ones, from the TRUE cameras:
   triangulated at the true cameras as a free 3D horizontal line (offset from
   the wall and height), and that line's offset is the row's anchor.
 
+Both are the tangents of those (distorted) images at the points the
+residuals project, so exact rows have zero residual at the truth. The true
+cameras are moved into the problem's vertical datum (the median camera
+height difference; ``evaluate`` removes one vertical offset anyway).
+
 Gaussian noise (``--vertical_noise_px``, ``--horizontal_noise_px``) is added
 across the exact lines. Variants (each solved from the true cameras unless
 said otherwise, and scored with ``evaluate``'s full and across-vertical
@@ -50,7 +55,7 @@ import bench_resolution as br  # noqa: E402
 
 from obliq_colmap import adjustment as adj  # noqa: E402
 from obliq_colmap.bundle import BundleProblem, solve_bundle  # noqa: E402
-from obliq_colmap.geometry import lines_through  # noqa: E402
+from obliq_colmap.geometry import Pose, lines_through  # noqa: E402
 from obliq_colmap.matching import triangulate_tracks  # noqa: E402
 
 
@@ -86,23 +91,40 @@ def _exact_lines(problem: BundleProblem, inputs, stage3, gt, gtb, by_name):
     ids = P.image_ids
     truth = [by_name[inputs.priors.images[i].name] for i in ids]
     cams = [gtb.cameras[t.camera_id] for t in truth]
-    poses = [t.cam_from_world for t in truth]
+    # The truth in the problem's vertical datum (the priors' heights, a
+    # datum offset away): under a lens the image of a vertical is curved,
+    # so a point slid along it by the datum offset leaves the segment.
+    dz = np.median(
+        [
+            P.poses[i].center[2] - t.cam_from_world.center[2]
+            for i, t in zip(ids, truth, strict=True)
+        ]
+    )
+    poses = [
+        Pose.from_center(
+            t.cam_from_world.rotation, t.cam_from_world.center + [0, 0, dz]
+        )
+        for t in truth
+    ]
     corners = gt.corners_world - np.array([cad.origin[0], cad.origin[1], 0.0])
     _, nearest = cKDTree(corners[:, :2]).query(P.corner_xy[P.vertical_corner])
     xy_true = corners[nearest, :2]
-    z0 = corners[:, 2].min()
 
     def image_lines(k, a_world, b_world):
         project = lambda X: cams[k].img_from_cam(poses[k].transform(X))  # noqa: E731
         return lines_through(project(a_world), project(b_world))
 
+    # Lines tangent to the (distorted) images of the true lines at the
+    # points the residuals project: exact for every camera model.
+    zv = P.corner_heights[P.vertical_corner][:, None]
     vl = np.zeros((len(P.vertical_image), 3))
     for k in range(len(ids)):
         m = P.vertical_image == k
         if m.any():
-            z = np.full((m.sum(), 1), z0)
             vl[m] = image_lines(
-                k, np.hstack([xy_true[m], z]), np.hstack([xy_true[m], z + 10.0])
+                k,
+                np.hstack([xy_true[m], zv[m] - 0.5]),
+                np.hstack([xy_true[m], zv[m] + 0.5]),
             )
     t = stage3.tracks
     offsets = np.cumsum([0] + [len(f) for f in stage3.facades])
@@ -122,8 +144,8 @@ def _exact_lines(problem: BundleProblem, inputs, stage3, gt, gtb, by_name):
             z = h[j[m], None]
             hl[m] = image_lines(
                 k,
-                np.hstack([anchor[m] - 5.0 * along[j[m]], z]),
-                np.hstack([anchor[m] + 5.0 * along[j[m]], z]),
+                np.hstack([anchor[m] - 0.5 * along[j[m]], z]),
+                np.hstack([anchor[m] + 0.5 * along[j[m]], z]),
             )
     true_cams = {c: gtb.cameras[c] for c in P.cameras}
     true_poses = dict(zip(ids, poses, strict=True))
