@@ -568,16 +568,7 @@ def run_register(
     init_args = (inputs.cadastre_path, options.cadastre, origin3)
     workers = min(options.workers, len(tasks))
     with _Workers(workers, init_args, cad, options.progress) as pool:
-        t0 = time.perf_counter()
-        outcomes = pool.map(_initial_image, tasks, "vanishing + registration")
-        timings["initial"] = time.perf_counter() - t0
-        if options.registration.refine_distortion:
-            t0 = time.perf_counter()
-            _head_pass(pool, tasks, outcomes, options)
-            timings["head_pass"] = time.perf_counter() - t0
-        t0 = time.perf_counter()
-        rescued = _rescue(pool, tasks, outcomes, options)
-        timings["rescue"] = time.perf_counter() - t0
+        outcomes, _, rescued = initial_stage(pool, tasks, options, timings)
         for o in outcomes:
             if o.status == "unreadable" or not o.registered:
                 logger.warning("%s: left out: %s", o.name, o.message)
@@ -648,6 +639,39 @@ def run_register(
     }
     report["num_points3D"] = len(points)
     return RunResult(block, georef, points, by_id, report, bundle_result)
+
+
+def initial_stage(
+    pool: _Workers,
+    tasks: list[_ImageTask],
+    options: PipelineOptions,
+    timings: dict[str, float],
+) -> tuple[list[ImageOutcome], list[RegistrationResult | None], list[str]]:
+    """Stages 1 and 2 of every image, as ``register --stop_after initial``:
+    the vanishing point and the registration per image, the pass from the
+    heads' lenses (``refine_distortion``), the rescue of weak images.
+
+    ``tasks`` may be changed (the head pass sets their start camera);
+    ``timings`` gets the wall time of each step (s).
+
+    Returns
+    -------
+    The outcomes (one per task, in order), the registration of each after its
+    first pass alone (None: unreadable), and the names of the rescued images.
+    """
+    t0 = time.perf_counter()
+    outcomes = pool.map(_initial_image, tasks, "vanishing + registration")
+    timings["initial"] = time.perf_counter() - t0
+    # _set_registration replaces, never mutates: these stay the first pass's.
+    first_pass = [o.registration for o in outcomes]
+    if options.registration.refine_distortion:
+        t0 = time.perf_counter()
+        _head_pass(pool, tasks, outcomes, options)
+        timings["head_pass"] = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    rescued = _rescue(pool, tasks, outcomes, options)
+    timings["rescue"] = time.perf_counter() - t0
+    return outcomes, first_pass, rescued
 
 
 def rescue_heights(
