@@ -41,13 +41,10 @@ from __future__ import annotations
 import argparse
 import ast
 import dataclasses
-import importlib
 import json
 import os
 import platform
-import shutil
 import sys
-import tempfile
 import time
 from pathlib import Path
 
@@ -62,6 +59,9 @@ from obliq_colmap.vanishing import (
     detect_vertical_vp,
     refine_vp,
 )
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from _reference import load_reference  # noqa: E402
 
 DATA = Path("/work/shared/data")
 
@@ -269,25 +269,6 @@ def bench_ecd(options: VanishingOptions, peer: bool) -> dict:
 # --------------------------------------------------------------------------
 
 
-def load_reference(tree: Path):
-    """The ``vanishing`` and ``geometry`` modules of another source tree.
-
-    ``tree`` holds an ``obliq_colmap`` package (e.g. ``git archive REV | tar
-    -x -C DIR``); it is copied to a temporary folder as package
-    ``obliq_reference`` (imports renamed) so that both versions run in one
-    process, alternately, under the same machine load.
-    """
-    tmp = Path(tempfile.mkdtemp(prefix="obliq_reference_"))
-    shutil.copytree(tree / "obliq_colmap", tmp / "obliq_reference")
-    for f in (tmp / "obliq_reference").rglob("*.py"):
-        f.write_text(f.read_text().replace("obliq_colmap", "obliq_reference"))
-    sys.path.insert(0, str(tmp))
-    return (
-        importlib.import_module("obliq_reference.vanishing"),
-        importlib.import_module("obliq_reference.geometry"),
-    )
-
-
 def _timing_jobs():
     """(set name, image, camera parameters or None, prior kind) to time."""
     files = sorted((DATA / "rennes_oblique_aerial" / "images").glob("*.jpg"))
@@ -319,7 +300,7 @@ def bench_timing(
     """
     versions = [("ours", detect_vertical_vp, VPPrior, Camera, options)]
     if reference is not None:
-        ref_v, ref_g = load_reference(reference)
+        ref_v, ref_g = load_reference(reference, ("vanishing", "geometry"))
         versions.append(
             (
                 "reference",
