@@ -668,6 +668,58 @@ def _mahalanobis2(
     return np.where(np.isfinite(d2), d2, np.inf)
 
 
+def _pair_d2(
+    view: _View,
+    segs: _Segments,
+    seg_idx: np.ndarray,
+    alpha: np.ndarray,
+    c_xy: np.ndarray,
+    xy: np.ndarray,
+    z: np.ndarray,
+    stretch: float,
+) -> np.ndarray:
+    """:func:`_mahalanobis2` of the corners projected by :meth:`_View.project`,
+    fused (the RANSAC's scoring loop).
+
+    The same floating-point operations per element, on (H, P) arrays per
+    coordinate instead of (H, P, 3) temporaries and a matmul by ``K``: the
+    result is bit-identical when ``K`` has no skew (the products with its zero
+    entries add exact zeros); otherwise the two functions are called.
+
+    Parameters
+    ----------
+    seg_idx : (P,) segment of each pair; alpha : (H,); c_xy : (H, 2);
+    xy : (P, 2) corners (relative); z : (H, P) heights (m); stretch : float.
+
+    Returns
+    -------
+    (H, P) squared distances (px^2), inf where not finite.
+    """
+    K, R0 = view.K, view.R0
+    if K[0, 1] != 0 or K[1, 0] != 0:
+        px, _ = view.project(alpha, c_xy, xy, z)
+        return _mahalanobis2(px, segs, seg_idx, stretch)
+    ca, sa = np.cos(alpha)[:, None], np.sin(alpha)[:, None]
+    dx = xy[:, 0] - c_xy[:, 0, None]
+    dy = xy[:, 1] - c_xy[:, 1, None]
+    rx = ca * dx - sa * dy  # as ransac.horizontal_in_camera
+    ry = sa * dx + ca * dy
+    zz = z - view.c0[2]
+    depth = rx * R0[2, 0] + ry * R0[2, 1] + zz * R0[2, 2]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        den = np.where(depth > 0, depth, np.nan)
+        u = (rx * R0[0, 0] + ry * R0[0, 1] + zz * R0[0, 2]) / den
+        v = (rx * R0[1, 0] + ry * R0[1, 1] + zz * R0[1, 2]) / den
+    bottom = segs.bottom[seg_idx]
+    ex = u * K[0, 0] + K[0, 2] - bottom[:, 0]
+    ey = v * K[1, 1] + K[1, 2] - bottom[:, 1]
+    nrm, dirn = segs.normal[seg_idx], segs.direction[seg_idx]
+    across = ex * nrm[:, 0] + ey * nrm[:, 1]
+    along = (ex * dirn[:, 0] + ey * dirn[:, 1]) / stretch
+    d2 = across * across + along * along
+    return np.where(np.isfinite(d2), d2, np.inf)
+
+
 # --------------------------------------------------------------------------
 # Steps 2-3: Hough votes over (alpha, c_x, c_y[, ground height])
 # --------------------------------------------------------------------------
@@ -904,6 +956,7 @@ def _hough(
     # Alphas in chunks of at most ~2^18 (alpha, pair) rows: vectorised over
     # both, bounded memory.
     chunk = max(1, (1 << 18) // max(P, 1))
+    work = _Workspace()
     for k0 in range(0, na, chunk):
         ka = np.arange(k0, min(na, k0 + chunk))
         ca = np.repeat(np.cos(alphas[ka]), P)  # (R,) rows = (alpha, pair)
@@ -924,6 +977,7 @@ def _hough(
         half_o = np.where(iter_2, half[0], half[1])
         t_lo, t_hi = _t_interval(A_o, B_o, -half_o - 0.5, half_o + 0.5)
         t_lo, t_hi = np.maximum(t_lo, -half_it), np.minimum(t_hi, half_it)
+        band = None
         if heights is not None:
             # Centre offsets e1 = E1a + E1b t, e2 = E2a + E2b t (m).
             E1a = np.where(iter_2, A_o * steps[0], 0.0)
@@ -947,31 +1001,31 @@ def _hough(
             t_lo, t_hi = np.maximum(t_lo, lo), np.minimum(t_hi, hi)
             lo, hi = _t_interval(TA, TB, 0.0, np.inf)
             t_lo, t_hi = np.maximum(t_lo, lo), np.minimum(t_hi, hi)
-        counts = np.maximum(t_hi - t_lo + 1, 0).astype(np.int64)
-        total = int(counts.sum())
-        if total == 0:
-            continue
-        ridx = np.repeat(np.arange(len(counts)), counts)
-        offs = np.cumsum(counts) - counts
-        t = t_lo[ridx] + (np.arange(total) - offs[ridx])
-        ko = np.rint(A_o[ridx] + B_o[ridx] * t)
-        it2 = iter_2[ridx]
-        k1 = np.where(it2, ko, t)
-        k2 = np.where(it2, t, ko)
-        ok = (np.abs(k1) <= half[0]) & (np.abs(k2) <= half[1])
-        cell = (ka[ridx // P] * slab) + ((k1 + half[0]) * n2 + (k2 + half[1])) * nh
-        if heights is not None:
-            ih = np.floor((hA[ridx] + hB[ridx] * t - h_lo) / d_h)
-            ok &= (ih >= 0) & (ih < nh) & (TA[ridx] + TB[ridx] * t > 0)
-            cell = cell + ih
-        acc += np.bincount(
-            cell[ok].astype(np.int64), weights=weight[pr[ridx[ok]]], minlength=acc.size
+            band = _HeightBand(hA, hB, TA, TB, h_lo, d_h, nh, float(n1 * n2))
+        # Cell of vote t of a row: base + stride_t t + stride_o k_other
+        # (+ n1 n2 ih), relative to the chunk's first alpha. The votes are
+        # laid out (alpha, height, k1, k2): a line's successive votes then
+        # touch nearby cells (the height changes slowly along it), which
+        # keeps the accumulation in cache; transposed at the end.
+        s1, s2 = float(n2), 1.0
+        base = np.repeat((ka - k0) * float(slab), P) + (half[0] * s1 + half[1] * s2)
+        lines = _VoteRows(
+            A_o,
+            B_o,
+            half_o,
+            t_lo,
+            t_hi,
+            base,
+            np.where(iter_2, s2, s1),
+            np.where(iter_2, s1, s2),
+            weight[pr],
         )
+        off = k0 * slab
+        acc[off : off + len(ka) * slab] += _rasterise(lines, band, len(ka) * slab, work)
     from scipy.ndimage import uniform_filter
 
-    acc = uniform_filter(
-        acc.reshape(na, n1, n2, nh), size=(3, 3, 3, min(nh, 3)), mode="constant"
-    )
+    acc = np.ascontiguousarray(acc.reshape(na, nh, n1, n2).transpose(0, 2, 3, 1))
+    acc = uniform_filter(acc, size=(3, 3, 3, min(nh, 3)), mode="constant")
     grid = _HoughGrid(
         acc,
         alphas,
@@ -999,6 +1053,153 @@ def _t_interval(
     t_hi = np.where(flat, -all_t, np.floor(np.maximum(t1, t2)))
     bad = ~np.isfinite(A) | np.isnan(B)
     return np.where(bad, np.inf, t_lo), np.where(bad, -np.inf, t_hi)
+
+
+@dataclass
+class _HeightBand:
+    """The height axis of a vote (rows as in :class:`_VoteRows`): vote t of a
+    row falls into height cell ``ih = floor((hA + hB t - h_lo) / d_h)``,
+    which must lie in [0, nh), and only in front of the ray, ``TA + TB t >
+    0``; ``stride`` is the cell offset of one height step."""
+
+    hA: np.ndarray
+    hB: np.ndarray
+    TA: np.ndarray
+    TB: np.ndarray
+    h_lo: float
+    d_h: float
+    nh: int
+    stride: float
+
+
+@dataclass
+class _VoteRows:
+    """R straight lines to rasterise, one per (alpha, pair), in cell units.
+
+    Vote t (integer, ``t_lo <= t <= t_hi``) of row r lands in the cell
+    ``base + stride_t t + stride_o k``, ``k = rint(A + B t)`` the other
+    coordinate, which must satisfy ``|k| <= half_o``; ``weight`` (R,) per row.
+    All arrays (R,) float (``half_o`` int).
+    """
+
+    A: np.ndarray
+    B: np.ndarray
+    half_o: np.ndarray
+    t_lo: np.ndarray
+    t_hi: np.ndarray
+    base: np.ndarray
+    stride_t: np.ndarray
+    stride_o: np.ndarray
+    weight: np.ndarray
+
+
+def _vote_ok(
+    rows: _VoteRows, band: _HeightBand | None, r: np.ndarray, t: np.ndarray
+) -> np.ndarray:
+    """Whether vote ``t`` (K,) of rows ``r`` (K,) lands in the accumulator:
+    the same float expressions as :func:`_rasterise` evaluates per vote."""
+    ok = np.abs(np.rint(rows.A[r] + rows.B[r] * t)) <= rows.half_o[r]
+    if band is not None:
+        ih = np.floor((band.hA[r] + band.hB[r] * t - band.h_lo) / band.d_h)
+        ok &= (ih >= 0) & (ih < band.nh) & (band.TA[r] + band.TB[r] * t > 0)
+    return ok
+
+
+def _trim(
+    rows: _VoteRows, band: _HeightBand | None
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The rows' exact vote intervals: (row index (R',), t_lo (R',), t_hi (R',))
+    of the rows with votes, such that every integer t in [t_lo, t_hi] passes
+    :func:`_vote_ok` and no other t of [rows.t_lo, rows.t_hi] does.
+
+    ``rows.t_lo``, ``rows.t_hi`` bound the conditions in exact arithmetic, so
+    they may be off by rounding at their ends. Each condition is monotone in
+    t also in floating point (``fl(A + fl(B t))`` is monotone, so are rint,
+    floor and the comparisons), so the passing t of a row form one interval:
+    moving each end inwards while it fails finds it, in a few vectorised
+    rounds over the few rows whose end fails.
+    """
+    count = np.maximum(rows.t_hi - rows.t_lo + 1, 0)
+    r = np.flatnonzero(count > 0)
+    lo, hi = rows.t_lo[r].copy(), rows.t_hi[r].copy()
+    for end, step in ((lo, 1.0), (hi, -1.0)):
+        k = np.arange(len(r))
+        while len(k):
+            k = k[lo[k] <= hi[k]]
+            k = k[~_vote_ok(rows, band, r[k], end[k])]
+            end[k] += step
+    keep = lo <= hi
+    return r[keep], lo[keep], hi[keep]
+
+
+#: Votes (dense row x t entries) generated at once by :func:`_rasterise`:
+#: a few such float64 blocks stay in the cache.
+_RASTER_BLOCK = 1 << 16
+
+
+def _rasterise(
+    rows: _VoteRows, band: _HeightBand | None, size: int, work: _Workspace
+) -> np.ndarray:
+    """Sum of the rows' weights over the cells they cross: (size,) float64.
+
+    Every row's votes are an interval of t (:func:`_trim`); they are generated
+    densely, rows x (t - t_lo), in blocks that fit the cache, the entries
+    past a row's end sent to a spare cell. All votes reach one
+    ``np.bincount`` in row order, t ascending, so that each cell sums the
+    same terms in the same order as an enumeration vote by vote.
+    """
+    r, lo, hi = _trim(rows, band)
+    if len(r) == 0:
+        return np.zeros(size)
+    count = (hi - lo + 1).astype(np.int64)
+    width = int(count.max())
+    steps = np.arange(width, dtype=float)
+    block = max(1, _RASTER_BLOCK // width)
+    cells = work.array("cells", len(r) * width, np.int64).reshape(len(r), width)
+    weights = work.array("weights", len(r) * width, float).reshape(len(r), width)
+    buf = work.array("buf", 3 * block * width, float).reshape(3, block, width)
+    for b0 in range(0, len(r), block):
+        rb = r[b0 : b0 + block]
+        t, k, cell = (x[: len(rb)] for x in buf)
+        np.add(lo[b0 : b0 + block, None], steps, out=t)
+        np.multiply(rows.B[rb, None], t, out=k)
+        k += rows.A[rb, None]
+        np.rint(k, out=k)
+        np.multiply(rows.stride_o[rb, None], k, out=cell)
+        cell += rows.base[rb, None]
+        if band is not None:
+            np.multiply(band.hB[rb, None], t, out=k)
+            k += band.hA[rb, None]
+            k -= band.h_lo
+            k /= band.d_h
+            np.floor(k, out=k)
+            k *= band.stride
+            cell += k
+        np.multiply(rows.stride_t[rb, None], t, out=k)
+        # Integer-valued floats: the cast to the cell index is exact.
+        out = cells[b0 : b0 + len(rb)]
+        np.add(cell, k, out=out, casting="unsafe")
+        np.putmask(out, steps >= count[b0 : b0 + block, None], size)  # spare
+    weights[:] = rows.weight[r, None]
+    return np.bincount(cells.ravel(), weights=weights.ravel(), minlength=size + 1)[
+        :size
+    ]
+
+
+class _Workspace:
+    """Scratch arrays reused across calls (fresh large arrays cost page faults
+    on every first touch)."""
+
+    def __init__(self) -> None:
+        self._arrays: dict[str, np.ndarray] = {}
+
+    def array(self, name: str, size: int, dtype) -> np.ndarray:
+        """A (size,) array of ``dtype`` with arbitrary contents."""
+        a = self._arrays.get(name)
+        if a is None or a.size < size or a.dtype != dtype:
+            a = np.empty(max(size, 2 * a.size if a is not None else 0), dtype)
+            self._arrays[name] = a
+        return a[:size]
 
 
 def _pairs_near(
@@ -1089,8 +1290,7 @@ def _score(
     """
     xy = corner_rel[cand.corner]  # (P, 2)
     z = _plane_at(plane, xy)  # (H, P)
-    px, _ = view.project(alpha, c_xy, xy, z)
-    d2 = _mahalanobis2(px, segs, cand.segment, stretch)  # (H, P)
+    d2 = _pair_d2(view, segs, cand.segment, alpha, c_xy, xy, z, stretch)  # (H, P)
     inl = d2 <= thr2
     per_corner = (
         np.maximum.reduceat(inl, cand.starts, axis=1)

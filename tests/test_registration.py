@@ -664,3 +664,182 @@ def test_overlay_draws_before_and_after(block):
     green = (out[..., 1] > 200) & (out[..., 2] < 100)
     assert red.sum() > 500 and green.sum() > 500
     assert np.all(image == 128)  # input untouched
+
+
+# --------------------------------------------------------------------------
+# Vectorised internals against simple references
+# --------------------------------------------------------------------------
+
+
+def _small_problem(block, num_pairs: int = 40):
+    """A view, its segments, corners and a few true and false pairs near the
+    prior, for the accumulator tests."""
+    from obliq_colmap.registration import _make_view, _pairs_near, _prepare_segments
+
+    prior = perturbed_prior(block.pose, 3, position_m=2.0, heading_deg=0.3)
+    view = _make_view(block.camera, prior, vertical_of(block.pose))
+    segs = _prepare_segments(block.segments, view, RegistrationOptions())
+    corner_rel = block.cadastre.corner_xy - view.c0[:2]
+    ii, jj = _pairs_near(
+        view, segs, corner_rel, 0.0, np.zeros(2), 40.0, h_range=(-100.0, 100.0)
+    )
+    pick = np.random.default_rng(0).choice(len(ii), num_pairs, replace=False)
+    pick.sort()
+    return view, segs, corner_rel, ii[pick], jj[pick]
+
+
+def _hough_reference(view, segs, corner_rel, ii, jj, grid, heights: bool):
+    """The pose vote by its definition, one vote at a time: for every alpha of
+    the grid and every pair, walk the constraint line's cells along the axis
+    on which it moves least, round the other coordinate, and (with heights)
+    put the vote at the height of the segment's bottom on the corner's
+    vertical, seen from the point of the line (in front of the ray only)."""
+    from scipy.ndimage import uniform_filter
+
+    na, n1, n2, nh = grid.acc.shape
+    half = np.array([n1 // 2, n2 // 2])
+    acc = np.zeros(grid.acc.shape)
+    for ka, alpha in enumerate(grid.alphas):
+        ca, sa = math.cos(alpha), math.sin(alpha)
+        for i, j in zip(ii, jj, strict=True):
+            mx, my = segs.m_xy[j]
+            x, y = corner_rel[i] - grid.c_center
+            rhs = (mx * x + my * y) * ca + (my * x - mx * y) * sa
+            g = np.array([ca * mx + sa * my, -sa * mx + ca * my])
+            a = np.array([g @ grid.axes[0], g @ grid.axes[1]]) * grid.steps
+            it = 1 if abs(a[0]) >= abs(a[1]) else 0  # the axis walked
+            ot = 1 - it
+            for t in range(-half[it], half[it] + 1):
+                other = (rhs - a[it] * t) / a[ot]
+                k = np.zeros(2)
+                k[it], k[ot] = t, round(other)
+                if abs(k[ot]) > half[ot]:
+                    continue
+                ih = 0
+                if heights:
+                    kc = k.copy()
+                    kc[ot] = other
+                    c = grid.c_center + (kc * grid.steps) @ grid.axes
+                    h = view.bottom_heights(
+                        np.array([alpha]),
+                        c[None],
+                        corner_rel[i][None],
+                        segs.bottom[j][None],
+                    )[0, 0]
+                    if not np.isfinite(h):
+                        continue
+                    ih = math.floor((h - grid.h_lo) / grid.d_h)
+                    if not 0 <= ih < nh:
+                        continue
+                kk = (k + half).astype(int)
+                acc[ka, kk[0], kk[1], ih] += min(segs.length[j], 60.0)
+    acc = acc.astype(np.float32)
+    return uniform_filter(acc, size=(3, 3, 3, min(nh, 3)), mode="constant")
+
+
+@pytest.mark.parametrize("heights", [False, True])
+def test_hough_matches_a_vote_by_vote_reference(block, heights):
+    from obliq_colmap.registration import _hough
+
+    view, segs, corner_rel, ii, jj = _small_problem(block)
+    grid = _hough(
+        view,
+        segs,
+        corner_rel,
+        ii,
+        jj,
+        0.0,
+        0.01,
+        np.zeros(2),
+        4.0,
+        (3.0, 6.0, 6.0),
+        float(np.median(np.linalg.norm(corner_rel[ii], axis=1))),
+        10**6,
+        heights=(-30.0, 30.0, 2.0) if heights else None,
+    )
+    assert grid.acc.shape[0] >= 5 and grid.acc.shape[1] >= 5
+    ref = _hough_reference(view, segs, corner_rel, ii, jj, grid, heights)
+    assert ref.max() > 0
+    # A vote in another cell would differ by a whole weight (>= 8 px / 27).
+    np.testing.assert_allclose(grid.acc, ref, rtol=1e-5, atol=1e-3)
+
+
+def test_rasterise_matches_enumeration_at_cell_boundaries():
+    """Rows built to hit every rounding edge (half-integer other coordinates,
+    heights exactly on the accumulator's bounds, a corner exactly on the
+    camera's vertical, too-wide t bounds): the trimmed dense rasterisation
+    sums exactly the votes of a vote-by-vote enumeration."""
+    from obliq_colmap.registration import (
+        _HeightBand,
+        _rasterise,
+        _VoteRows,
+        _Workspace,
+    )
+
+    rng = np.random.default_rng(5)
+    R, half_it, half_o, nh = 400, 6, 4, 5
+    B = rng.choice([0.0, 0.25, -0.5, 0.5, 1.0, -1.0], R) + np.where(
+        rng.random(R) < 0.3, rng.normal(0, 0.3, R), 0.0
+    )
+    A = rng.integers(-6, 7, R) + rng.choice([0.0, 0.5, -0.5], R)
+    A = np.where(rng.random(R) < 0.2, rng.normal(0, 4, R), A)
+    # t bounds up to one beyond where the votes end.
+    t_lo = -half_it + rng.integers(-1, 3, R).astype(float)
+    t_hi = half_it - rng.integers(-1, 3, R).astype(float)
+    # Cells laid out (height, other, t).
+    n_o, n_t = 2 * half_o + 1, 2 * half_it + 1
+    size = nh * n_o * n_t
+    rows = _VoteRows(
+        A,
+        B,
+        np.full(R, half_o),
+        np.maximum(t_lo, -half_it),
+        np.minimum(t_hi, half_it),
+        np.full(R, float(half_o * n_t + half_it)),
+        np.ones(R),
+        np.full(R, float(n_t)),
+        rng.uniform(1, 60, R),
+    )
+    d_h, h_lo = 2.0, -4.0
+    hB = rng.choice([0.0, 0.5, -1.0, 2.0], R)
+    hA = h_lo + d_h * rng.integers(-2, nh + 2, R) + rng.choice([0.0, 1.0, -1e-13], R)
+    TA = rng.choice([-1.0, 0.0, 3.0], R)
+    TB = rng.choice([0.0, 0.5, -0.5], R)
+    band = _HeightBand(hA, hB, TA, TB, h_lo, d_h, nh, float(n_o * n_t))
+    for b in (None, band):
+        got = _rasterise(rows, b, size, _Workspace())
+        want = np.zeros(size)
+        for r in range(R):
+            for t in np.arange(rows.t_lo[r], rows.t_hi[r] + 1):
+                k = np.rint(A[r] + B[r] * t)
+                if abs(k) > half_o:
+                    continue
+                cell = rows.base[r] + rows.stride_t[r] * t + rows.stride_o[r] * k
+                if b is not None:
+                    ih = np.floor((hA[r] + hB[r] * t - h_lo) / d_h)
+                    if not (0 <= ih < nh and TA[r] + TB[r] * t > 0):
+                        continue
+                    cell += b.stride * ih
+                want[int(cell)] += rows.weight[r]
+        assert np.count_nonzero(want) > 50
+        np.testing.assert_array_equal(got, want)
+
+
+def test_pair_distances_fused_equal_projection_then_mahalanobis(block):
+    """The RANSAC's fused distances are bit-identical to projecting the
+    corners and measuring them (corners behind the camera included)."""
+    from obliq_colmap.registration import _mahalanobis2, _pair_d2
+
+    view, segs, corner_rel, ii, jj = _small_problem(block, 200)
+    rng = np.random.default_rng(2)
+    H = 64
+    alpha = rng.normal(0, 0.02, H)
+    c_xy = rng.normal(0, 5, (H, 2))
+    xy = corner_rel[ii]
+    xy[:5] = -xy[:5] * 3  # behind the camera
+    z = view.c0[2] - 250 + rng.normal(0, 20, (H, len(ii)))
+    px, _ = view.project(alpha, c_xy, xy, z)
+    want = _mahalanobis2(px, segs, jj, 5.0)
+    got = _pair_d2(view, segs, jj, alpha, c_xy, xy, z, 5.0)
+    assert np.isinf(want).any() and np.isfinite(want).any()
+    np.testing.assert_array_equal(got, want)
