@@ -958,12 +958,12 @@ def _hough(
     chunk = max(1, (1 << 18) // max(P, 1))
     work = _Workspace()
     for k0 in range(0, na, chunk):
+        # Rows (alpha, pair) as (alphas of the chunk, P) arrays, broadcast.
         ka = np.arange(k0, min(na, k0 + chunk))
-        ca = np.repeat(np.cos(alphas[ka]), P)  # (R,) rows = (alpha, pair)
-        sa = np.repeat(np.sin(alphas[ka]), P)
-        pr = np.tile(np.arange(P), len(ka))
-        mx, my = m[pr, 0], m[pr, 1]
-        rhs = rows[pr, 0] * ca + rows[pr, 1] * sa  # = g . (c - c_center)
+        ca = np.cos(alphas[ka])[:, None]
+        sa = np.sin(alphas[ka])[:, None]
+        mx, my = m[:, 0], m[:, 1]
+        rhs = rows[:, 0] * ca + rows[:, 1] * sa  # = g . (c - c_center)
         gx, gy = ca * mx + sa * my, -sa * mx + ca * my
         # In cell units: a1 k1 + a2 k2 = rhs.
         a1 = (gx * axes[0, 0] + gy * axes[0, 1]) * steps[0]
@@ -984,41 +984,48 @@ def _hough(
             E1b = np.where(iter_2, B_o * steps[0], steps[0])
             E2a = np.where(iter_2, 0.0, A_o * steps[1])
             E2b = np.where(iter_2, steps[1], B_o * steps[1])
-            rx = ca * ray0[pr, 0] + sa * ray0[pr, 1]
-            ry = -sa * ray0[pr, 0] + ca * ray0[pr, 1]
+            rx = ca * ray0[:, 0] + sa * ray0[:, 1]
+            ry = -sa * ray0[:, 0] + ca * ray0[:, 1]
             r2 = rx * rx + ry * ry
             u1r = axes[0, 0] * rx + axes[0, 1] * ry
             u2r = axes[1, 0] * rx + axes[1, 1] * ry
             with np.errstate(divide="ignore", invalid="ignore"):
                 # Run along the ray: tt = TA + TB t (> 0: in front).
-                TA = (
-                    d_rel[pr, 0] * rx + d_rel[pr, 1] * ry - E1a * u1r - E2a * u2r
-                ) / r2
+                TA = (d_rel[:, 0] * rx + d_rel[:, 1] * ry - E1a * u1r - E2a * u2r) / r2
                 TB = -(E1b * u1r + E2b * u2r) / r2
-            hA = view.c0[2] + TA * ray0[pr, 2]
-            hB = TB * ray0[pr, 2]
+            hA = view.c0[2] + TA * ray0[:, 2]
+            hB = TB * ray0[:, 2]
             lo, hi = _t_interval(hA, hB, h_lo, h_hi)
             t_lo, t_hi = np.maximum(t_lo, lo), np.minimum(t_hi, hi)
             lo, hi = _t_interval(TA, TB, 0.0, np.inf)
             t_lo, t_hi = np.maximum(t_lo, lo), np.minimum(t_hi, hi)
-            band = _HeightBand(hA, hB, TA, TB, h_lo, d_h, nh, float(n1 * n2))
+            band = _HeightBand(
+                hA.ravel(),
+                hB.ravel(),
+                TA.ravel(),
+                TB.ravel(),
+                h_lo,
+                d_h,
+                nh,
+                float(n1 * n2),
+            )
         # Cell of vote t of a row: base + stride_t t + stride_o k_other
         # (+ n1 n2 ih), relative to the chunk's first alpha. The votes are
         # laid out (alpha, height, k1, k2): a line's successive votes then
         # touch nearby cells (the height changes slowly along it), which
         # keeps the accumulation in cache; transposed at the end.
         s1, s2 = float(n2), 1.0
-        base = np.repeat((ka - k0) * float(slab), P) + (half[0] * s1 + half[1] * s2)
+        base = ((ka - k0) * float(slab))[:, None] + (half[0] * s1 + half[1] * s2)
         lines = _VoteRows(
-            A_o,
-            B_o,
-            half_o,
-            t_lo,
-            t_hi,
-            base,
-            np.where(iter_2, s2, s1),
-            np.where(iter_2, s1, s2),
-            weight[pr],
+            A_o.ravel(),
+            B_o.ravel(),
+            half_o.ravel(),
+            t_lo.ravel(),
+            t_hi.ravel(),
+            np.broadcast_to(base, A_o.shape).ravel(),
+            np.where(iter_2, s2, s1).ravel(),
+            np.where(iter_2, s1, s2).ravel(),
+            np.broadcast_to(weight, A_o.shape).ravel(),
         )
         off = k0 * slab
         acc[off : off + len(ka) * slab] += _rasterise(lines, band, len(ka) * slab, work)
@@ -1302,6 +1309,22 @@ def _score(
     return count, cost
 
 
+@dataclass
+class _RansacState:
+    """Where a RANSAC run stopped: resuming it with a larger ``max_trials``
+    draws and scores exactly the samples a single longer run would have."""
+
+    rng: np.random.Generator
+    trials: int = 0
+    needed: float = 0.0
+    best: tuple[int, float] = (-1, math.inf)
+    model: tuple[float, np.ndarray, np.ndarray] = (
+        math.nan,
+        np.full(2, np.nan),
+        np.full(3, np.nan),
+    )
+
+
 def _ransac(
     view: _View,
     segs: _Segments,
@@ -1312,10 +1335,10 @@ def _ransac(
     alpha_half: float,
     c_half: float,
     options: RegistrationOptions,
-    rng: np.random.Generator,
+    state: _RansacState,
     max_trials: int | None = None,
 ) -> tuple[float, np.ndarray, np.ndarray, int, float, int]:
-    """Step 4: RANSAC over the candidate pairs.
+    """Step 4: RANSAC over the candidate pairs, from ``state`` (updated).
 
     Hypotheses farther than ``alpha_half`` / ``c_half`` from the centre of the
     search are rejected before scoring.
@@ -1323,20 +1346,19 @@ def _ransac(
     Returns
     -------
     alpha, c_xy (2,), plane (3,) relative coordinates, best count of distinct
-    inlier corners, its MSAC cost, trials drawn.
+    inlier corners, its MSAC cost, trials drawn (in all, since the start).
     """
     max_trials = options.max_trials if max_trials is None else max_trials
     thr2 = options.inlier_threshold_px**2
     ridge = (options.height_sigma_m / options.slope_sigma) ** 2
     P = len(cand.corner)
-    best = (-1, math.inf)
-    best_model = (math.nan, np.full(2, np.nan), np.full(3, np.nan))
-    trials = 0
-    needed = float(options.min_trials)
-    while trials < min(needed, max_trials):
+    st = state
+    if st.trials == 0:
+        st.needed = float(options.min_trials)
+    while st.trials < min(st.needed, max_trials):
         B = options.batch_size
-        idx = ransac.sample_pairs(rng, B, cand.corner, cand.segment)
-        trials += B
+        idx = ransac.sample_pairs(st.rng, B, cand.corner, cand.segment)
+        st.trials += B
         if len(idx) == 0:
             continue
         ci, sj = cand.corner[idx], cand.segment[idx]  # (S, 3)
@@ -1369,14 +1391,14 @@ def _ransac(
         )
         # Most distinct inlier corners; ties broken by the lower MSAC cost.
         k = int(np.lexsort((cost, -count))[0])
-        if (count[k], -cost[k]) > (best[0], -best[1]):
-            best = (int(count[k]), float(cost[k]))
-            best_model = (float(alpha[k]), c_xy[k].copy(), plane[k].copy())
-            ratio = best[0] / max(P, 1)
-            needed = max(
+        if (count[k], -cost[k]) > (st.best[0], -st.best[1]):
+            st.best = (int(count[k]), float(cost[k]))
+            st.model = (float(alpha[k]), c_xy[k].copy(), plane[k].copy())
+            ratio = st.best[0] / max(P, 1)
+            st.needed = max(
                 options.min_trials, ransac.required_trials(ratio, 3, options.confidence)
             )
-    return (*best_model, max(best[0], 0), best[1], trials)
+    return (*st.model, max(st.best[0], 0), st.best[1], st.trials)
 
 
 # --------------------------------------------------------------------------
@@ -1747,7 +1769,6 @@ def register_image(
     )
     refine_focal = bool(options.refine_focal)
     view = _make_view(camera, prior, n)
-    rng = np.random.default_rng(options.seed)
 
     def fail(message: str, **kw) -> RegistrationResult:
         timings["total"] = time.perf_counter() - t_start
@@ -1892,7 +1913,6 @@ def register_image(
                 c_half,
                 options,
                 np.random.default_rng(options.seed),
-                verify=True,
             )
         )
     timings["coarse"] = time.perf_counter() - t0
@@ -1911,21 +1931,9 @@ def register_image(
         )
     best_try = max(tries, key=lambda t: (t.count, -t.cost))
     t0 = time.perf_counter()
-    best_try = _try_start(
-        view,
-        segs,
-        cadastre,
-        camera,
-        best_try.start,
-        best_try.h0,
-        best_try.grid,
-        radius,
-        alpha_half,
-        c_half,
-        options,
-        rng,
-        verify=False,
-    )
+    # Every try's RANSAC starts from the same seed: the winner's full run
+    # continues its short one.
+    best_try = _finish_try(view, segs, best_try, options)
     timings["ransac"] = time.perf_counter() - t0
     h0, vis, corner_rel, depth_m, cand = (
         best_try.h0,
@@ -2100,6 +2108,11 @@ class _Try:
     count: int
     cost: float
     trials: int
+    #: The RANSAC's search centre (alpha, c_xy) and half-widths, and where it
+    #: stopped (to resume it).
+    center: tuple[float, np.ndarray]
+    windows: tuple[float, float]
+    state: _RansacState
 
 
 def _try_start(
@@ -2115,9 +2128,10 @@ def _try_start(
     c_half: float,
     options: RegistrationOptions,
     rng: np.random.Generator,
-    verify: bool,
 ) -> _Try | None:
-    """Steps 3 and 4 from one coarse peak; None when nothing matches."""
+    """Steps 3 and 4 from one coarse peak, with the short RANSAC
+    (``options.verify_trials``; :func:`_finish_try` resumes it); None when
+    nothing matches."""
     from obliq_colmap.cadastre import visible_corners
 
     vis = visible_corners(
@@ -2186,6 +2200,11 @@ def _try_start(
     )
     if len(cand.corner) < 3:
         return None
+    windows = (
+        alpha_half + 4.0 * options.ransac_radius_px / view.focal,
+        c_half + 4.0 * options.ransac_radius_px * depth_m / view.focal,
+    )
+    state = _RansacState(rng)
     alpha, c_xy, plane, count, cost, trials = _ransac(
         view,
         segs,
@@ -2193,11 +2212,10 @@ def _try_start(
         cand,
         fine.alpha,
         fine.c_xy,
-        alpha_half + 4.0 * options.ransac_radius_px / view.focal,
-        c_half + 4.0 * options.ransac_radius_px * depth_m / view.focal,
+        *windows,
         options,
-        rng,
-        max_trials=options.verify_trials if verify else None,
+        state,
+        max_trials=options.verify_trials,
     )
     return _Try(
         start,
@@ -2213,6 +2231,24 @@ def _try_start(
         count,
         cost,
         trials,
+        (fine.alpha, fine.c_xy),
+        windows,
+        state,
+    )
+
+
+def _finish_try(
+    view: _View, segs: _Segments, t: _Try, options: RegistrationOptions
+) -> _Try:
+    """The full RANSAC of a verified try: its short run resumed, which draws
+    and scores the samples a fresh full run with the same seed would (the
+    steps before it are deterministic, so they are not recomputed)."""
+    options = _at_image_scale(options, view.focal, t.depth_m)
+    alpha, c_xy, plane, count, cost, trials = _ransac(
+        view, segs, t.corner_rel, t.cand, *t.center, *t.windows, options, t.state
+    )
+    return replace(
+        t, alpha=alpha, c_xy=c_xy, plane=plane, count=count, cost=cost, trials=trials
     )
 
 
