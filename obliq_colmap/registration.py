@@ -1015,20 +1015,23 @@ def _hough(
         # touch nearby cells (the height changes slowly along it), which
         # keeps the accumulation in cache; transposed at the end.
         s1, s2 = float(n2), 1.0
-        base = ((ka - k0) * float(slab))[:, None] + (half[0] * s1 + half[1] * s2)
+        # Relative to the alpha's slab: every alpha is bincounted alone.
+        base = np.full(A_o.shape, half[0] * s1 + half[1] * s2)
         lines = _VoteRows(
             A_o.ravel(),
             B_o.ravel(),
             half_o.ravel(),
             t_lo.ravel(),
             t_hi.ravel(),
-            np.broadcast_to(base, A_o.shape).ravel(),
+            base.ravel(),
             np.where(iter_2, s2, s1).ravel(),
             np.where(iter_2, s1, s2).ravel(),
             np.broadcast_to(weight, A_o.shape).ravel(),
         )
         off = k0 * slab
-        acc[off : off + len(ka) * slab] += _rasterise(lines, band, len(ka) * slab, work)
+        acc[off : off + len(ka) * slab] += _rasterise(
+            lines, band, slab, work, groups=len(ka)
+        )
     from scipy.ndimage import uniform_filter
 
     acc = np.ascontiguousarray(acc.reshape(na, nh, n1, n2).transpose(0, 2, 3, 1))
@@ -1053,13 +1056,19 @@ def _t_interval(
     arrays (t_lo > t_hi when empty; infinite bounds where B = 0)."""
     with np.errstate(divide="ignore", invalid="ignore"):
         t1, t2 = (lo - A) / B, (hi - A) / B
-    inside = (lo <= A) & (hi >= A)  # B = 0: all t or none
-    flat = B == 0
-    all_t = np.where(inside, -np.inf, np.inf)
-    t_lo = np.where(flat, all_t, np.ceil(np.minimum(t1, t2)))
-    t_hi = np.where(flat, -all_t, np.floor(np.maximum(t1, t2)))
-    bad = ~np.isfinite(A) | np.isnan(B)
-    return np.where(bad, np.inf, t_lo), np.where(bad, -np.inf, t_hi)
+    t_lo = np.ceil(np.minimum(t1, t2))
+    t_hi = np.floor(np.maximum(t1, t2))
+    # B = 0 (all t or none) and non-finite rows are rare: set sparsely.
+    odd = np.nonzero((B == 0) | ~np.isfinite(A) | np.isnan(B))
+    if len(odd[0]):
+        a, b = A[odd], B[odd]
+        lo_o = lo[odd] if np.ndim(lo) else lo
+        hi_o = hi[odd] if np.ndim(hi) else hi
+        inside = (lo_o <= a) & (hi_o >= a)
+        bad = ~np.isfinite(a) | np.isnan(b)
+        t_lo[odd] = np.where(inside & ~bad, -np.inf, np.inf)
+        t_hi[odd] = np.where(inside & ~bad, np.inf, -np.inf)
+    return t_lo, t_hi
 
 
 @dataclass
@@ -1145,52 +1154,68 @@ _RASTER_BLOCK = 1 << 16
 
 
 def _rasterise(
-    rows: _VoteRows, band: _HeightBand | None, size: int, work: _Workspace
+    rows: _VoteRows,
+    band: _HeightBand | None,
+    size: int,
+    work: _Workspace,
+    groups: int = 1,
 ) -> np.ndarray:
-    """Sum of the rows' weights over the cells they cross: (size,) float64.
+    """Sum of the rows' weights over the cells they cross.
+
+    The rows form ``groups`` consecutive groups of equal length that vote into
+    disjoint ranges of ``size`` cells (the alphas of the Hough vote; cell
+    indices relative to the range): returns (groups * size,) float64.
 
     Every row's votes are an interval of t (:func:`_trim`); they are generated
     densely, rows x (t - t_lo), in blocks that fit the cache, the entries
-    past a row's end sent to a spare cell. All votes reach one
+    past a row's end sent to a spare cell. A group's votes reach one
     ``np.bincount`` in row order, t ascending, so that each cell sums the
     same terms in the same order as an enumeration vote by vote.
     """
+    out = np.zeros(groups * size)
     r, lo, hi = _trim(rows, band)
     if len(r) == 0:
-        return np.zeros(size)
+        return out
     count = (hi - lo + 1).astype(np.int64)
     width = int(count.max())
     steps = np.arange(width, dtype=float)
     block = max(1, _RASTER_BLOCK // width)
-    cells = work.array("cells", len(r) * width, np.int64).reshape(len(r), width)
-    weights = work.array("weights", len(r) * width, float).reshape(len(r), width)
     buf = work.array("buf", 3 * block * width, float).reshape(3, block, width)
-    for b0 in range(0, len(r), block):
-        rb = r[b0 : b0 + block]
-        t, k, cell = (x[: len(rb)] for x in buf)
-        np.add(lo[b0 : b0 + block, None], steps, out=t)
-        np.multiply(rows.B[rb, None], t, out=k)
-        k += rows.A[rb, None]
-        np.rint(k, out=k)
-        np.multiply(rows.stride_o[rb, None], k, out=cell)
-        cell += rows.base[rb, None]
-        if band is not None:
-            np.multiply(band.hB[rb, None], t, out=k)
-            k += band.hA[rb, None]
-            k -= band.h_lo
-            k /= band.d_h
-            np.floor(k, out=k)
-            k *= band.stride
-            cell += k
-        np.multiply(rows.stride_t[rb, None], t, out=k)
-        # Integer-valued floats: the cast to the cell index is exact.
-        out = cells[b0 : b0 + len(rb)]
-        np.add(cell, k, out=out, casting="unsafe")
-        np.putmask(out, steps >= count[b0 : b0 + block, None], size)  # spare
-    weights[:] = rows.weight[r, None]
-    return np.bincount(cells.ravel(), weights=weights.ravel(), minlength=size + 1)[
-        :size
-    ]
+    ends = np.searchsorted(r, np.arange(groups + 1) * (len(rows.A) // groups))
+    for g in range(groups):
+        g0, g1 = ends[g], ends[g + 1]
+        if g0 == g1:
+            continue
+        cells = work.array("cells", (g1 - g0) * width, np.int64)
+        cells = cells.reshape(g1 - g0, width)
+        for b0 in range(g0, g1, block):
+            b1 = min(b0 + block, g1)
+            rb = r[b0:b1]
+            t, k, cell = (x[: b1 - b0] for x in buf)
+            np.add(lo[b0:b1, None], steps, out=t)
+            np.multiply(rows.B[rb, None], t, out=k)
+            k += rows.A[rb, None]
+            np.rint(k, out=k)
+            np.multiply(rows.stride_o[rb, None], k, out=cell)
+            cell += rows.base[rb, None]
+            if band is not None:
+                np.multiply(band.hB[rb, None], t, out=k)
+                k += band.hA[rb, None]
+                k -= band.h_lo
+                k /= band.d_h
+                np.floor(k, out=k)
+                k *= band.stride
+                cell += k
+            np.multiply(rows.stride_t[rb, None], t, out=k)
+            # Integer-valued floats: the cast to the cell index is exact.
+            c = cells[b0 - g0 : b1 - g0]
+            np.add(cell, k, out=c, casting="unsafe")
+            np.putmask(c, steps >= count[b0:b1, None], size)  # spare
+        weights = np.repeat(rows.weight[r[g0:g1]], width)
+        out[g * size : (g + 1) * size] = np.bincount(
+            cells.ravel(), weights=weights, minlength=size + 1
+        )[:size]
+    return out
 
 
 class _Workspace:

@@ -806,10 +806,10 @@ def test_rasterise_matches_enumeration_at_cell_boundaries():
     TA = rng.choice([-1.0, 0.0, 3.0], R)
     TB = rng.choice([0.0, 0.5, -0.5], R)
     band = _HeightBand(hA, hB, TA, TB, h_lo, d_h, nh, float(n_o * n_t))
-    for b in (None, band):
-        got = _rasterise(rows, b, size, _Workspace())
+
+    def enumerate_votes(b, rows_of_group):
         want = np.zeros(size)
-        for r in range(R):
+        for r in rows_of_group:
             for t in np.arange(rows.t_lo[r], rows.t_hi[r] + 1):
                 k = np.rint(A[r] + B[r] * t)
                 if abs(k) > half_o:
@@ -821,7 +821,17 @@ def test_rasterise_matches_enumeration_at_cell_boundaries():
                         continue
                     cell += b.stride * ih
                 want[int(cell)] += rows.weight[r]
+        return want
+
+    for b in (None, band):
+        want = enumerate_votes(b, range(R))
         assert np.count_nonzero(want) > 50
+        np.testing.assert_array_equal(_rasterise(rows, b, size, _Workspace()), want)
+        # Four groups of rows voting into four disjoint ranges of cells.
+        want = np.concatenate(
+            [enumerate_votes(b, range(g * R // 4, (g + 1) * R // 4)) for g in range(4)]
+        )
+        got = _rasterise(rows, b, size, _Workspace(), groups=4)
         np.testing.assert_array_equal(got, want)
 
 
@@ -843,3 +853,24 @@ def test_pair_distances_fused_equal_projection_then_mahalanobis(block):
     got = _pair_d2(view, segs, jj, alpha, c_xy, xy, z, 5.0)
     assert np.isinf(want).any() and np.isfinite(want).any()
     np.testing.assert_array_equal(got, want)
+
+
+def test_t_interval_brute_force():
+    """The integer solutions of lo <= A + B t <= hi, also for B = 0 and for
+    non-finite rows (none)."""
+    from obliq_colmap.registration import _t_interval
+
+    rng = np.random.default_rng(1)
+    A = rng.normal(0, 8, 300)
+    B = rng.normal(0, 1, 300)
+    B[::7] = 0.0
+    A[::11], A[5], B[6] = np.inf, np.nan, np.nan
+    lo = rng.normal(-3, 1, 300)
+    for hi in (lo + rng.uniform(0, 6, 300), np.inf):
+        t_lo, t_hi = _t_interval(A, B, lo, hi)
+        t = np.arange(-200, 201)[:, None]
+        with np.errstate(invalid="ignore"):
+            x = A + B * t
+            want = (lo <= x) & (x <= hi) & np.isfinite(A) & ~np.isnan(B)
+        np.testing.assert_array_equal((t_lo <= t) & (t <= t_hi), want)
+        assert want.any() and not want.all()
