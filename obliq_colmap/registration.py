@@ -1343,10 +1343,8 @@ class _RansacState:
     trials: int = 0
     needed: float = 0.0
     best: tuple[int, float] = (-1, math.inf)
-    model: tuple[float, np.ndarray, np.ndarray] = (
-        math.nan,
-        np.full(2, np.nan),
-        np.full(3, np.nan),
+    model: tuple[float, np.ndarray, np.ndarray] = field(
+        default_factory=lambda: (math.nan, np.full(2, np.nan), np.full(3, np.nan))
     )
 
 

@@ -98,8 +98,10 @@ def _difference(a, b) -> dict:
     """Largest-difference terms of two RegistrationResults."""
     if a.success != b.success:
         return dict(success=math.inf)
-    dR = a.cam_from_world.rotation @ b.cam_from_world.rotation.T
-    ang = math.degrees(math.acos(np.clip((np.trace(dR) - 1) / 2, -1, 1)))
+    # The angle from ||Ra - Rb||_F = 2 sqrt(2) sin(angle / 2): 0 for equal
+    # matrices (acos of the trace has a floor of ~1e-6 deg from rounding).
+    dR = np.linalg.norm(a.cam_from_world.rotation - b.cam_from_world.rotation)
+    ang = math.degrees(2.0 * math.asin(min(1.0, dR / math.sqrt(8.0))))
     dc = float(np.linalg.norm(a.cam_from_world.center - b.cam_from_world.center))
     df = 0.0
     if a.camera is not None and b.camera is not None:
@@ -175,7 +177,7 @@ def bench(args) -> dict:
             diffs.append(dict(key=list(key), **d))
 
     load0 = os.getloadavg()
-    names = [t.name for t in tasks][: args.max_images or None]
+    names = args.images or [t.name for t in tasks][: args.max_images or None]
     for task in tasks:
         if task.name not in names:
             continue
@@ -272,6 +274,7 @@ def main(argv=None) -> int:
     ap.add_argument("--repeats", type=int, default=1, help="runs per call (best)")
     ap.add_argument("--rescue", type=int, default=1, help="time the rescue pass too")
     ap.add_argument("--max_images", type=int, default=0, help="0: all")
+    ap.add_argument("--images", nargs="+", help="only these images (names)")
     ap.add_argument("--cache_dir", default="/tmp/bench_register_speed")
     ap.add_argument("--output", help="JSON file for the figures")
     args = ap.parse_args(argv)
