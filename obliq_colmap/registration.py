@@ -901,6 +901,10 @@ def _hough(
     height. Coarse cells along alpha and the forward axis are compensated by
     the lateral axis and the height, which are sampled finely.
 
+    Each (alpha, pair) line is rasterised over its exact interval of votes
+    (:func:`_rasterise`), vectorised over lines and votes; the result is
+    bit-identical to an enumeration vote by vote in (alpha, pair, t) order.
+
     Parameters
     ----------
     pair_i, pair_j : (P,) corner and segment of each pair.
@@ -1010,12 +1014,12 @@ def _hough(
                 float(n1 * n2),
             )
         # Cell of vote t of a row: base + stride_t t + stride_o k_other
-        # (+ n1 n2 ih), relative to the chunk's first alpha. The votes are
-        # laid out (alpha, height, k1, k2): a line's successive votes then
-        # touch nearby cells (the height changes slowly along it), which
-        # keeps the accumulation in cache; transposed at the end.
+        # (+ n1 n2 ih), relative to its alpha's slab (each alpha is summed
+        # alone). The votes are laid out (alpha, height, k1, k2): a line's
+        # successive votes then touch nearby cells (the height changes slowly
+        # along it), which keeps the accumulation in cache; transposed to
+        # (alpha, k1, k2, height) at the end.
         s1, s2 = float(n2), 1.0
-        # Relative to the alpha's slab: every alpha is bincounted alone.
         base = np.full(A_o.shape, half[0] * s1 + half[1] * s2)
         lines = _VoteRows(
             A_o.ravel(),
@@ -1149,7 +1153,7 @@ def _trim(
 
 
 #: Votes (dense row x t entries) generated at once by :func:`_rasterise`:
-#: a few such float64 blocks stay in the cache.
+#: its three float64 temporaries of this size stay in the L2 / L3 cache.
 _RASTER_BLOCK = 1 << 16
 
 
