@@ -149,7 +149,7 @@ def bench(args) -> dict:
     def run(tag, task, s: Stage1, **changes):
         fn = versions[tag][0]
         o = options_for(tag, s, **changes)
-        t = time.perf_counter()
+        t, c = time.perf_counter(), time.process_time()
         r = fn(
             s.segments,
             s.vertical,
@@ -159,18 +159,20 @@ def bench(args) -> dict:
             o,
             segments_undistorted=True,
         )
-        return r, time.perf_counter() - t
+        return r, time.perf_counter() - t, time.process_time() - c
 
     # (pass, image) -> tag -> list of times; results of the last repeat.
     times: dict = {}
+    cpu: dict = {}
     results: dict = {}
     diffs: list[dict] = []
 
     def timed(key, task, s, **changes):
         for _ in range(args.repeats):
             for tag in versions:
-                r, dt = run(tag, task, s, **changes)
+                r, dt, dc = run(tag, task, s, **changes)
                 times.setdefault(key, {}).setdefault(tag, []).append(dt)
+                cpu.setdefault(key, {}).setdefault(tag, []).append(dc)
                 results.setdefault(key, {})[tag] = r
         if "ref" in versions:
             d = _difference(results[key]["new"], results[key]["ref"])
@@ -233,7 +235,10 @@ def bench(args) -> dict:
             if k[0] == "initial":
                 for p, v in results[k][tag].timings.items():
                     parts.setdefault(p, []).append(v)
+        ini_cpu = np.array([min(cpu[k][tag]) for k in cpu if k[0] == "initial"])
         out[tag] = {
+            "initial_cpu_s_median": float(np.median(ini_cpu)),
+            "initial_cpu_s_max": float(np.max(ini_cpu)),
             "initial_s_median": float(np.median(ini)),
             "initial_s_max": float(np.max(ini)),
             "pipeline_stage2_per_image_s_median": float(np.median(tot)),
@@ -247,9 +252,12 @@ def bench(args) -> dict:
         keys = list(times)
         a = np.array([best(k, "new") for k in keys])
         b = np.array([best(k, "ref") for k in keys])
+        ac = np.array([min(cpu[k]["new"]) for k in keys])
+        bc = np.array([min(cpu[k]["ref"]) for k in keys])
         out["ratio_new_over_ref"] = {
             "of_sums": float(a.sum() / b.sum()),
             "median_per_call": float(np.median(a / b)),
+            "cpu_of_sums": float(ac.sum() / bc.sum()),
         }
         out["max_difference"] = {
             f: float(max(d.get(f, 0.0) for d in diffs))
