@@ -75,6 +75,10 @@ _EZ = np.array([0.0, 0.0, 1.0])
 #: about (2 * 1.5 * coarse / fine)^3 ~ 30 x 13 x 13 cells at the true height.
 _FINE_MAX_CELLS = 20_000
 
+#: Elements of the (hypotheses, pairs) float64 temporaries of the RANSAC's
+#: scoring that stay in the cache (128 KiB each).
+_CACHE_ELEMENTS = 1 << 14
+
 
 # --------------------------------------------------------------------------
 # Options and result
@@ -957,9 +961,10 @@ def _hough(
         d_rel = xy - c_center  # (P, 2)
         h_hi = h_lo + nh * d_h
     P = len(pair_i)
-    # Alphas in chunks of at most ~2^18 (alpha, pair) rows: vectorised over
-    # both, bounded memory.
-    chunk = max(1, (1 << 18) // max(P, 1))
+    # Alphas in chunks of at most ~2^16 (alpha, pair) rows (at least one
+    # alpha): vectorised over both, the rows' temporaries in the cache
+    # (2^14 to 2^18 rows take the same time within 10 %).
+    chunk = max(1, (1 << 16) // max(P, 1))
     work = _Workspace()
     for k0 in range(0, na, chunk):
         # Rows (alpha, pair) as (alphas of the chunk, P) arrays, broadcast.
@@ -1325,16 +1330,20 @@ def _score(
     count : (H,) int; cost : (H,) float (sum of truncated d^2 over pairs).
     """
     xy = corner_rel[cand.corner]  # (P, 2)
-    z = _plane_at(plane, xy)  # (H, P)
-    d2 = _pair_d2(view, segs, cand.segment, alpha, c_xy, xy, z, stretch)  # (H, P)
-    inl = d2 <= thr2
-    per_corner = (
-        np.maximum.reduceat(inl, cand.starts, axis=1)
-        if len(cand.starts)
-        else np.zeros((len(alpha), 0), bool)
-    )
-    count = per_corner.sum(axis=1)
-    cost = np.minimum(d2, thr2).sum(axis=1)
+    count = np.zeros(len(alpha), int)
+    cost = np.zeros(len(alpha))
+    if len(xy) == 0:
+        return count, cost
+    # Hypotheses in chunks whose (h, P) temporaries stay in the cache (3x
+    # faster than all at once); the row-wise reductions are unchanged.
+    step = max(1, _CACHE_ELEMENTS // len(xy))
+    for h0 in range(0, len(alpha), step):
+        h = slice(h0, h0 + step)
+        z = _plane_at(plane[h], xy)  # (h, P)
+        d2 = _pair_d2(view, segs, cand.segment, alpha[h], c_xy[h], xy, z, stretch)
+        inl = d2 <= thr2
+        count[h] = np.maximum.reduceat(inl, cand.starts, axis=1).sum(axis=1)
+        cost[h] = np.minimum(d2, thr2).sum(axis=1)
     return count, cost
 
 
