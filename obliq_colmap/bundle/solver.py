@@ -672,8 +672,9 @@ def _solve(problem: BundleProblem, opts: BundleOptions) -> BundleResult:
             H_cc, g_c, H_hh, g_h, E = _normal_equations(S, Jc, Jh, r, w)
             H_hh = H_hh + prior_w * prior_mask
             g_h = g_h + prior_w * prior_mask * (st.heights - heights0)
+            schur = _Schur(H_hh, E)
             need_build = False
-        dc, dh, D_c, D_h = _damped_step(S, H_cc, g_c, H_hh, g_h, E, lam)
+        dc, dh, D_c, D_h = _damped_step(S, H_cc, g_c, H_hh, g_h, E, lam, schur)
         predicted = 0.5 * (
             lam * (dc @ (D_c * dc) + dh @ (D_h * dh)) - (g_c @ dc + g_h @ dh)
         )
@@ -784,19 +785,49 @@ def _normal_equations(S: _Setup, Jc, Jh, r, w):
     return H_cc[:-1, :-1], g_c[:-1], H_hh, g_h, E[:, :-1].tocsr()
 
 
-def _damped_step(S: _Setup, H_cc, g_c, H_hh, g_h, E, lam):
+class _Schur:
+    """``E^T (H_hh + lam D_h)^-1 E`` for any damping ``lam`` of one build.
+
+    Where the height block's damping is its own diagonal (``D_h = H_hh``,
+    unclipped) the term is ``E^T H_hh^-1 E / (1 + lam)``: that part is
+    formed once per linearisation, not once per trial step; the clipped
+    rows (few) are added per step.
+    """
+
+    def __init__(self, H_hh: np.ndarray, E) -> None:
+        self.own = (H_hh >= 1e-6) & (H_hh <= 1e32)
+        Ep = (
+            sp.diags(
+                np.where(self.own, 1.0 / np.sqrt(np.where(self.own, H_hh, 1.0)), 0.0)
+            )
+            @ E
+        )
+        self.base = (Ep.T @ Ep).toarray()
+        self.rest = np.flatnonzero(~self.own)
+        self.E_rest = E[self.rest] if len(self.rest) else None
+
+    def at(self, H_hh: np.ndarray, lam: float) -> np.ndarray:
+        out = self.base / (1.0 + lam)
+        if self.E_rest is not None:
+            h = H_hh[self.rest]
+            dinv = 1.0 / (h + lam * np.clip(h, 1e-6, 1e32))
+            Er = sp.diags(np.sqrt(dinv)) @ self.E_rest
+            out = out + (Er.T @ Er).toarray()
+        return out
+
+
+def _damped_step(S: _Setup, H_cc, g_c, H_hh, g_h, E, lam, schur: _Schur):
     """Solve the damped normal equations by the Schur complement on the heights."""
     D_c = np.clip(np.diag(H_cc), 1e-6, 1e32)
     D_h = np.clip(H_hh, 1e-6, 1e32)
     dinv = 1.0 / (H_hh + lam * D_h)
     if S.n_heights:
-        Es = sp.diags(np.sqrt(dinv)) @ E
-        schur = (Es.T @ Es).toarray()
+        reduced = schur.at(H_hh, lam)
         rhs = -g_c + E.T @ (dinv * g_h)
     else:
-        schur = 0.0
+        reduced = 0.0
         rhs = -g_c
-    A_red = H_cc - schur
+    A_red = H_cc - reduced
     A_red[np.diag_indices_from(A_red)] += lam * D_c
     ng = len(S.A)
     if ng:
