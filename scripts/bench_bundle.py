@@ -26,7 +26,10 @@ Usage::
 from __future__ import annotations
 
 import argparse
+import os
+import sys
 import time
+from pathlib import Path
 
 import numpy as np
 from threadpoolctl import threadpool_limits
@@ -249,12 +252,43 @@ def ceres_route(P, options: BundleOptions, max_iterations=100):
     return poses, cameras, heights, t_build, t_solve, summary, rec
 
 
+def reference_timing(P, tree: Path, runs: int) -> None:
+    """Ours and the reference tree's solver alternately on ``P`` (defaults)."""
+    sys.path.insert(0, str(Path(__file__).resolve().parent))
+    from _reference import load_reference
+
+    (ref,) = load_reference(tree, ("bundle",))
+    times = {"ours": [], "reference": []}
+    for _ in range(runs):
+        t = time.perf_counter()
+        new = solve_bundle(P, BundleOptions())
+        times["ours"].append(time.perf_counter() - t)
+        t = time.perf_counter()
+        old = ref.solve_bundle(P, ref.BundleOptions())
+        times["reference"].append(time.perf_counter() - t)
+    dc = max(
+        np.abs(new.poses[i].center - old.poses[i].center).max() for i in P.image_ids
+    )
+    med = {k: float(np.median(v)) for k, v in times.items()}
+    print(
+        f"ours {med['ours']:.3f} s, reference {med['reference']:.3f} s (medians of"
+        f" {runs}, alternating): ratio {med['ours'] / med['reference']:.3f};"
+        f" iterations {new.summary.num_iterations} / {old.summary.num_iterations},"
+        f" largest centre difference {dc:.2e} m; load {os.getloadavg()}"
+    )
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--runs", type=int, default=5)
     ap.add_argument("--ceres-runs", type=int, default=3)
     ap.add_argument("--no-ceres", action="store_true")
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument(
+        "--reference",
+        help="source tree (git archive REV obliq_colmap | tar -x -C TREE): its "
+        "solve_bundle timed alternately with ours on the same problem, then exit",
+    )
     args = ap.parse_args()
 
     syn = make_synthetic_problem(seed=args.seed, **PAPER)
@@ -265,6 +299,10 @@ def main() -> None:
         f"{len(P.horizontal_image)} horizontal + "
         f"{len(P.vertical_image)} vertical constraints"
     )
+
+    if args.reference:
+        reference_timing(P, Path(args.reference), args.runs)
+        return
 
     rows = []
     for name, opts in [
