@@ -795,18 +795,16 @@ class _Schur:
     """
 
     def __init__(self, H_hh: np.ndarray, E) -> None:
-        self.own = (H_hh >= 1e-6) & (H_hh <= 1e32)
-        Ep = (
-            sp.diags(
-                np.where(self.own, 1.0 / np.sqrt(np.where(self.own, H_hh, 1.0)), 0.0)
-            )
-            @ E
-        )
+        own = (H_hh >= 1e-6) & (H_hh <= 1e32)  # where clip(H_hh) = H_hh
+        scale = np.zeros(len(H_hh))
+        scale[own] = 1.0 / np.sqrt(H_hh[own])
+        Ep = sp.diags(scale) @ E
         self.base = (Ep.T @ Ep).toarray()
-        self.rest = np.flatnonzero(~self.own)
+        self.rest = np.flatnonzero(~own)
         self.E_rest = E[self.rest] if len(self.rest) else None
 
     def at(self, H_hh: np.ndarray, lam: float) -> np.ndarray:
+        """(C, C) the term at damping ``lam`` (C camera-block columns)."""
         out = self.base / (1.0 + lam)
         if self.E_rest is not None:
             h = H_hh[self.rest]
