@@ -965,7 +965,6 @@ def _hough(
     # alpha): vectorised over both, the rows' temporaries in the cache
     # (2^14 to 2^18 rows take the same time within 10 %).
     chunk = max(1, (1 << 16) // max(P, 1))
-    work = _Workspace()
     for k0 in range(0, na, chunk):
         # Rows (alpha, pair) as (alphas of the chunk, P) arrays, broadcast.
         ka = np.arange(k0, min(na, k0 + chunk))
@@ -1038,9 +1037,7 @@ def _hough(
             np.broadcast_to(weight, A_o.shape).ravel(),
         )
         off = k0 * slab
-        acc[off : off + len(ka) * slab] += _rasterise(
-            lines, band, slab, work, groups=len(ka)
-        )
+        acc[off : off + len(ka) * slab] += _rasterise(lines, band, slab, groups=len(ka))
     from scipy.ndimage import uniform_filter
 
     acc = np.ascontiguousarray(acc.reshape(na, nh, n1, n2).transpose(0, 2, 3, 1))
@@ -1166,7 +1163,6 @@ def _rasterise(
     rows: _VoteRows,
     band: _HeightBand | None,
     size: int,
-    work: _Workspace,
     groups: int = 1,
 ) -> np.ndarray:
     """Sum of the rows' weights over the cells they cross.
@@ -1189,14 +1185,13 @@ def _rasterise(
     width = int(count.max())
     steps = np.arange(width, dtype=float)
     block = max(1, _RASTER_BLOCK // width)
-    buf = work.array("buf", 3 * block * width, float).reshape(3, block, width)
+    buf = np.empty((3, block, width))
     ends = np.searchsorted(r, np.arange(groups + 1) * (len(rows.A) // groups))
     for g in range(groups):
         g0, g1 = ends[g], ends[g + 1]
         if g0 == g1:
             continue
-        cells = work.array("cells", (g1 - g0) * width, np.int64)
-        cells = cells.reshape(g1 - g0, width)
+        cells = np.empty((g1 - g0, width), np.int64)
         for b0 in range(g0, g1, block):
             b1 = min(b0 + block, g1)
             rb = r[b0:b1]
@@ -1225,22 +1220,6 @@ def _rasterise(
             cells.ravel(), weights=weights, minlength=size + 1
         )[:size]
     return out
-
-
-class _Workspace:
-    """Scratch arrays reused across calls (fresh large arrays cost page faults
-    on every first touch)."""
-
-    def __init__(self) -> None:
-        self._arrays: dict[str, np.ndarray] = {}
-
-    def array(self, name: str, size: int, dtype) -> np.ndarray:
-        """A (size,) array of ``dtype`` with arbitrary contents."""
-        a = self._arrays.get(name)
-        if a is None or a.size < size or a.dtype != dtype:
-            a = np.empty(max(size, 2 * a.size if a is not None else 0), dtype)
-            self._arrays[name] = a
-        return a[:size]
 
 
 def _pairs_near(

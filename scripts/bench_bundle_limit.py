@@ -40,7 +40,6 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import logging
 import os
 import sys
 import time
@@ -205,20 +204,15 @@ def run_scene(scene: Path, args: argparse.Namespace) -> None:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--scene_path", action="append", required=True)
-    parser.add_argument("--num_workers", type=int, default=2)
-    parser.add_argument("--set", action="append", help="PATH=VALUE option override")
-    parser.add_argument("--cache_path", default="/tmp/bench_resolution")
+    parser = br.scene_parser(__doc__.split("\n\n")[0])
     parser.add_argument("--vertical_noise_px", type=float, default=0.3)
     parser.add_argument("--horizontal_noise_px", type=float, default=0.1)
     parser.add_argument("--seeds", type=int, default=2)
     args = parser.parse_args(argv)
-    logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(message)s")
-    for scene in map(Path, args.scene_path):
-        if not (scene / "gt").is_dir():
-            print(f"error: {scene} is not a synthetic scene (no gt/)", file=sys.stderr)
-            return 2
+    scenes = br.synthetic_scenes(args)
+    if scenes is None:
+        return 2
+    for scene in scenes:
         run_scene(scene, args)
     print(f"load average {os.getloadavg()}, {time.strftime('%Y-%m-%d %H:%M')}")
     return 0

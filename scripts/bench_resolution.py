@@ -323,20 +323,37 @@ class _Capture(logging.Handler):
         self.lines.append(record.getMessage())
 
 
-def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+def scene_parser(description: str) -> argparse.ArgumentParser:
+    """The options of the benchmarks built on this one's stage 1-2 cache."""
+    parser = argparse.ArgumentParser(description=description)
     parser.add_argument("--scene_path", action="append", required=True)
-    parser.add_argument("--stop_after", choices=("initial", "bundle"), default="bundle")
     parser.add_argument("--num_workers", type=int, default=2)
     parser.add_argument("--set", action="append", help="PATH=VALUE option override")
-    parser.add_argument("--per_image", action="store_true")
     parser.add_argument("--cache_path", default="/tmp/bench_resolution")
-    args = parser.parse_args(argv)
+    return parser
+
+
+def synthetic_scenes(args: argparse.Namespace) -> list[Path] | None:
+    """``--scene_path`` as paths; None (after one error line) when one is
+    not a synthetic scene folder. Sets up the warnings-only logging."""
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(message)s")
-    for scene in map(Path, args.scene_path):
+    scenes = [Path(p) for p in args.scene_path]
+    for scene in scenes:
         if not (scene / "gt").is_dir():
             print(f"error: {scene} is not a synthetic scene (no gt/)", file=sys.stderr)
-            return 2
+            return None
+    return scenes
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = scene_parser(__doc__.split("\n\n")[0])
+    parser.add_argument("--stop_after", choices=("initial", "bundle"), default="bundle")
+    parser.add_argument("--per_image", action="store_true")
+    args = parser.parse_args(argv)
+    scenes = synthetic_scenes(args)
+    if scenes is None:
+        return 2
+    for scene in scenes:
         options = _options(scene, args)
         inputs, outcomes, wall = _stage12(scene, options, Path(args.cache_path))
         cam = next(iter(inputs.priors.cameras.values()))

@@ -773,7 +773,6 @@ def test_rasterise_matches_enumeration_at_cell_boundaries():
         _HeightBand,
         _rasterise,
         _VoteRows,
-        _Workspace,
     )
 
     rng = np.random.default_rng(5)
@@ -826,12 +825,12 @@ def test_rasterise_matches_enumeration_at_cell_boundaries():
     for b in (None, band):
         want = enumerate_votes(b, range(R))
         assert np.count_nonzero(want) > 50
-        np.testing.assert_array_equal(_rasterise(rows, b, size, _Workspace()), want)
+        np.testing.assert_array_equal(_rasterise(rows, b, size), want)
         # Four groups of rows voting into four disjoint ranges of cells.
         want = np.concatenate(
             [enumerate_votes(b, range(g * R // 4, (g + 1) * R // 4)) for g in range(4)]
         )
-        got = _rasterise(rows, b, size, _Workspace(), groups=4)
+        got = _rasterise(rows, b, size, groups=4)
         np.testing.assert_array_equal(got, want)
 
 
