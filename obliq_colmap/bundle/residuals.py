@@ -9,6 +9,10 @@ are evaluated through one general form with the eight parameters
 ``(fx, fy, cx, cy, k1, k2, p1, p2)`` of OPENCV; a model's own parameters map
 to it linearly, ``full = params @ expansion_matrix(model).T``, so the
 Jacobian with respect to the model's parameters is ``J_full @ E``.
+Terms a model lacks are skipped, not evaluated with zero coefficients (the
+pinhole models have no distortion, SIMPLE_RADIAL and RADIAL no tangential
+terms); the residuals contract their chains per row in closed form over (N,)
+arrays instead of forming the (N, 2, 3) Jacobians of the projection.
 Projection (COLMAP's, see :func:`obliq_colmap.geometry.img_from_cam`)::
 
     (u, v)   = (x / z, y / z)                        normalised coordinates
@@ -116,10 +120,17 @@ def focal_principal_extra_indices(model: str) -> tuple[list[int], list[int], lis
     return focal, pp, extra
 
 
+def _model_terms(model: str) -> tuple[bool, bool, bool]:
+    """Distortion terms a model has: (k1, k2, tangential p1 and p2)."""
+    names = SUPPORTED_MODELS[model]
+    return "k" in names or "k1" in names, "k2" in names, "p1" in names
+
+
 def _full_params(
     model: str, params: np.ndarray, n: int
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Model params, (P,) or (N, P), to the (N, 8) general vector; and E."""
+    """Model params, (P,) or (N, P), to the general vector as (8, 1) or (8, N)
+    rows (one row per entry of :data:`FULL_PARAM_NAMES`); and E."""
     E = expansion_matrix(model)
     p = np.asarray(params, float)
     if p.ndim == 1:
@@ -129,7 +140,11 @@ def _full_params(
             f"{model} params must have shape ({E.shape[1]},) or ({n}, {E.shape[1]}),"
             f" got {np.shape(params)}"
         )
-    return np.broadcast_to(p @ E.T, (n, 8)), E
+    # E is a 0/1 selection: copying rows is exact and cheaper than p @ E.T.
+    rows, cols = np.nonzero(E)
+    full = np.zeros((8, p.shape[0]))
+    full[rows] = p[:, cols].T
+    return full, E
 
 
 def _check_points(points_cam: np.ndarray, name: str = "points_cam") -> np.ndarray:
@@ -139,60 +154,115 @@ def _check_points(points_cam: np.ndarray, name: str = "points_cam") -> np.ndarra
     return X
 
 
-class _Distortion:
-    """Normalised coordinates, distortion, its Jacobian; shared by all routines."""
+class _Lens:
+    """Normalised coordinates, distortion and its Jacobian of N camera points.
 
-    def __init__(self, full: np.ndarray, X: np.ndarray) -> None:
-        self.fx, self.fy, self.cx, self.cy = (
-            full[:, 0],
-            full[:, 1],
-            full[:, 2],
-            full[:, 3],
-        )
-        self.k1, self.k2, self.p1, self.p2 = (
-            full[:, 4],
-            full[:, 5],
-            full[:, 6],
-            full[:, 7],
-        )
-        z = X[:, 2]
+    All attributes are (N,) arrays, or scalars / (1,) arrays where they do
+    not vary (per-camera parameters, absent terms). Terms a model lacks are
+    skipped rather than evaluated with zero coefficients: no distortion for
+    the pinhole models, no tangential terms for SIMPLE_RADIAL and RADIAL
+    (the fast path of the usual aerial cameras), no k2 unless the model has it.
+
+    Parameters
+    ----------
+    model : str
+    full : (8, 1) or (8, N) general parameters (:func:`_full_params`).
+    x, y, z : (N,) camera-frame coordinates; z <= 0 gives NaN.
+    jacobian : also the entries of ``J_uv = d(ud, vd) / d(u, v)`` (symmetric:
+        ``j01 = j10``).
+    """
+
+    def __init__(
+        self,
+        model: str,
+        full: np.ndarray,
+        x: np.ndarray,
+        y: np.ndarray,
+        z: np.ndarray,
+        jacobian: bool = True,
+    ) -> None:
+        self.has_k1, self.has_k2, self.tangential = _model_terms(model)
+        self.fx, self.fy, self.cx, self.cy = full[0], full[1], full[2], full[3]
+        self.k1 = full[4] if self.has_k1 else 0.0
+        self.k2 = full[5] if self.has_k2 else 0.0
+        self.p1, self.p2 = (full[6], full[7]) if self.tangential else (0.0, 0.0)
         with np.errstate(divide="ignore", invalid="ignore"):
             self.iz = 1.0 / np.where(z > 0, z, np.nan)  # NaN behind the camera
-        self.u, self.v = X[:, 0] * self.iz, X[:, 1] * self.iz
-        u, v = self.u, self.v
-        self.r2 = r2 = u * u + v * v
-        self.radial = self.k1 * r2 + self.k2 * r2 * r2
-        self.g = self.k1 + 2.0 * self.k2 * r2  # d radial / d r2
-        uv = u * v
-        self.ud = u + u * self.radial + 2.0 * self.p1 * uv + self.p2 * (r2 + 2 * u * u)
-        self.vd = v + v * self.radial + 2.0 * self.p2 * uv + self.p1 * (r2 + 2 * v * v)
+        self.u = u = x * self.iz
+        self.v = v = y * self.iz
+        self.uu, self.vv, self.uv = uu, vv, uv = u * u, v * v, u * v
+        self.r2 = r2 = uu + vv
+        k1, k2, p1, p2 = self.k1, self.k2, self.p1, self.p2
+        if self.has_k2:
+            radial = k1 * r2 + k2 * r2 * r2
+            self.g = k1 + 2.0 * k2 * r2  # d radial / d r2
+        elif self.has_k1:
+            radial, self.g = k1 * r2, k1
+        else:
+            radial, self.g = None, 0.0
+        if radial is None:
+            self.ud, self.vd = u, v
+        else:
+            self.ud, self.vd = u + u * radial, v + v * radial
+        if self.tangential:
+            self.ud = self.ud + 2.0 * p1 * uv + p2 * (r2 + 2 * uu)
+            self.vd = self.vd + 2.0 * p2 * uv + p1 * (r2 + 2 * vv)
+        if not jacobian:
+            return
+        if radial is None:
+            j00 = j11 = 1.0
+            j01 = 0.0
+        else:
+            g = self.g
+            j00 = 1 + radial + 2 * uu * g
+            j01 = 2 * uv * g
+            j11 = 1 + radial + 2 * vv * g
+        if self.tangential:
+            j00 = j00 + 2 * p1 * v + 6 * p2 * u
+            j01 = j01 + 2 * p1 * u + 2 * p2 * v
+            j11 = j11 + 2 * p2 * u + 6 * p1 * v
+        self.j00, self.j01, self.j11 = j00, j01, j11
 
-    def pixels(self) -> np.ndarray:
-        return np.stack([self.fx * self.ud + self.cx, self.fy * self.vd + self.cy], 1)
+    def pixels(self) -> tuple[np.ndarray, np.ndarray]:
+        """(N,) pixel coordinates (COLMAP convention)."""
+        return self.fx * self.ud + self.cx, self.fy * self.vd + self.cy
 
-    def jac_uv(self) -> np.ndarray:
-        """(N, 2, 2) d(ud, vd) / d(u, v)."""
-        u, v, g, p1, p2 = self.u, self.v, self.g, self.p1, self.p2
-        J = np.empty((u.shape[0], 2, 2))
-        J[:, 0, 0] = 1 + self.radial + 2 * u * u * g + 2 * p1 * v + 6 * p2 * u
-        J[:, 0, 1] = 2 * u * v * g + 2 * p1 * u + 2 * p2 * v
-        J[:, 1, 0] = 2 * u * v * g + 2 * p2 * v + 2 * p1 * u
-        J[:, 1, 1] = 1 + self.radial + 2 * v * v * g + 2 * p2 * u + 6 * p1 * v
-        return J
+    def hessian(self) -> tuple[np.ndarray, ...] | None:
+        """The four distinct second derivatives of (ud, vd) by (u, v)
+        (``H000, H001 = H010 = H100, H011 = H101 = H110, H111``); None if zero."""
+        if not (self.has_k1 or self.tangential):
+            return None
+        u, v, g = self.u, self.v, self.g
+        h000, h001, h011, h111 = 6 * u * g, 2 * v * g, 2 * u * g, 6 * v * g
+        if self.has_k2:
+            gp8 = 8.0 * self.k2  # 4 gp, gp = d g / d r2 = 2 k2
+            h000 = h000 + gp8 * u * self.uu
+            h001 = h001 + gp8 * self.uu * v
+            h011 = h011 + gp8 * u * self.vv
+            h111 = h111 + gp8 * v * self.vv
+        if self.tangential:
+            p1, p2 = self.p1, self.p2
+            h000, h001 = h000 + 6 * p2, h001 + 2 * p1
+            h011, h111 = h011 + 2 * p2, h111 + 6 * p1
+        return h000, h001, h011, h111
 
-    def jac_normalise(self) -> np.ndarray:
-        """(N, 2, 3) d(u, v) / d X_cam."""
+    def along(self, V0, V1, V2) -> tuple[np.ndarray, ...]:
+        """Image velocity of the point moving along the camera-frame direction
+        V: w = d(u, v), q = J_uv w (distorted, not yet scaled by fx, fy)."""
         iz = self.iz
-        J = np.zeros((iz.shape[0], 2, 3))
-        J[:, 0, 0] = iz
-        J[:, 0, 2] = -self.u * iz
-        J[:, 1, 1] = iz
-        J[:, 1, 2] = -self.v * iz
-        return J
+        w0, w1 = (V0 - self.u * V2) * iz, (V1 - self.v * V2) * iz
+        q0 = self.j00 * w0 + self.j01 * w1
+        q1 = self.j01 * w0 + self.j11 * w1
+        return w0, w1, q0, q1
+
+    def back(self, a0, a1) -> tuple[np.ndarray, ...]:
+        """(b0, b1) = (a0, a1) J_uv: a row vector on (ud, vd) pulled back to (u, v)."""
+        return a0 * self.j00 + a1 * self.j01, a0 * self.j01 + a1 * self.j11
 
     def jac_full(self) -> np.ndarray:
         """(N, 2, 8) d pixel / d (fx, fy, cx, cy, k1, k2, p1, p2)."""
-        u, v, r2, fx, fy = self.u, self.v, self.r2, self.fx, self.fy
+        u, v, r2, uv = self.u, self.v, self.r2, self.uv
+        fx, fy = self.fx, self.fy
         J = np.zeros((u.shape[0], 2, 8))
         J[:, 0, 0] = self.ud
         J[:, 1, 1] = self.vd
@@ -200,9 +270,26 @@ class _Distortion:
         J[:, 1, 3] = 1.0
         J[:, 0, 4], J[:, 1, 4] = fx * u * r2, fy * v * r2
         J[:, 0, 5], J[:, 1, 5] = fx * u * r2 * r2, fy * v * r2 * r2
-        J[:, 0, 6], J[:, 1, 6] = fx * 2 * u * v, fy * (r2 + 2 * v * v)
-        J[:, 0, 7], J[:, 1, 7] = fx * (r2 + 2 * u * u), fy * 2 * u * v
+        J[:, 0, 6], J[:, 1, 6] = fx * 2 * uv, fy * (r2 + 2 * self.vv)
+        J[:, 0, 7], J[:, 1, 7] = fx * (r2 + 2 * self.uu), fy * 2 * uv
         return J
+
+    def jac_points(self) -> np.ndarray:
+        """(N, 2, 3) d pixel / d X_cam = diag(fx, fy) J_uv d(u, v)/d X_cam."""
+        u, v, iz = self.u, self.v, self.iz
+        J = np.empty((u.shape[0], 2, 3))
+        for row, f, ja, jb in (
+            (0, self.fx, self.j00, self.j01),
+            (1, self.fy, self.j01, self.j11),
+        ):
+            a, b = f * ja * iz, f * jb * iz
+            J[:, row, 0], J[:, row, 1], J[:, row, 2] = a, b, -(a * u + b * v)
+        return J
+
+
+def _lens(model: str, params: np.ndarray, X: np.ndarray, jacobian: bool = True):
+    full, E = _full_params(model, params, X.shape[0])
+    return _Lens(model, full, X[:, 0], X[:, 1], X[:, 2], jacobian), E
 
 
 def project(model: str, params: np.ndarray, points_cam: np.ndarray) -> np.ndarray:
@@ -221,9 +308,8 @@ def project(model: str, params: np.ndarray, points_cam: np.ndarray) -> np.ndarra
     -------
     (N, 2) array of pixels (COLMAP convention).
     """
-    X = _check_points(points_cam)
-    full, _ = _full_params(model, params, X.shape[0])
-    return _Distortion(full, X).pixels()
+    D, _ = _lens(model, params, _check_points(points_cam), jacobian=False)
+    return np.stack(D.pixels(), 1)
 
 
 def project_with_jacobian(
@@ -249,12 +335,8 @@ def project_with_jacobian(
     d_xy_d_params : (N, 2, P) array
         Derivative with respect to the model's parameters.
     """
-    X = _check_points(points_cam)
-    full, E = _full_params(model, params, X.shape[0])
-    D = _Distortion(full, X)
-    A = np.stack([D.fx, D.fy], 1)[:, :, None]  # (N, 2, 1) diag(fx, fy)
-    J_X = A * (D.jac_uv() @ D.jac_normalise())
-    return D.pixels(), J_X, D.jac_full() @ E
+    D, E = _lens(model, params, _check_points(points_cam))
+    return np.stack(D.pixels(), 1), D.jac_points(), D.jac_full() @ E
 
 
 def project_with_vertical(
@@ -285,66 +367,60 @@ def project_with_vertical(
     """
     X = _check_points(points_cam)
     V = _check_points(dirs_cam, "dirs_cam")
-    full, E = _full_params(model, params, X.shape[0])
-    D = _Distortion(full, X)
-    u, v, iz, g, r2 = D.u, D.v, D.iz, D.g, D.r2
-    gp = 2.0 * D.k2  # d g / d r2
-    p1, p2, fx, fy = D.p1, D.p2, D.fx, D.fy
+    D, E = _lens(model, params, X)
+    u, v, iz, r2, uv = D.u, D.v, D.iz, D.r2, D.uv
+    fx, fy, j00, j01, j11 = D.fx, D.fy, D.j00, D.j01, D.j11
     n = u.shape[0]
-    # Entries of J_uv = d(ud, vd) / d(u, v).
-    uv2 = 2 * u * v
-    j00 = 1 + D.radial + 2 * u * u * g + 2 * p1 * v + 6 * p2 * u
-    j01 = uv2 * g + 2 * p1 * u + 2 * p2 * v
-    j10 = uv2 * g + 2 * p2 * v + 2 * p1 * u
-    j11 = 1 + D.radial + 2 * v * v * g + 2 * p2 * u + 6 * p1 * v
-    # w = d(u, v) along the direction; q = J_uv w (distorted); d = (fx q0, fy q1).
-    V0, V1, V2 = V[:, 0], V[:, 1], V[:, 2]
-    w0, w1 = (V0 - u * V2) * iz, (V1 - v * V2) * iz
-    q0, q1 = j00 * w0 + j01 * w1, j10 * w0 + j11 * w1
-    # Second derivatives of (ud, vd); by symmetry only four distinct ones:
-    # H000, H001 = H010 = H100, H011 = H101 = H110, H111.
-    h000 = 6 * u * g + 4 * u**3 * gp + 6 * p2
-    h001 = 2 * v * g + 2 * u * uv2 * gp + 2 * p1
-    h011 = 2 * u * g + 2 * v * uv2 * gp + 2 * p2
-    h111 = 6 * v * g + 4 * v**3 * gp + 6 * p1
-    dq0_du, dq0_dv = h000 * w0 + h001 * w1, h001 * w0 + h011 * w1
-    dq1_du, dq1_dv = h001 * w0 + h011 * w1, h011 * w0 + h111 * w1
+    V2 = V[:, 2]
+    w0, w1, q0, q1 = D.along(V[:, 0], V[:, 1], V2)
+    # d q / d(u, v) = H w (H the Hessian of the distortion, symmetric).
+    H = D.hessian()
+    if H is None:
+        dq0_du = dq0_dv = dq1_dv = 0.0
+    else:
+        h000, h001, h011, h111 = H
+        dq0_du, dq0_dv = h000 * w0 + h001 * w1, h001 * w0 + h011 * w1
+        dq1_dv = h011 * w0 + h111 * w1
+    dq1_du = dq0_dv
     # d w / d X (x, y, z columns); d w0 / dy = d w1 / dx = 0.
     dw_xy = -V2 * iz * iz
     dw0_dz = (-w0 + u * V2 * iz) * iz
     dw1_dz = (-w1 + v * V2 * iz) * iz
     dd_dX = np.empty((n, 2, 3))
-    dd_dX[:, 0, 0] = fx * (dq0_du * iz + j00 * dw_xy)
-    dd_dX[:, 0, 1] = fx * (dq0_dv * iz + j01 * dw_xy)
-    dd_dX[:, 0, 2] = fx * (
-        -(dq0_du * u + dq0_dv * v) * iz + j00 * dw0_dz + j01 * dw1_dz
-    )
-    dd_dX[:, 1, 0] = fy * (dq1_du * iz + j10 * dw_xy)
-    dd_dX[:, 1, 1] = fy * (dq1_dv * iz + j11 * dw_xy)
-    dd_dX[:, 1, 2] = fy * (
-        -(dq1_du * u + dq1_dv * v) * iz + j10 * dw0_dz + j11 * dw1_dz
-    )
+    for row, f, dq_du, dq_dv, ja, jb in (
+        (0, fx, dq0_du, dq0_dv, j00, j01),
+        (1, fy, dq1_du, dq1_dv, j01, j11),
+    ):
+        dd_dX[:, row, 0] = f * (dq_du * iz + ja * dw_xy)
+        dd_dX[:, row, 1] = f * (dq_dv * iz + jb * dw_xy)
+        dd_dX[:, row, 2] = f * (
+            -(dq_du * u + dq_dv * v) * iz + ja * dw0_dz + jb * dw1_dz
+        )
     # d p / d X = diag(f) J_uv J_n, which is also d d / d dirs.
-    dp_dX = np.empty((n, 2, 3))
-    dp_dX[:, 0, 0], dp_dX[:, 0, 1] = fx * j00 * iz, fx * j01 * iz
-    dp_dX[:, 0, 2] = -fx * (j00 * u + j01 * v) * iz
-    dp_dX[:, 1, 0], dp_dX[:, 1, 1] = fy * j10 * iz, fy * j11 * iz
-    dp_dX[:, 1, 2] = -fy * (j10 * u + j11 * v) * iz
+    dp_dX = D.jac_points()
     # d d / d (fx, fy, cx, cy, k1, k2, p1, p2): (d J_uv / d k) w for the k's.
     dd_dfull = np.zeros((n, 2, 8))
     dd_dfull[:, 0, 0] = q0
     dd_dfull[:, 1, 1] = q1
-    t = uv2 * w1  # shared: 2uv w1
-    dd_dfull[:, 0, 4] = fx * ((r2 + 2 * u * u) * w0 + t)
-    dd_dfull[:, 1, 4] = fy * (uv2 * w0 + (r2 + 2 * v * v) * w1)
-    dd_dfull[:, 0, 5] = fx * r2 * ((r2 + 4 * u * u) * w0 + 2 * t)
-    dd_dfull[:, 1, 5] = fy * r2 * (2 * uv2 * w0 + (r2 + 4 * v * v) * w1)
+    t = 2 * uv * w1  # shared: 2uv w1
+    dd_dfull[:, 0, 4] = fx * ((r2 + 2 * D.uu) * w0 + t)
+    dd_dfull[:, 1, 4] = fy * (2 * uv * w0 + (r2 + 2 * D.vv) * w1)
+    dd_dfull[:, 0, 5] = fx * r2 * ((r2 + 4 * D.uu) * w0 + 2 * t)
+    dd_dfull[:, 1, 5] = fy * r2 * (4 * uv * w0 + (r2 + 4 * D.vv) * w1)
     dd_dfull[:, 0, 6] = fx * (2 * v * w0 + 2 * u * w1)
     dd_dfull[:, 1, 6] = fy * (2 * u * w0 + 6 * v * w1)
     dd_dfull[:, 0, 7] = fx * (6 * u * w0 + 2 * v * w1)
     dd_dfull[:, 1, 7] = fy * (2 * v * w0 + 2 * u * w1)
     d = np.stack([fx * q0, fy * q1], 1)
-    return D.pixels(), d, dp_dX, D.jac_full() @ E, dd_dX, dp_dX, dd_dfull @ E
+    return (
+        np.stack(D.pixels(), 1),
+        d,
+        dp_dX,
+        D.jac_full() @ E,
+        dd_dX,
+        dp_dX,
+        dd_dfull @ E,
+    )
 
 
 # --------------------------------------------------------------------------
@@ -397,18 +473,109 @@ class ResidualJacobians:
     d_height: np.ndarray | None = None
 
 
-def _unit_lines(lines: np.ndarray) -> np.ndarray:
+def _unit_lines(lines: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(N, 3) lines to the (N,) components of the unit normal and the offset."""
     L = np.asarray(lines, float)
     if L.ndim != 2 or L.shape[1] != 3:
         raise ValueError(f"lines must have shape (N, 3), got {L.shape}")
-    return L / np.linalg.norm(L[:, :2], axis=1, keepdims=True)
+    s = 1.0 / np.hypot(L[:, 0], L[:, 1])
+    return L[:, 0] * s, L[:, 1] * s, L[:, 2] * s
 
 
-def _pose_chain(dr_dX: np.ndarray, X_cam: np.ndarray, R: np.ndarray) -> np.ndarray:
-    """(N, 3) d r / d X_cam to (N, 6) d r / d (omega, c) for the point term."""
-    d_omega = np.cross(X_cam, dr_dX)  # dr/dX . (-[X]_x omega) = (X x dr/dX) . omega
-    d_c = -np.einsum("ni,nij->nj", dr_dX, R)
-    return np.concatenate([d_omega, d_c], axis=1)
+def _camera_points(rotations, centers, points_world, model, params, jacobian):
+    """X_cam = R (X - c), (N, 3), and its :class:`_Lens`; and E."""
+    X_cam = np.einsum("nij,nj->ni", rotations, points_world - centers)
+    full, E = _full_params(model, params, X_cam.shape[0])
+    x, y, z = X_cam[:, 0], X_cam[:, 1], X_cam[:, 2]
+    return X_cam, _Lens(model, full, x, y, z, jacobian), E
+
+
+def _pose_height_chain(
+    dX: tuple[np.ndarray, ...],
+    X_cam: np.ndarray,
+    rotations: np.ndarray,
+    dV: tuple[np.ndarray, ...] | None = None,
+) -> tuple[np.ndarray, np.ndarray]:
+    """d r / d X_cam (and d r / d dir for the direction R e_z), (N,) components,
+    to (N, 6) d r / d (omega, c) and (N,) d r / d h.
+
+    ``d X_cam / d omega = -[X_cam]_x`` gives ``X_cam x dr/dX``; the direction
+    rotates with the camera too; ``d X_cam / d c = -R``, ``d X_cam / d h = R e_z``.
+    """
+    x, y, z = X_cam[:, 0], X_cam[:, 1], X_cam[:, 2]
+    a, b, c = dX
+    out = np.empty((X_cam.shape[0], 6))
+    out[:, 0] = y * c - z * b
+    out[:, 1] = z * a - x * c
+    out[:, 2] = x * b - y * a
+    if dV is not None:
+        V0, V1, V2 = rotations[:, 0, 2], rotations[:, 1, 2], rotations[:, 2, 2]
+        out[:, 0] += V1 * dV[2] - V2 * dV[1]
+        out[:, 1] += V2 * dV[0] - V0 * dV[2]
+        out[:, 2] += V0 * dV[1] - V1 * dV[0]
+    for j in range(3):
+        out[:, 3 + j] = -(
+            a * rotations[:, 0, j] + b * rotations[:, 1, j] + c * rotations[:, 2, j]
+        )
+    return out, -out[:, 5]  # d r / d h = dX . R e_z = -(d r / d c_z)
+
+
+def _param_chain(model, D: _Lens, gp, gd=None, w=None, q=None) -> np.ndarray:
+    """(N, P) derivative w.r.t. the model's parameters.
+
+    ``gp = (gp0, gp1)``: weights of the pixel's derivative; ``gd``: of the
+    directional derivative ``d = diag(f) J_uv w`` (``w``, ``q = J_uv w`` from
+    :meth:`_Lens.along`), None for the vertical residual.
+    """
+    u, v, r2, uv, fx, fy = D.u, D.v, D.r2, D.uv, D.fx, D.fy
+    gp0, gp1 = gp
+    a0, a1 = gp0 * fx, gp1 * fy
+    if gd is not None:
+        c0, c1 = gd[0] * fx, gd[1] * fy
+        w0, w1 = w
+
+    def column(i: int) -> np.ndarray:
+        # d r / d full[i], full = (fx, fy, cx, cy, k1, k2, p1, p2).
+        if i == 0:
+            return gp0 * D.ud if gd is None else gp0 * D.ud + gd[0] * q[0]
+        if i == 1:
+            return gp1 * D.vd if gd is None else gp1 * D.vd + gd[1] * q[1]
+        if i in (2, 3):
+            return gp0 if i == 2 else gp1
+        uu2, vv2 = 2 * D.uu, 2 * D.vv
+        if i == 4:
+            out = (a0 * u + a1 * v) * r2
+            if gd is not None:
+                out = out + c0 * ((r2 + uu2) * w0 + 2 * uv * w1)
+                out = out + c1 * (2 * uv * w0 + (r2 + vv2) * w1)
+            return out
+        if i == 5:
+            out = (a0 * u + a1 * v) * r2 * r2
+            if gd is not None:
+                t = c0 * ((r2 + 2 * uu2) * w0 + 4 * uv * w1)
+                t = t + c1 * (4 * uv * w0 + (r2 + 2 * vv2) * w1)
+                out = out + r2 * t
+            return out
+        if i == 6:
+            out = a0 * 2 * uv + a1 * (r2 + vv2)
+            if gd is not None:
+                out = (
+                    out
+                    + c0 * (2 * v * w0 + 2 * u * w1)
+                    + c1 * (2 * u * w0 + 6 * v * w1)
+                )
+            return out
+        out = a0 * (r2 + uu2) + a1 * 2 * uv
+        if gd is not None:
+            out = out + c0 * (6 * u * w0 + 2 * v * w1) + c1 * (2 * v * w0 + 2 * u * w1)
+        return out
+
+    names = SUPPORTED_MODELS[model]
+    J = np.empty((u.shape[0], len(names)))
+    for col, name in enumerate(names):
+        idx = _FULL_INDEX[name]
+        J[:, col] = column(idx[0]) if len(idx) == 1 else column(idx[0]) + column(idx[1])
+    return J
 
 
 def vertical_residuals(
@@ -444,21 +611,20 @@ def vertical_residuals(
     ResidualJacobians
         ``d_height`` is the derivative w.r.t. ``h_i``.
     """
-    lines = _unit_lines(lines)
-    X_cam = np.einsum("nij,nj->ni", rotations, points_world - centers)
-    nrm = lines[:, :2]
-    if not jacobians:
-        p = project(model, params, X_cam)
-        return ResidualJacobians(np.einsum("ni,ni->n", nrm, p) + lines[:, 2])
-    p, dp_dX, dp_dparams = project_with_jacobian(model, params, X_cam)
-    r = np.einsum("ni,ni->n", nrm, p) + lines[:, 2]
-    dr_dX = np.einsum("ni,nij->nj", nrm, dp_dX)
-    return ResidualJacobians(
-        r,
-        _pose_chain(dr_dX, X_cam, rotations),
-        np.einsum("ni,nij->nj", nrm, dp_dparams),
-        np.einsum("ni,ni->n", dr_dX, rotations[:, :, 2]),
+    n0, n1, lc = _unit_lines(lines)
+    X_cam, D, _ = _camera_points(
+        rotations, centers, points_world, model, params, jacobians
     )
+    px, py = D.pixels()
+    r = n0 * px + n1 * py + lc
+    if not jacobians:
+        return ResidualJacobians(r)
+    # d r / d X_cam = n^T diag(f) J_uv d(u, v) / d X_cam.
+    b0, b1 = D.back(n0 * D.fx, n1 * D.fy)
+    iz = D.iz
+    dX = (b0 * iz, b1 * iz, -(b0 * D.u + b1 * D.v) * iz)
+    d_pose, d_height = _pose_height_chain(dX, X_cam, rotations)
+    return ResidualJacobians(r, d_pose, _param_chain(model, D, (n0, n1)), d_height)
 
 
 def horizontal_residuals(
@@ -476,38 +642,44 @@ def horizontal_residuals(
     derivative. Arguments as :func:`vertical_residuals`, with
     ``points_world = (x_j, y_j, h_j)`` the facade-edge point.
     """
-    lines = _unit_lines(lines)
-    X_cam = np.einsum("nij,nj->ni", rotations, points_world - centers)
-    ez_cam = rotations[:, :, 2]  # (N, 3) world vertical in the camera frame
-    nrm = lines[:, :2]
+    n0, n1, lc = _unit_lines(lines)
+    X_cam, D, _ = _camera_points(rotations, centers, points_world, model, params, True)
+    px, py = D.pixels()
+    e = n0 * px + n1 * py + lc
+    # d = J_pi(X_cam) R e_z, the image direction of the projected vertical.
+    w0, w1, q0, q1 = D.along(rotations[:, 0, 2], rotations[:, 1, 2], rotations[:, 2, 2])
+    d0, d1 = D.fx * q0, D.fy * q1
+    dn = np.sqrt(d0 * d0 + d1 * d1)
+    nd = n0 * d0 + n1 * d1
     if not jacobians:
-        # Only d is needed: the directional derivative J_pi ez_cam.
-        p, dp_dX, _ = project_with_jacobian(model, params, X_cam)
-        d = np.einsum("nij,nj->ni", dp_dX, ez_cam)
-        e = np.einsum("ni,ni->n", nrm, p) + lines[:, 2]
-        dn = np.linalg.norm(d, axis=1)
-        return ResidualJacobians(e * dn / np.abs(np.einsum("ni,ni->n", nrm, d)))
-    p, d, dp_dX, dp_dparams, dd_dX, dd_ddir, dd_dparams = project_with_vertical(
-        model, params, X_cam, ez_cam
-    )
-    e = np.einsum("ni,ni->n", nrm, p) + lines[:, 2]
-    dn = np.linalg.norm(d, axis=1)
-    d_hat = d / dn[:, None]
-    dot = np.einsum("ni,ni->n", nrm, d_hat)
-    sigma = np.sign(dot)
+        return ResidualJacobians(e * dn / np.abs(nd))
+    dot = nd / dn  # n . d_hat
     s = np.abs(dot)
     r = e / s
-    g_p = nrm / s[:, None]  # (N, 2) weight of dp
-    g_d = -(e / s**2 * sigma / dn)[:, None] * (nrm - dot[:, None] * d_hat)  # of dd
-    dr_dX = np.einsum("ni,nij->nj", g_p, dp_dX) + np.einsum("ni,nij->nj", g_d, dd_dX)
-    dr_ddir = np.einsum("ni,nij->nj", g_d, dd_ddir)
-    d_pose = _pose_chain(dr_dX, X_cam, rotations)
-    # The direction R e_z rotates with the camera: d dir / d omega = -[dir]_x.
-    d_pose[:, :3] += np.cross(ez_cam, dr_ddir)
-    d_params = np.einsum("ni,nij->nj", g_p, dp_dparams) + np.einsum(
-        "ni,nij->nj", g_d, dd_dparams
-    )
-    return ResidualJacobians(r, d_pose, d_params, np.einsum("ni,ni->n", dr_dX, ez_cam))
+    # Weights of dp (gp) and of dd (gd) in dr, as in the module docstring.
+    gp0, gp1 = n0 / s, n1 / s
+    t = -(e / s**2 * np.sign(dot) / dn)
+    gd0, gd1 = t * (n0 - dot * d0 / dn), t * (n1 - dot * d1 / dn)
+    # Pull both back through diag(f) J_uv: b for dp, B for dd (and d dd / d dir).
+    b0, b1 = D.back(gp0 * D.fx, gp1 * D.fy)
+    c0, c1 = gd0 * D.fx, gd1 * D.fy
+    B0, B1 = D.back(c0, c1)
+    # dd / d(u, v) through J_uv's own derivative: (c0, c1) . (H w).
+    H = D.hessian()
+    if H is not None:
+        h000, h001, h011, h111 = H
+        m = h001 * w0 + h011 * w1  # d q0 / dv = d q1 / du
+        b0 = b0 + c0 * (h000 * w0 + h001 * w1) + c1 * m
+        b1 = b1 + c0 * m + c1 * (h011 * w0 + h111 * w1)
+    # Through d(u, v) / d X_cam and d w / d X_cam.
+    u, v, iz = D.u, D.v, D.iz
+    wz = rotations[:, 2, 2] * iz
+    P0, P1 = b0 - B0 * wz, b1 - B1 * wz
+    dX = (P0 * iz, P1 * iz, -(P0 * u + P1 * v + B0 * w0 + B1 * w1) * iz)
+    dV = (B0 * iz, B1 * iz, -(B0 * u + B1 * v) * iz)
+    d_pose, d_height = _pose_height_chain(dX, X_cam, rotations, dV)
+    d_params = _param_chain(model, D, (gp0, gp1), (gd0, gd1), (w0, w1), (q0, q1))
+    return ResidualJacobians(r, d_pose, d_params, d_height)
 
 
 def horizontal_residuals_by_image(
