@@ -516,9 +516,89 @@ class _Setup:
                     a[self.pose_col[members] + 5] = 1.0 / len(members)
                     rows.append(a)
         self.A = np.array(rows).reshape(-1, self.n_red)
-        # Sparse coupling pattern: height rows x camera columns.
-        self.E_rows = np.repeat(self.hidx[hmask], self.L)
-        self.E_cols = cols[hmask].ravel()
+        # Layout of the height x camera coupling E.
+        self.coupling = _Coupling(
+            self.img[hmask], self.hidx[hmask], cols[hmask], self.n_heights, self.n_red
+        )
+
+
+class _Coupling:
+    """Static layout of the height-camera coupling E (heights x camera columns).
+
+    Residual row i with a height adds its (L,) block ``F_i = w_i Jh_i Jc_i``
+    to ``E[hidx_i, cols_i]``; ``cols_i`` are its image's columns (6 pose,
+    then the camera's intrinsics, shared by the camera's images; padding
+    column ``n_red``). Kept: the CSR pattern of E (with duplicates), and
+    for ``E^T D E = sum_j D_j e_j e_j^T`` every pair of blocks (a, b) of one
+    height with ``img[a] <= img[b]``, grouped by image pair, so that the term
+    is one L x L product per image pair (a few hundred) instead of a sparse
+    matrix product.
+
+    Parameters
+    ----------
+    img, hidx : (Nh,) int arrays, image and height of each row with a height.
+    cols : (Nh, L) int array, camera-block columns of each such row.
+    n_heights, n_red : int, the numbers of heights and camera-block columns.
+    """
+
+    def __init__(self, img, hidx, cols, n_heights: int, n_red: int) -> None:
+        Nh, L = cols.shape
+        n1 = n_red + 1
+        self.hidx, self.shape, self.L = hidx, (n_heights, n_red), L
+        # CSR pattern of E: rows sorted by height, each row's L columns but
+        # the padding; the duplicates (a camera's intrinsic columns seen from
+        # two of its images) are left in, to be summed by the products.
+        order = np.argsort(hidx, kind="stable")
+        counts = np.bincount(hidx, minlength=n_heights)
+        valid = cols < n_red
+        entries = order[:, None] * L + np.arange(L)
+        self.entries = entries[valid[order]]  # into F.ravel(), in CSR order
+        self.indices = cols.ravel()[self.entries]
+        per_row = np.bincount(hidx, valid.sum(1), n_heights).astype(np.int64)
+        self.indptr = np.concatenate([[0], np.cumsum(per_row)])
+        # All ordered pairs of rows of one height: rows sorted by height,
+        # each paired with every row of its group.
+        start = np.cumsum(counts) - counts
+        size = counts[hidx[order]]
+        first_of = np.repeat(np.cumsum(size) - size, size)
+        a = np.repeat(np.arange(Nh), size)
+        b = np.repeat(start[hidx[order]], size) + np.arange(len(a)) - first_of
+        a, b = order[a], order[b]
+        ok = img[a] <= img[b]
+        a, b = a[ok], b[ok]
+        pair = img[a] * (int(img.max(initial=0)) + 1) + img[b]
+        o = np.argsort(pair, kind="stable")
+        self.a, self.b, pair = a[o], b[o], pair[o]
+        first = np.flatnonzero(np.diff(pair, prepend=-1))
+        self.bounds = np.append(first, len(o))
+        # Where each image pair's block goes in the padded (n1, n1) term; an
+        # off-diagonal pair's block also goes, transposed, to (cols_b, cols_a).
+        ca, cb = cols[self.a[first]], cols[self.b[first]]  # (pairs, L)
+        off = img[self.a[first]] != img[self.b[first]]
+        self.offdiag = off
+        self.flat = np.concatenate(
+            [
+                (ca[:, :, None] * n1 + cb[:, None, :]).ravel(),
+                (ca[off][:, :, None] + cb[off][:, None, :] * n1).ravel(),
+            ]
+        )
+
+    def matrix(self, F: np.ndarray) -> sp.csr_matrix:
+        """E (n_heights, n_red) from the (Nh, L) blocks."""
+        data = F.ravel()[self.entries]
+        return sp.csr_matrix((data, self.indices, self.indptr), shape=self.shape)
+
+    def gram(self, F: np.ndarray, scale: np.ndarray) -> np.ndarray:
+        """(n_red, n_red) ``E^T diag(scale^2) E`` for per-height ``scale``."""
+        Fs = F * scale[self.hidx][:, None]
+        FA, FB = Fs[self.a], Fs[self.b]
+        blocks = np.empty((len(self.bounds) - 1, self.L, self.L))
+        for p in range(len(blocks)):
+            s, e = self.bounds[p], self.bounds[p + 1]
+            np.matmul(FA[s:e].T, FB[s:e], out=blocks[p])
+        vals = np.concatenate([blocks.ravel(), blocks[self.offdiag].ravel()])
+        n1 = self.shape[1] + 1
+        return np.bincount(self.flat, vals, minlength=n1 * n1).reshape(n1, n1)[:-1, :-1]
 
 
 class _State:
@@ -669,10 +749,10 @@ def _solve(problem: BundleProblem, opts: BundleOptions) -> BundleResult:
         if need_build:
             _, w = _loss(opts.loss, opts.loss_scale_px, r * r)
             w = w * S.weight
-            H_cc, g_c, H_hh, g_h, E = _normal_equations(S, Jc, Jh, r, w)
+            H_cc, g_c, H_hh, g_h, E, F = _normal_equations(S, Jc, Jh, r, w)
             H_hh = H_hh + prior_w * prior_mask
             g_h = g_h + prior_w * prior_mask * (st.heights - heights0)
-            schur = _Schur(H_hh, E)
+            schur = _Schur(S.coupling, H_hh, E, F)
             need_build = False
         dc, dh, D_c, D_h = _damped_step(S, H_cc, g_c, H_hh, g_h, E, lam, schur)
         predicted = 0.5 * (
@@ -768,7 +848,8 @@ def _solve(problem: BundleProblem, opts: BundleOptions) -> BundleResult:
 
 
 def _normal_equations(S: _Setup, Jc, Jh, r, w):
-    """Blocks of J^T W J and J^T W r: dense camera block, diagonal heights, sparse E."""
+    """Blocks of J^T W J and J^T W r: dense camera block, diagonal heights,
+    sparse E; and the (Nh, L) blocks F of E (rows with a height)."""
     n = S.n_red + 1
     H_cc = np.zeros((n, n))
     g_c = np.zeros(n)
@@ -780,9 +861,8 @@ def _normal_equations(S: _Setup, Jc, Jh, r, w):
     m = S.has_h
     H_hh = np.bincount(S.hidx[m], (w * Jh * Jh)[m], S.n_heights)
     g_h = np.bincount(S.hidx[m], (w * Jh * r)[m], S.n_heights)
-    vals = (wJ[m] * Jh[m, None]).ravel()
-    E = sp.csr_matrix((vals, (S.E_rows, S.E_cols)), shape=(S.n_heights, n))
-    return H_cc[:-1, :-1], g_c[:-1], H_hh, g_h, E[:, :-1].tocsr()
+    F = wJ[m] * Jh[m, None]
+    return H_cc[:-1, :-1], g_c[:-1], H_hh, g_h, S.coupling.matrix(F), F
 
 
 class _Schur:
@@ -790,16 +870,16 @@ class _Schur:
 
     Where the height block's damping is its own diagonal (``D_h = H_hh``,
     unclipped) the term is ``E^T H_hh^-1 E / (1 + lam)``: that part is
-    formed once per linearisation, not once per trial step; the clipped
-    rows (few) are added per step.
+    formed once per linearisation, not once per trial step, from the blocks
+    F per image pair (:class:`_Coupling`); the clipped rows (few) are added
+    per step.
     """
 
-    def __init__(self, H_hh: np.ndarray, E) -> None:
+    def __init__(self, coupling: _Coupling, H_hh: np.ndarray, E, F) -> None:
         own = (H_hh >= 1e-6) & (H_hh <= 1e32)  # where clip(H_hh) = H_hh
         scale = np.zeros(len(H_hh))
         scale[own] = 1.0 / np.sqrt(H_hh[own])
-        Ep = sp.diags(scale) @ E
-        self.base = (Ep.T @ Ep).toarray()
+        self.base = coupling.gram(F, scale)
         self.rest = np.flatnonzero(~own)
         self.E_rest = E[self.rest] if len(self.rest) else None
 
