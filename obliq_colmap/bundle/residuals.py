@@ -72,11 +72,13 @@ __all__ = [
     "expansion_matrix",
     "focal_principal_extra_indices",
     "horizontal_residuals",
+    "horizontal_rows",
     "project",
     "project_with_jacobian",
     "project_with_vertical",
     "rotation_exp",
     "vertical_residuals",
+    "vertical_rows",
 ]
 
 #: The general parameter vector all supported models are expanded to.
@@ -473,55 +475,46 @@ class ResidualJacobians:
     d_height: np.ndarray | None = None
 
 
-def _unit_lines(lines: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """(N, 3) lines to the (N,) components of the unit normal and the offset."""
+def _unit_lines(lines: np.ndarray) -> np.ndarray:
+    """(N, 3) homogeneous lines to (3, N) rows ``(n0, n1, c)``, unit normal."""
     L = np.asarray(lines, float)
     if L.ndim != 2 or L.shape[1] != 3:
         raise ValueError(f"lines must have shape (N, 3), got {L.shape}")
-    s = 1.0 / np.hypot(L[:, 0], L[:, 1])
-    return L[:, 0] * s, L[:, 1] * s, L[:, 2] * s
+    return L.T / np.hypot(L[:, 0], L[:, 1])
 
 
-def _camera_points(rotations, centers, points_world, model, params, jacobian):
-    """X_cam = R (X - c), (N, 3), and its :class:`_Lens`; and E."""
-    X_cam = np.einsum("nij,nj->ni", rotations, points_world - centers)
-    full, E = _full_params(model, params, X_cam.shape[0])
-    x, y, z = X_cam[:, 0], X_cam[:, 1], X_cam[:, 2]
-    return X_cam, _Lens(model, full, x, y, z, jacobian), E
+def _rows_of(rotations, centers, points_world) -> tuple[np.ndarray, np.ndarray]:
+    """(N, 3, 3) rotations and (N, 3) points to the kernels' (3, 3, N) and
+    (3, N) ``X - c`` (views where possible)."""
+    R = np.asarray(rotations, float).transpose(1, 2, 0)
+    return R, (np.asarray(points_world, float) - centers).T
 
 
-def _pose_height_chain(
-    dX: tuple[np.ndarray, ...],
-    X_cam: np.ndarray,
-    rotations: np.ndarray,
-    dV: tuple[np.ndarray, ...] | None = None,
-) -> tuple[np.ndarray, np.ndarray]:
-    """d r / d X_cam (and d r / d dir for the direction R e_z), (N,) components,
-    to (N, 6) d r / d (omega, c) and (N,) d r / d h.
+def _pose_height_chain(dX, X_cam, R, dV=None) -> tuple[np.ndarray, np.ndarray]:
+    """(3,) rows d r / d X_cam (and d r / d dir for the direction R e_z) to
+    (6, N) d r / d (omega, c) and (N,) d r / d h.
 
     ``d X_cam / d omega = -[X_cam]_x`` gives ``X_cam x dr/dX``; the direction
     rotates with the camera too; ``d X_cam / d c = -R``, ``d X_cam / d h = R e_z``.
     """
-    x, y, z = X_cam[:, 0], X_cam[:, 1], X_cam[:, 2]
+    x, y, z = X_cam
     a, b, c = dX
-    out = np.empty((X_cam.shape[0], 6))
-    out[:, 0] = y * c - z * b
-    out[:, 1] = z * a - x * c
-    out[:, 2] = x * b - y * a
+    out = np.empty((6, a.shape[0]))
+    out[0] = y * c - z * b
+    out[1] = z * a - x * c
+    out[2] = x * b - y * a
     if dV is not None:
-        V0, V1, V2 = rotations[:, 0, 2], rotations[:, 1, 2], rotations[:, 2, 2]
-        out[:, 0] += V1 * dV[2] - V2 * dV[1]
-        out[:, 1] += V2 * dV[0] - V0 * dV[2]
-        out[:, 2] += V0 * dV[1] - V1 * dV[0]
+        V0, V1, V2 = R[0, 2], R[1, 2], R[2, 2]
+        out[0] += V1 * dV[2] - V2 * dV[1]
+        out[1] += V2 * dV[0] - V0 * dV[2]
+        out[2] += V0 * dV[1] - V1 * dV[0]
     for j in range(3):
-        out[:, 3 + j] = -(
-            a * rotations[:, 0, j] + b * rotations[:, 1, j] + c * rotations[:, 2, j]
-        )
-    return out, -out[:, 5]  # d r / d h = dX . R e_z = -(d r / d c_z)
+        out[3 + j] = -(a * R[0, j] + b * R[1, j] + c * R[2, j])
+    return out, -out[5]  # d r / d h = dX . R e_z = -(d r / d c_z)
 
 
 def _param_chain(model, D: _Lens, gp, gd=None, w=None, q=None) -> np.ndarray:
-    """(N, P) derivative w.r.t. the model's parameters.
+    """(P, N) derivative w.r.t. the model's parameters.
 
     ``gp = (gp0, gp1)``: weights of the pixel's derivative; ``gd``: of the
     directional derivative ``d = diag(f) J_uv w`` (``w``, ``q = J_uv w`` from
@@ -571,11 +564,97 @@ def _param_chain(model, D: _Lens, gp, gd=None, w=None, q=None) -> np.ndarray:
         return out
 
     names = SUPPORTED_MODELS[model]
-    J = np.empty((u.shape[0], len(names)))
-    for col, name in enumerate(names):
+    J = np.empty((len(names), u.shape[0]))
+    for row, name in enumerate(names):
         idx = _FULL_INDEX[name]
-        J[:, col] = column(idx[0]) if len(idx) == 1 else column(idx[0]) + column(idx[1])
+        J[row] = column(idx[0]) if len(idx) == 1 else column(idx[0]) + column(idx[1])
     return J
+
+
+def _lens_of(model, full, R, D, jacobian):
+    """X_cam = R (X - c) as (3,) rows, and its :class:`_Lens`."""
+    X_cam = tuple(R[i, 0] * D[0] + R[i, 1] * D[1] + R[i, 2] * D[2] for i in range(3))
+    return X_cam, _Lens(model, full, *X_cam, jacobian)
+
+
+def vertical_rows(model: str, full, R, D, line, jacobians: bool = True):
+    """:func:`vertical_residuals` on rows: the solver's entry point.
+
+    Parameters
+    ----------
+    model : str
+    full : (8, 1) or (8, N) general parameters (``params @ E.T``, transposed).
+    R : (3, 3, N) array, ``R[i, j]`` the entries of each residual's rotation.
+    D : (3, N) array, ``X - c`` (world point minus camera centre).
+    line : (3, N) array, unit-normal lines ``(n0, n1, c)``.
+    jacobians : bool
+
+    Returns
+    -------
+    r : (N,); and if ``jacobians``, d_pose (6, N), d_params (P, N), d_height (N,).
+    """
+    n0, n1, lc = line
+    X_cam, L = _lens_of(model, full, R, D, jacobians)
+    px, py = L.pixels()
+    r = n0 * px + n1 * py + lc
+    if not jacobians:
+        return (r,)
+    # d r / d X_cam = n^T diag(f) J_uv d(u, v) / d X_cam.
+    b0, b1 = L.back(n0 * L.fx, n1 * L.fy)
+    iz = L.iz
+    dX = (b0 * iz, b1 * iz, -(b0 * L.u + b1 * L.v) * iz)
+    d_pose, d_height = _pose_height_chain(dX, X_cam, R)
+    return r, d_pose, _param_chain(model, L, (n0, n1)), d_height
+
+
+def horizontal_rows(model: str, full, R, D, line, jacobians: bool = True):
+    """:func:`horizontal_residuals` on rows; arguments and results as
+    :func:`vertical_rows`."""
+    n0, n1, lc = line
+    X_cam, L = _lens_of(model, full, R, D, True)
+    px, py = L.pixels()
+    e = n0 * px + n1 * py + lc
+    # d = J_pi(X_cam) R e_z, the image direction of the projected vertical.
+    w0, w1, q0, q1 = L.along(R[0, 2], R[1, 2], R[2, 2])
+    d0, d1 = L.fx * q0, L.fy * q1
+    dn = np.sqrt(d0 * d0 + d1 * d1)
+    nd = n0 * d0 + n1 * d1
+    if not jacobians:
+        return (e * dn / np.abs(nd),)
+    dot = nd / dn  # n . d_hat
+    s = np.abs(dot)
+    r = e / s
+    # Weights of dp (gp) and of dd (gd) in dr, as in the module docstring.
+    gp0, gp1 = n0 / s, n1 / s
+    t = -(e / s**2 * np.sign(dot) / dn)
+    gd0, gd1 = t * (n0 - dot * d0 / dn), t * (n1 - dot * d1 / dn)
+    # Pull both back through diag(f) J_uv: b for dp, B for dd (and d dd / d dir).
+    b0, b1 = L.back(gp0 * L.fx, gp1 * L.fy)
+    c0, c1 = gd0 * L.fx, gd1 * L.fy
+    B0, B1 = L.back(c0, c1)
+    # dd / d(u, v) through J_uv's own derivative: (c0, c1) . (H w).
+    H = L.hessian()
+    if H is not None:
+        h000, h001, h011, h111 = H
+        m = h001 * w0 + h011 * w1  # d q0 / dv = d q1 / du
+        b0 = b0 + c0 * (h000 * w0 + h001 * w1) + c1 * m
+        b1 = b1 + c0 * m + c1 * (h011 * w0 + h111 * w1)
+    # Through d(u, v) / d X_cam and d w / d X_cam.
+    u, v, iz = L.u, L.v, L.iz
+    wz = R[2, 2] * iz
+    P0, P1 = b0 - B0 * wz, b1 - B1 * wz
+    dX = (P0 * iz, P1 * iz, -(P0 * u + P1 * v + B0 * w0 + B1 * w1) * iz)
+    dV = (B0 * iz, B1 * iz, -(B0 * u + B1 * v) * iz)
+    d_pose, d_height = _pose_height_chain(dX, X_cam, R, dV)
+    d_params = _param_chain(model, L, (gp0, gp1), (gd0, gd1), (w0, w1), (q0, q1))
+    return r, d_pose, d_params, d_height
+
+
+def _as_residuals(out: tuple) -> ResidualJacobians:
+    if len(out) == 1:
+        return ResidualJacobians(out[0])
+    r, d_pose, d_params, d_height = out
+    return ResidualJacobians(r, d_pose.T, d_params.T, d_height)
 
 
 def vertical_residuals(
@@ -611,20 +690,10 @@ def vertical_residuals(
     ResidualJacobians
         ``d_height`` is the derivative w.r.t. ``h_i``.
     """
-    n0, n1, lc = _unit_lines(lines)
-    X_cam, D, _ = _camera_points(
-        rotations, centers, points_world, model, params, jacobians
-    )
-    px, py = D.pixels()
-    r = n0 * px + n1 * py + lc
-    if not jacobians:
-        return ResidualJacobians(r)
-    # d r / d X_cam = n^T diag(f) J_uv d(u, v) / d X_cam.
-    b0, b1 = D.back(n0 * D.fx, n1 * D.fy)
-    iz = D.iz
-    dX = (b0 * iz, b1 * iz, -(b0 * D.u + b1 * D.v) * iz)
-    d_pose, d_height = _pose_height_chain(dX, X_cam, rotations)
-    return ResidualJacobians(r, d_pose, _param_chain(model, D, (n0, n1)), d_height)
+    line = _unit_lines(lines)
+    full, _ = _full_params(model, params, line.shape[1])
+    R, D = _rows_of(rotations, centers, points_world)
+    return _as_residuals(vertical_rows(model, full, R, D, line, jacobians))
 
 
 def horizontal_residuals(
@@ -642,44 +711,10 @@ def horizontal_residuals(
     derivative. Arguments as :func:`vertical_residuals`, with
     ``points_world = (x_j, y_j, h_j)`` the facade-edge point.
     """
-    n0, n1, lc = _unit_lines(lines)
-    X_cam, D, _ = _camera_points(rotations, centers, points_world, model, params, True)
-    px, py = D.pixels()
-    e = n0 * px + n1 * py + lc
-    # d = J_pi(X_cam) R e_z, the image direction of the projected vertical.
-    w0, w1, q0, q1 = D.along(rotations[:, 0, 2], rotations[:, 1, 2], rotations[:, 2, 2])
-    d0, d1 = D.fx * q0, D.fy * q1
-    dn = np.sqrt(d0 * d0 + d1 * d1)
-    nd = n0 * d0 + n1 * d1
-    if not jacobians:
-        return ResidualJacobians(e * dn / np.abs(nd))
-    dot = nd / dn  # n . d_hat
-    s = np.abs(dot)
-    r = e / s
-    # Weights of dp (gp) and of dd (gd) in dr, as in the module docstring.
-    gp0, gp1 = n0 / s, n1 / s
-    t = -(e / s**2 * np.sign(dot) / dn)
-    gd0, gd1 = t * (n0 - dot * d0 / dn), t * (n1 - dot * d1 / dn)
-    # Pull both back through diag(f) J_uv: b for dp, B for dd (and d dd / d dir).
-    b0, b1 = D.back(gp0 * D.fx, gp1 * D.fy)
-    c0, c1 = gd0 * D.fx, gd1 * D.fy
-    B0, B1 = D.back(c0, c1)
-    # dd / d(u, v) through J_uv's own derivative: (c0, c1) . (H w).
-    H = D.hessian()
-    if H is not None:
-        h000, h001, h011, h111 = H
-        m = h001 * w0 + h011 * w1  # d q0 / dv = d q1 / du
-        b0 = b0 + c0 * (h000 * w0 + h001 * w1) + c1 * m
-        b1 = b1 + c0 * m + c1 * (h011 * w0 + h111 * w1)
-    # Through d(u, v) / d X_cam and d w / d X_cam.
-    u, v, iz = D.u, D.v, D.iz
-    wz = rotations[:, 2, 2] * iz
-    P0, P1 = b0 - B0 * wz, b1 - B1 * wz
-    dX = (P0 * iz, P1 * iz, -(P0 * u + P1 * v + B0 * w0 + B1 * w1) * iz)
-    dV = (B0 * iz, B1 * iz, -(B0 * u + B1 * v) * iz)
-    d_pose, d_height = _pose_height_chain(dX, X_cam, rotations, dV)
-    d_params = _param_chain(model, D, (gp0, gp1), (gd0, gd1), (w0, w1), (q0, q1))
-    return ResidualJacobians(r, d_pose, d_params, d_height)
+    line = _unit_lines(lines)
+    full, _ = _full_params(model, params, line.shape[1])
+    R, D = _rows_of(rotations, centers, points_world)
+    return _as_residuals(horizontal_rows(model, full, R, D, line, jacobians))
 
 
 def horizontal_residuals_by_image(

@@ -422,7 +422,9 @@ class _Setup:
         free = opts.corner_heights == "free"
         nJ = len(P.facade_heights)
 
-        # Residuals: vertical then horizontal, then sorted by image (stable).
+        # Residuals: vertical then horizontal, then sorted (stably) by camera
+        # model, kind, camera and image, so that each evaluation group (one
+        # model and kind) and each of its cameras and images is a slice.
         img = np.concatenate([P.vertical_image, P.horizontal_image])
         kind = np.concatenate([np.zeros(nv, np.int8), np.ones(nh, np.int8)])
         xy = np.concatenate([P.corner_xy[P.vertical_corner], P.horizontal_anchor_xy])
@@ -432,7 +434,10 @@ class _Setup:
             [nJ + P.vertical_corner if free else np.full(nv, -1), P.horizontal_height]
         )
         zfix = np.concatenate([P.corner_heights[P.vertical_corner], np.zeros(nh)])
-        order = np.argsort(img, kind="stable")
+        models = [P.cameras[c].model for c in self.camera_ids]
+        model_rank = np.searchsorted(sorted(set(models)), models)
+        cam = self.img_cam[img]
+        order = np.lexsort((img, cam, kind, model_rank[cam]))
         self.order = order
         self.nv, self.nh = nv, nh
         self.img, self.kind, self.xy = img[order], kind[order], xy[order]
@@ -447,7 +452,6 @@ class _Setup:
         # Active images and cameras; parameter columns of the camera block.
         counts = np.bincount(self.img, minlength=K)
         self.active_images = np.flatnonzero(counts > 0)
-        self.img_start = np.concatenate([[0], np.cumsum(counts)])
         col = 0
         self.pose_col = np.full(K, -1)
         for k in self.active_images:
@@ -480,21 +484,13 @@ class _Setup:
             m = self.cam == s
             cols[np.ix_(m, 6 + np.arange(q))] = self.intr_col[s] + np.arange(q)
         self.cols = cols
-        self.image_cols = [cols[self.img_start[k]] for k in self.active_images]
-
-        # Evaluation groups: (model, kind) -> residual indices, the group's
-        # camera slots, each residual's position among them, and per camera
-        # the group rows that belong to it.
-        self.groups = []
-        models = [P.cameras[c].model for c in self.camera_ids]
-        for model in sorted(set(models)):
-            cams = np.array([s for s, m in enumerate(models) if m == model])
-            for kd in (0, 1):
-                idx = np.flatnonzero(np.isin(self.cam, cams) & (self.kind == kd))
-                if len(idx):
-                    local = np.searchsorted(cams, self.cam[idx])
-                    per_cam = [(s, np.flatnonzero(self.cam[idx] == s)) for s in cams]
-                    self.groups.append((model, kd, idx, cams, local, per_cam))
+        # Runs of rows of one image: (start, end, the image's columns).
+        self.image_runs = [(a, b, cols[a]) for a, b in _runs(self.img)]
+        # Evaluation groups: one camera model and kind.
+        self.groups = [
+            _Group(self, models[self.cam[a]], int(self.kind[a]), a, b)
+            for a, b in _runs(model_rank[self.cam] * 2 + self.kind)
+        ]
 
         # Components and gauge rows (over the camera block).
         hmask = self.has_h
@@ -520,6 +516,37 @@ class _Setup:
         self.coupling = _Coupling(
             self.img[hmask], self.hidx[hmask], cols[hmask], self.n_heights, self.n_red
         )
+
+
+def _runs(key: np.ndarray) -> list[tuple[int, int]]:
+    """(start, end) of the runs of equal values of ``key`` (N,)."""
+    edge = np.flatnonzero(np.diff(key, prepend=-1, append=-1) != 0)
+    return [(int(a), int(b)) for a, b in zip(edge[:-1], edge[1:], strict=False)]
+
+
+class _Group:
+    """Static rows of one evaluation group (a camera model and a residual
+    kind): the slice ``[start, end)`` of the residual order, as (., n) rows."""
+
+    def __init__(self, S: _Setup, model: str, kind: int, start: int, end: int):
+        self.model, self.kind, self.start, self.end = model, kind, start, end
+        sl = slice(start, end)
+        self.img = S.img[sl]
+        self.line = np.ascontiguousarray(S.line[sl].T)  # (3, n) unit lines
+        self.xy = np.ascontiguousarray(S.xy[sl].T)  # (2, n)
+        self.has_h, self.zfix = S.has_h[sl], S.zfix[sl]
+        self.hidx = np.maximum(S.hidx[sl], 0)
+        # The group's cameras, each a run of rows: (slot, start, end) local.
+        cam = S.cam[sl]
+        self.cam_runs = [(int(cam[a]), a, b) for a, b in _runs(cam)]
+        self.cams = [c for c, _, _ in self.cam_runs]
+        self.cam_local = np.searchsorted(self.cams, cam)
+        self.E = res.expansion_matrix(model)
+
+    def full_params(self, params: list[np.ndarray]) -> np.ndarray:
+        """(8, 1) or (8, n) general parameters of the rows."""
+        full = self.E @ np.stack([params[c] for c in self.cams], 1)  # (8, cams)
+        return full if len(self.cams) == 1 else full[:, self.cam_local]
 
 
 class _Coupling:
@@ -615,35 +642,39 @@ class _State:
 
 
 def _evaluate(setup: _Setup, st: _State, jac: bool):
-    """Residuals (N,) and, if jac, camera Jacobian (N, L) and height Jacobian (N,)."""
+    """Residuals (N,) and, if jac, camera Jacobian (N, L) and height Jacobian (N,).
+
+    The camera Jacobian is the transpose of an (L, N) array, so that each
+    group writes its rows contiguously.
+    """
     N = len(setup.img)
-    h = np.where(
-        setup.has_h,
-        st.heights[np.maximum(setup.hidx, 0)] if len(st.heights) else 0.0,
-        setup.zfix,
-    )
-    X = np.column_stack([setup.xy, h])
     r = np.empty(N)
-    Jc = np.zeros((N, setup.L)) if jac else None
+    JcT = np.zeros((setup.L, N)) if jac else None
     Jh = np.zeros(N) if jac else None
-    for model, kd, idx, cams, local, per_cam in setup.groups:
-        img = setup.img[idx]
-        prm = np.stack([st.params[s] for s in cams])[local]  # (n, P)
-        fn = res.vertical_residuals if kd == 0 else res.horizontal_residuals
-        out = fn(
-            model, prm, st.R[img], st.c[img], X[idx], setup.line[idx], jacobians=jac
-        )
-        r[idx] = out.residuals
+    Rk = st.R.transpose(1, 2, 0)  # (3, 3, K)
+    ck = st.c.T  # (3, K)
+    for g in setup.groups:
+        R = np.take(Rk, g.img, axis=2)  # (3, 3, n)
+        c = np.take(ck, g.img, axis=1)
+        D = np.empty_like(c)  # X - c
+        np.subtract(g.xy, c[:2], out=D[:2])
+        h = np.where(g.has_h, st.heights[g.hidx], g.zfix) if len(st.heights) else g.zfix
+        np.subtract(h, c[2], out=D[2])
+        fn = res.vertical_rows if g.kind == 0 else res.horizontal_rows
+        out = fn(g.model, g.full_params(st.params), R, D, g.line, jac)
+        r[g.start : g.end] = out[0]
         if jac:
-            Jc[idx, :6] = out.d_pose
-            for s, rows in per_cam:
+            _, d_pose, d_params, d_height = out
+            JcT[:6, g.start : g.end] = d_pose
+            for s, a, b in g.cam_runs:
                 basis = setup.refined[s]
-                if basis.shape[1] and len(rows):
-                    Jc[idx[rows], 6 : 6 + basis.shape[1]] = out.d_params[rows] @ basis
-            Jh[idx] = out.d_height
+                if basis.shape[1]:
+                    rows = slice(g.start + a, g.start + b)
+                    JcT[6 : 6 + basis.shape[1], rows] = basis.T @ d_params[:, a:b]
+            Jh[g.start : g.end] = d_height
     if jac:
         Jh[~setup.has_h] = 0.0
-    return r, Jc, Jh
+    return r, (JcT.T if jac else None), Jh
 
 
 def solve_bundle(
@@ -854,8 +885,7 @@ def _normal_equations(S: _Setup, Jc, Jh, r, w):
     H_cc = np.zeros((n, n))
     g_c = np.zeros(n)
     wJ = Jc * w[:, None]
-    for k, cols in zip(S.active_images, S.image_cols, strict=True):
-        a, b = S.img_start[k], S.img_start[k + 1]
+    for a, b, cols in S.image_runs:
         H_cc[np.ix_(cols, cols)] += Jc[a:b].T @ wJ[a:b]
         g_c[cols] += wJ[a:b].T @ r[a:b]
     m = S.has_h
