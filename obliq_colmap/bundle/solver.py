@@ -486,10 +486,11 @@ class _Setup:
         self.cols = cols
         # Runs of rows of one image: (start, end, the image's columns).
         self.image_runs = [(a, b, cols[a]) for a, b in _runs(self.img)]
-        # Evaluation groups: one camera model and kind.
+        # Evaluation groups: one camera model and kind, at most _CHUNK rows.
         self.groups = [
-            _Group(self, models[self.cam[a]], int(self.kind[a]), a, b)
+            _Group(self, models[self.cam[a]], int(self.kind[a]), c, min(c + _CHUNK, b))
             for a, b in _runs(model_rank[self.cam] * 2 + self.kind)
+            for c in range(a, b, _CHUNK)
         ]
 
         # Components and gauge rows (over the camera block).
@@ -516,6 +517,12 @@ class _Setup:
         self.coupling = _Coupling(
             self.img[hmask], self.hidx[hmask], cols[hmask], self.n_heights, self.n_red
         )
+
+
+#: Rows per residual evaluation call: the per-row temporaries (~60 of them
+#: with Jacobians) then stay small and in cache; measured at the paper's
+#: scale, 44k rows at once took 2.1x the time of chunks of 4k-16k.
+_CHUNK = 8192
 
 
 def _runs(key: np.ndarray) -> list[tuple[int, int]]:
