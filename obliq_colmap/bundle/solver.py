@@ -590,25 +590,33 @@ class _Coupling:
         self.indices = cols.ravel()[self.entries]
         per_row = np.bincount(hidx, valid.sum(1), n_heights).astype(np.int64)
         self.indptr = np.concatenate([[0], np.cumsum(per_row)])
-        # All ordered pairs of rows of one height: rows sorted by height,
-        # each paired with every row of its group.
+        # Pairs (a, a) need no gather: each run of rows of one image adds
+        # F_run^T F_run to its diagonal block. The other ordered pairs of
+        # rows of one height (rows sorted by height, each paired with every
+        # row of its group): those of two images once (img[a] < img[b]), both
+        # orders of those of one image.
+        self.runs = _runs(img)
         start = np.cumsum(counts) - counts
         size = counts[hidx[order]]
         first_of = np.repeat(np.cumsum(size) - size, size)
         a = np.repeat(np.arange(Nh), size)
         b = np.repeat(start[hidx[order]], size) + np.arange(len(a)) - first_of
         a, b = order[a], order[b]
-        ok = img[a] <= img[b]
+        ok = (img[a] < img[b]) | ((img[a] == img[b]) & (a != b))
         a, b = a[ok], b[ok]
         pair = img[a] * (int(img.max(initial=0)) + 1) + img[b]
         o = np.argsort(pair, kind="stable")
         self.a, self.b, pair = a[o], b[o], pair[o]
         first = np.flatnonzero(np.diff(pair, prepend=-1))
         self.bounds = np.append(first, len(o))
-        # Where each image pair's block goes in the padded (n1, n1) term; an
-        # off-diagonal pair's block also goes, transposed, to (cols_b, cols_a).
-        ca, cb = cols[self.a[first]], cols[self.b[first]]  # (pairs, L)
-        off = img[self.a[first]] != img[self.b[first]]
+        # Where each block goes in the padded (n1, n1) term: the runs', then
+        # the image pairs'; a pair of two images also, transposed, to
+        # (cols_b, cols_a).
+        ca = np.concatenate([cols[[r for r, _ in self.runs]], cols[self.a[first]]])
+        cb = np.concatenate([cols[[r for r, _ in self.runs]], cols[self.b[first]]])
+        off = np.concatenate(
+            [np.zeros(len(self.runs), bool), img[self.a[first]] != img[self.b[first]]]
+        )
         self.offdiag = off
         self.flat = np.concatenate(
             [
@@ -625,11 +633,16 @@ class _Coupling:
     def gram(self, F: np.ndarray, scale: np.ndarray) -> np.ndarray:
         """(n_red, n_red) ``E^T diag(scale^2) E`` for per-height ``scale``."""
         Fs = F * scale[self.hidx][:, None]
-        FA, FB = Fs[self.a], Fs[self.b]
-        blocks = np.empty((len(self.bounds) - 1, self.L, self.L))
-        for p in range(len(blocks)):
+        nr = len(self.runs)
+        blocks = np.empty((nr + len(self.bounds) - 1, self.L, self.L))
+        for p, (s, e) in enumerate(self.runs):
+            np.matmul(Fs[s:e].T, Fs[s:e], out=blocks[p])
+        for p in range(len(self.bounds) - 1):
+            # Gathered per image pair: small, in cache.
             s, e = self.bounds[p], self.bounds[p + 1]
-            np.matmul(FA[s:e].T, FB[s:e], out=blocks[p])
+            FA = np.take(Fs, self.a[s:e], axis=0)
+            FB = np.take(Fs, self.b[s:e], axis=0)
+            np.matmul(FA.T, FB, out=blocks[nr + p])
         vals = np.concatenate([blocks.ravel(), blocks[self.offdiag].ravel()])
         n1 = self.shape[1] + 1
         return np.bincount(self.flat, vals, minlength=n1 * n1).reshape(n1, n1)[:-1, :-1]
