@@ -121,7 +121,8 @@ def conditioning(problem, options: sv.BundleOptions) -> None:
     )
     r, Jc, Jh = sv._evaluate(S, st, jac=True)
     _, w = sv._loss(options.loss, options.loss_scale_px, r * r)
-    H_cc, _, H_hh, _, E, _ = sv._normal_equations(S, Jc, Jh, r, w * S.weight)
+    H_cc, _, H_hh, _, F = sv._normal_equations(S, Jc, Jh, r, w * S.weight)
+    E = S.coupling.matrix(F)
     Es = sp.diags(np.sqrt(1.0 / np.maximum(H_hh, 1e-12))) @ E
     A = H_cc - (Es.T @ Es).toarray()
     d = np.sqrt(np.maximum(np.diag(A), 1e-12))

@@ -445,6 +445,9 @@ class _Setup:
         self.cam = self.img_cam[self.img]
         self.n_heights = nJ + (len(P.corner_xy) if free else 0)
         self.has_h = self.hidx >= 0
+        # The rows with a height as runs (all rows, or all but the vertical
+        # ones when the corners are fixed): slices are cheaper than a mask.
+        self.h_runs = [(a, b) for a, b in _runs(self.has_h) if self.has_h[a]]
         # Cost weight of each residual: 1 / sigma^2 of its kind.
         sigma = np.array([opts.vertical_sigma_px, opts.horizontal_sigma_px])
         self.weight = 1.0 / sigma[self.kind] ** 2
@@ -578,10 +581,11 @@ class _Coupling:
     def __init__(self, img, hidx, cols, n_heights: int, n_red: int) -> None:
         Nh, L = cols.shape
         n1 = n_red + 1
-        self.hidx, self.shape, self.L = hidx, (n_heights, n_red), L
-        # CSR pattern of E: rows sorted by height, each row's L columns but
-        # the padding; the duplicates (a camera's intrinsic columns seen from
-        # two of its images) are left in, to be summed by the products.
+        self.hidx, self.cols = hidx, cols
+        self.shape, self.L = (n_heights, n_red), L
+        # CSR pattern of E (for diagnostics): rows sorted by height, each
+        # row's L columns but the padding; the duplicates (a camera's
+        # intrinsic columns seen from two of its images) are left in.
         order = np.argsort(hidx, kind="stable")
         counts = np.bincount(hidx, minlength=n_heights)
         valid = cols < n_red
@@ -596,6 +600,7 @@ class _Coupling:
         # row of its group): those of two images once (img[a] < img[b]), both
         # orders of those of one image.
         self.runs = _runs(img)
+        self.run_cols = cols[[a for a, _ in self.runs]].reshape(-1, L)
         start = np.cumsum(counts) - counts
         size = counts[hidx[order]]
         first_of = np.repeat(np.cumsum(size) - size, size)
@@ -612,8 +617,8 @@ class _Coupling:
         # Where each block goes in the padded (n1, n1) term: the runs', then
         # the image pairs'; a pair of two images also, transposed, to
         # (cols_b, cols_a).
-        ca = np.concatenate([cols[[r for r, _ in self.runs]], cols[self.a[first]]])
-        cb = np.concatenate([cols[[r for r, _ in self.runs]], cols[self.b[first]]])
+        ca = np.concatenate([self.run_cols, cols[self.a[first]]])
+        cb = np.concatenate([self.run_cols, cols[self.b[first]]])
         off = np.concatenate(
             [np.zeros(len(self.runs), bool), img[self.a[first]] != img[self.b[first]]]
         )
@@ -626,9 +631,35 @@ class _Coupling:
         )
 
     def matrix(self, F: np.ndarray) -> sp.csr_matrix:
-        """E (n_heights, n_red) from the (Nh, L) blocks."""
+        """E (n_heights, n_red) from the (Nh, L) blocks (for diagnostics)."""
         data = F.ravel()[self.entries]
         return sp.csr_matrix((data, self.indices, self.indptr), shape=self.shape)
+
+    def rmatvec(self, F: np.ndarray, y: np.ndarray) -> np.ndarray:
+        """(n_red,) ``E^T y`` for (n_heights,) ``y``."""
+        n1 = self.shape[1] + 1
+        if not len(F):
+            return np.zeros(n1 - 1)
+        vals = F * y[self.hidx][:, None]
+        per_run = np.add.reduceat(vals, [a for a, _ in self.runs], axis=0)
+        return np.bincount(self.run_cols.ravel(), per_run.ravel(), n1)[:-1]
+
+    def matvec(self, F: np.ndarray, x: np.ndarray) -> np.ndarray:
+        """(n_heights,) ``E x`` for (n_red,) ``x``."""
+        xp = np.append(x, 0.0)  # the padding column
+        per_row = np.empty(len(F))
+        for (a, b), cols in zip(self.runs, self.run_cols, strict=True):
+            np.matmul(F[a:b], xp[cols], out=per_row[a:b])
+        return np.bincount(self.hidx, per_row, self.shape[0])
+
+    def dense_rows(self, F: np.ndarray, heights: np.ndarray) -> np.ndarray:
+        """(len(heights), n_red) the rows ``E[heights]``, dense (a few)."""
+        pos = np.full(self.shape[0], -1)
+        pos[heights] = np.arange(len(heights))
+        sel = np.flatnonzero(pos[self.hidx] >= 0)
+        out = np.zeros((len(heights), self.shape[1] + 1))
+        np.add.at(out, (pos[self.hidx[sel]][:, None], self.cols[sel]), F[sel])
+        return out[:, :-1]
 
     def gram(self, F: np.ndarray, scale: np.ndarray) -> np.ndarray:
         """(n_red, n_red) ``E^T diag(scale^2) E`` for per-height ``scale``."""
@@ -800,12 +831,12 @@ def _solve(problem: BundleProblem, opts: BundleOptions) -> BundleResult:
         if need_build:
             _, w = _loss(opts.loss, opts.loss_scale_px, r * r)
             w = w * S.weight
-            H_cc, g_c, H_hh, g_h, E, F = _normal_equations(S, Jc, Jh, r, w)
+            H_cc, g_c, H_hh, g_h, F = _normal_equations(S, Jc, Jh, r, w)
             H_hh = H_hh + prior_w * prior_mask
             g_h = g_h + prior_w * prior_mask * (st.heights - heights0)
-            schur = _Schur(S.coupling, H_hh, E, F)
+            schur = _Schur(S.coupling, H_hh, F)
             need_build = False
-        dc, dh, D_c, D_h = _damped_step(S, H_cc, g_c, H_hh, g_h, E, lam, schur)
+        dc, dh, D_c, D_h = _damped_step(S, H_cc, g_c, H_hh, g_h, F, lam, schur)
         predicted = 0.5 * (
             lam * (dc @ (D_c * dc) + dh @ (D_h * dh)) - (g_c @ dc + g_h @ dh)
         )
@@ -900,7 +931,8 @@ def _solve(problem: BundleProblem, opts: BundleOptions) -> BundleResult:
 
 def _normal_equations(S: _Setup, Jc, Jh, r, w):
     """Blocks of J^T W J and J^T W r: dense camera block, diagonal heights,
-    sparse E; and the (Nh, L) blocks F of E (rows with a height)."""
+    and the (Nh, L) blocks F of the coupling E (rows with a height; products
+    with E by :class:`_Coupling`)."""
     n = S.n_red + 1
     H_cc = np.zeros((n, n))
     g_c = np.zeros(n)
@@ -911,8 +943,10 @@ def _normal_equations(S: _Setup, Jc, Jh, r, w):
     m = S.has_h
     H_hh = np.bincount(S.hidx[m], (w * Jh * Jh)[m], S.n_heights)
     g_h = np.bincount(S.hidx[m], (w * Jh * r)[m], S.n_heights)
-    F = wJ[m] * Jh[m, None]
-    return H_cc[:-1, :-1], g_c[:-1], H_hh, g_h, S.coupling.matrix(F), F
+    F = np.multiply(Jc, (w * Jh)[:, None], order="C")
+    if S.h_runs != [(0, len(r))]:
+        F = np.concatenate([F[a:b] for a, b in S.h_runs] or [F[:0]])
+    return H_cc[:-1, :-1], g_c[:-1], H_hh, g_h, F
 
 
 class _Schur:
@@ -925,13 +959,13 @@ class _Schur:
     per step.
     """
 
-    def __init__(self, coupling: _Coupling, H_hh: np.ndarray, E, F) -> None:
+    def __init__(self, coupling: _Coupling, H_hh: np.ndarray, F) -> None:
         own = (H_hh >= 1e-6) & (H_hh <= 1e32)  # where clip(H_hh) = H_hh
         scale = np.zeros(len(H_hh))
         scale[own] = 1.0 / np.sqrt(H_hh[own])
         self.base = coupling.gram(F, scale)
         self.rest = np.flatnonzero(~own)
-        self.E_rest = E[self.rest] if len(self.rest) else None
+        self.E_rest = coupling.dense_rows(F, self.rest) if len(self.rest) else None
 
     def at(self, H_hh: np.ndarray, lam: float) -> np.ndarray:
         """(C, C) the term at damping ``lam`` (C camera-block columns)."""
@@ -939,19 +973,18 @@ class _Schur:
         if self.E_rest is not None:
             h = H_hh[self.rest]
             dinv = 1.0 / (h + lam * np.clip(h, 1e-6, 1e32))
-            Er = sp.diags(np.sqrt(dinv)) @ self.E_rest
-            out = out + (Er.T @ Er).toarray()
+            out = out + self.E_rest.T @ (dinv[:, None] * self.E_rest)
         return out
 
 
-def _damped_step(S: _Setup, H_cc, g_c, H_hh, g_h, E, lam, schur: _Schur):
+def _damped_step(S: _Setup, H_cc, g_c, H_hh, g_h, F, lam, schur: _Schur):
     """Solve the damped normal equations by the Schur complement on the heights."""
     D_c = np.clip(np.diag(H_cc), 1e-6, 1e32)
     D_h = np.clip(H_hh, 1e-6, 1e32)
     dinv = 1.0 / (H_hh + lam * D_h)
     if S.n_heights:
         reduced = schur.at(H_hh, lam)
-        rhs = -g_c + E.T @ (dinv * g_h)
+        rhs = -g_c + S.coupling.rmatvec(F, dinv * g_h)
     else:
         reduced = 0.0
         rhs = -g_c
@@ -968,7 +1001,7 @@ def _damped_step(S: _Setup, H_cc, g_c, H_hh, g_h, E, lam, schur: _Schur):
         dc = sol[:n]
     else:
         dc = np.linalg.solve(A_red, rhs)
-    dh = -dinv * (g_h + E @ dc) if S.n_heights else np.zeros(0)
+    dh = -dinv * (g_h + S.coupling.matvec(F, dc)) if S.n_heights else np.zeros(0)
     return dc, dh, D_c, D_h
 
 
