@@ -637,11 +637,11 @@ class _Coupling:
 
     def rmatvec(self, F: np.ndarray, y: np.ndarray) -> np.ndarray:
         """(n_red,) ``E^T y`` for (n_heights,) ``y``."""
+        yr = y[self.hidx]
+        per_run = np.empty((len(self.runs), self.L))
+        for p, (a, b) in enumerate(self.runs):
+            np.matmul(yr[a:b], F[a:b], out=per_run[p])
         n1 = self.shape[1] + 1
-        if not len(F):
-            return np.zeros(n1 - 1)
-        vals = F * y[self.hidx][:, None]
-        per_run = np.add.reduceat(vals, [a for a, _ in self.runs], axis=0)
         return np.bincount(self.run_cols.ravel(), per_run.ravel(), n1)[:-1]
 
     def matvec(self, F: np.ndarray, x: np.ndarray) -> np.ndarray:
@@ -834,7 +834,7 @@ def _solve(problem: BundleProblem, opts: BundleOptions) -> BundleResult:
             H_cc, g_c, H_hh, g_h, F = _normal_equations(S, Jc, Jh, r, w)
             H_hh = H_hh + prior_w * prior_mask
             g_h = g_h + prior_w * prior_mask * (st.heights - heights0)
-            schur = _Schur(S.coupling, H_hh, F)
+            schur = _Schur(S.coupling, H_hh, g_h, F)
             need_build = False
         dc, dh, D_c, D_h = _damped_step(S, H_cc, g_c, H_hh, g_h, F, lam, schur)
         predicted = 0.5 * (
@@ -950,31 +950,34 @@ def _normal_equations(S: _Setup, Jc, Jh, r, w):
 
 
 class _Schur:
-    """``E^T (H_hh + lam D_h)^-1 E`` for any damping ``lam`` of one build.
+    """``E^T Dinv E`` and ``E^T Dinv g_h``, ``Dinv = (H_hh + lam D_h)^-1``,
+    for any damping ``lam`` of one build.
 
     Where the height block's damping is its own diagonal (``D_h = H_hh``,
-    unclipped) the term is ``E^T H_hh^-1 E / (1 + lam)``: that part is
-    formed once per linearisation, not once per trial step, from the blocks
-    F per image pair (:class:`_Coupling`); the clipped rows (few) are added
-    per step.
+    unclipped) they are ``E^T H_hh^-1 E / (1 + lam)`` and
+    ``E^T H_hh^-1 g_h / (1 + lam)``: that part is formed once per
+    linearisation, not once per trial step, from the blocks F per image pair
+    (:class:`_Coupling`); the clipped rows (few) are added per step.
     """
 
-    def __init__(self, coupling: _Coupling, H_hh: np.ndarray, F) -> None:
+    def __init__(self, coupling: _Coupling, H_hh: np.ndarray, g_h, F) -> None:
         own = (H_hh >= 1e-6) & (H_hh <= 1e32)  # where clip(H_hh) = H_hh
         scale = np.zeros(len(H_hh))
         scale[own] = 1.0 / np.sqrt(H_hh[own])
         self.base = coupling.gram(F, scale)
+        self.base_rhs = coupling.rmatvec(F, scale * scale * g_h)
         self.rest = np.flatnonzero(~own)
         self.E_rest = coupling.dense_rows(F, self.rest) if len(self.rest) else None
 
-    def at(self, H_hh: np.ndarray, lam: float) -> np.ndarray:
-        """(C, C) the term at damping ``lam`` (C camera-block columns)."""
-        out = self.base / (1.0 + lam)
+    def at(self, H_hh: np.ndarray, g_h: np.ndarray, lam: float):
+        """(C, C) ``E^T Dinv E`` and (C,) ``E^T Dinv g_h`` at damping ``lam``."""
+        out, rhs = self.base / (1.0 + lam), self.base_rhs / (1.0 + lam)
         if self.E_rest is not None:
             h = H_hh[self.rest]
             dinv = 1.0 / (h + lam * np.clip(h, 1e-6, 1e32))
             out = out + self.E_rest.T @ (dinv[:, None] * self.E_rest)
-        return out
+            rhs = rhs + (dinv * g_h[self.rest]) @ self.E_rest
+        return out, rhs
 
 
 def _damped_step(S: _Setup, H_cc, g_c, H_hh, g_h, F, lam, schur: _Schur):
@@ -983,8 +986,8 @@ def _damped_step(S: _Setup, H_cc, g_c, H_hh, g_h, F, lam, schur: _Schur):
     D_h = np.clip(H_hh, 1e-6, 1e32)
     dinv = 1.0 / (H_hh + lam * D_h)
     if S.n_heights:
-        reduced = schur.at(H_hh, lam)
-        rhs = -g_c + S.coupling.rmatvec(F, dinv * g_h)
+        reduced, coupled = schur.at(H_hh, g_h, lam)
+        rhs = -g_c + coupled
     else:
         reduced = 0.0
         rhs = -g_c
