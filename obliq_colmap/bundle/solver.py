@@ -583,17 +583,8 @@ class _Coupling:
         n1 = n_red + 1
         self.hidx, self.cols = hidx, cols
         self.shape, self.L = (n_heights, n_red), L
-        # CSR pattern of E (for diagnostics): rows sorted by height, each
-        # row's L columns but the padding; the duplicates (a camera's
-        # intrinsic columns seen from two of its images) are left in.
         order = np.argsort(hidx, kind="stable")
         counts = np.bincount(hidx, minlength=n_heights)
-        valid = cols < n_red
-        entries = order[:, None] * L + np.arange(L)
-        self.entries = entries[valid[order]]  # into F.ravel(), in CSR order
-        self.indices = cols.ravel()[self.entries]
-        per_row = np.bincount(hidx, valid.sum(1), n_heights).astype(np.int64)
-        self.indptr = np.concatenate([[0], np.cumsum(per_row)])
         # Pairs (a, a) need no gather: each run of rows of one image adds
         # F_run^T F_run to its diagonal block. The other ordered pairs of
         # rows of one height (rows sorted by height, each paired with every
@@ -632,8 +623,10 @@ class _Coupling:
 
     def matrix(self, F: np.ndarray) -> sp.csr_matrix:
         """E (n_heights, n_red) from the (Nh, L) blocks (for diagnostics)."""
-        data = F.ravel()[self.entries]
-        return sp.csr_matrix((data, self.indices, self.indptr), shape=self.shape)
+        rows = np.broadcast_to(self.hidx[:, None], self.cols.shape)
+        valid = self.cols < self.shape[1]  # not the padding column
+        E = sp.coo_matrix((F[valid], (rows[valid], self.cols[valid])), self.shape)
+        return E.tocsr()
 
     def rmatvec(self, F: np.ndarray, y: np.ndarray) -> np.ndarray:
         """(n_red,) ``E^T y`` for (n_heights,) ``y``."""
