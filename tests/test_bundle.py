@@ -725,3 +725,56 @@ def test_horizontal_residuals_by_image_match_the_per_image_calls():
             jacobians=False,
         ).residuals
         assert np.isfinite(r[i]) and r[i] == one[0]
+
+
+def test_height_camera_coupling_products_match_a_dense_E():
+    """The solver's products with E (heights x camera columns), formed from
+    per-row blocks, against E assembled densely from its definition."""
+    from obliq_colmap.bundle import solver as sv
+
+    models = ("SIMPLE_RADIAL", "PINHOLE", "OPENCV", "SIMPLE_PINHOLE")
+    P1 = make_synthetic_problem(
+        seed=7, buildings=(2, 2), stations=(2, 2), models=models
+    ).problem
+    twice = np.r_[np.arange(len(P1.horizontal_image)), 0, 1, 2]  # a height seen
+    P2 = dataclasses.replace(  # twice in one image: pairs of rows of one image
+        P1,
+        horizontal_image=P1.horizontal_image[twice],
+        horizontal_height=P1.horizontal_height[twice],
+        horizontal_anchor_xy=P1.horizontal_anchor_xy[twice],
+        horizontal_line=P1.horizontal_line[twice],
+    )
+    for P, options in (
+        (P1, BundleOptions(refine_aspect_ratio=True)),  # padding columns
+        (P1, BundleOptions(corner_heights="fixed")),  # rows without a height
+        (P2, BundleOptions()),
+    ):
+        S = sv._Setup(P, options)
+        free = options.corner_heights == "free"
+        st = sv._State(
+            np.stack([P.poses[i].rotation for i in P.image_ids]),
+            np.stack([P.poses[i].center for i in P.image_ids]),
+            [P.cameras[c].params.copy() for c in S.camera_ids],
+            np.concatenate([P.facade_heights, P.corner_heights if free else []]),
+        )
+        r, Jc, Jh = sv._evaluate(S, st, jac=True)
+        w = np.random.default_rng(0).uniform(0.5, 1.0, len(r))
+        F = sv._normal_equations(S, Jc, Jh, r, w)[-1]
+        E = np.zeros((S.n_heights, S.n_red + 1))
+        m = S.has_h
+        np.add.at(E, (S.hidx[m][:, None], S.cols[m]), (w * Jh)[m, None] * Jc[m])
+        E = E[:, :-1]
+        rng = np.random.default_rng(1)
+        y, x = rng.normal(size=S.n_heights), rng.normal(size=S.n_red)
+        scale = rng.uniform(0.0, 2.0, S.n_heights)
+        C = S.coupling
+        rows = np.array([0, 3, S.n_heights - 1])
+        for ours, dense in (
+            (C.rmatvec(F, y), E.T @ y),
+            (C.matvec(F, x), E @ x),
+            (C.gram(F, scale), E.T @ (scale[:, None] ** 2 * E)),
+            (C.dense_rows(F, rows), E[rows]),
+            (C.matrix(F).toarray(), E),
+        ):
+            atol = 1e-12 * np.abs(dense).max()
+            np.testing.assert_allclose(ours, dense, rtol=0, atol=atol)
