@@ -824,8 +824,10 @@ class _HoughGrid:
         """
         nh = self.acc.shape[3]
         flat = self.acc.reshape(-1, nh)
-        best = np.argmax(flat, axis=0)  # (nh,) pose cell per height
-        profile = flat[best, np.arange(nh)]
+        # The first pose cell of each height's maximum, as argmax along the
+        # strided axis 0 (3x slower) gives it; the accumulator has no NaN.
+        profile = flat.max(axis=0)  # (nh,)
+        best = np.argmax(flat == profile, axis=0)  # (nh,) pose cell per height
         order = np.argsort(-profile, kind="stable")
         chosen: list[int] = []
         for kh in order:
@@ -953,93 +955,43 @@ def _hough(
     slab = n1 * n2 * nh
     acc = np.zeros(na * slab, dtype=np.float32)
     half = np.array([n1 // 2, n2 // 2])
+    band_of = None
     if heights is not None:
-        # Horizontal run of the corner from the search centre along each
-        # bottom ray's heading is linear in the centre, hence in the cell
-        # index along the iterated axis: every pair's votes lie on a segment
-        # of cells that is computed in closed form and enumerated sparsely.
-        d_rel = xy - c_center  # (P, 2)
+        # Every pair's votes lie on a segment of cells whose heights are
+        # computed in closed form (:func:`_vote_rows`).
         h_hi = h_lo + nh * d_h
+        band_of = (ray0, xy - c_center, float(view.c0[2]), h_lo, h_hi, d_h, nh, n1 * n2)
     P = len(pair_i)
-    # Alphas in chunks of at most ~2^16 (alpha, pair) rows (at least one
-    # alpha): vectorised over both, the rows' temporaries in the cache
-    # (2^14 to 2^18 rows take the same time within 10 %).
-    chunk = max(1, (1 << 16) // max(P, 1))
+    # Rows (alpha, pair) in pieces of ~2^16 rows, several alphas at once or
+    # one alpha's pairs in pieces of 2^14 (the coarse vote's ~10^5): the
+    # rows' temporaries stay in the cache; an alpha's pieces are joined for
+    # its sum.
+    pc = min(P, _ROW_PIECE)
+    chunk = 1 if pc < P else max(1, (1 << 16) // max(P, 1))
     work = _Workspace()
     for k0 in range(0, na, chunk):
-        # Rows (alpha, pair) as (alphas of the chunk, P) arrays, broadcast.
         ka = np.arange(k0, min(na, k0 + chunk))
         ca = np.cos(alphas[ka])[:, None]
         sa = np.sin(alphas[ka])[:, None]
-        mx, my = m[:, 0], m[:, 1]
-        rhs = rows[:, 0] * ca + rows[:, 1] * sa  # = g . (c - c_center)
-        gx, gy = ca * mx + sa * my, -sa * mx + ca * my
-        # In cell units: a1 k1 + a2 k2 = rhs.
-        a1 = (gx * axes[0, 0] + gy * axes[0, 1]) * steps[0]
-        a2 = (gx * axes[1, 0] + gy * axes[1, 1]) * steps[1]
-        iter_2 = np.abs(a1) >= np.abs(a2)  # iterate k2, solve k1 (else swap)
-        den = np.where(iter_2, a1, a2)
-        with np.errstate(divide="ignore", invalid="ignore"):
-            A_o = rhs / den  # other = A_o + B_o t (cell units)
-            B_o = -np.where(iter_2, a2, a1) / den
-        half_it = np.where(iter_2, half[1], half[0])
-        half_o = np.where(iter_2, half[0], half[1])
-        t_lo, t_hi = _t_interval(A_o, B_o, -half_o - 0.5, half_o + 0.5)
-        t_lo, t_hi = np.maximum(t_lo, -half_it), np.minimum(t_hi, half_it)
-        band = None
-        if heights is not None:
-            # Centre offsets e1 = E1a + E1b t, e2 = E2a + E2b t (m).
-            E1a = np.where(iter_2, A_o * steps[0], 0.0)
-            E1b = np.where(iter_2, B_o * steps[0], steps[0])
-            E2a = np.where(iter_2, 0.0, A_o * steps[1])
-            E2b = np.where(iter_2, steps[1], B_o * steps[1])
-            rx = ca * ray0[:, 0] + sa * ray0[:, 1]
-            ry = -sa * ray0[:, 0] + ca * ray0[:, 1]
-            r2 = rx * rx + ry * ry
-            u1r = axes[0, 0] * rx + axes[0, 1] * ry
-            u2r = axes[1, 0] * rx + axes[1, 1] * ry
-            with np.errstate(divide="ignore", invalid="ignore"):
-                # Run along the ray: tt = TA + TB t (> 0: in front).
-                TA = (d_rel[:, 0] * rx + d_rel[:, 1] * ry - E1a * u1r - E2a * u2r) / r2
-                TB = -(E1b * u1r + E2b * u2r) / r2
-            hA = view.c0[2] + TA * ray0[:, 2]
-            hB = TB * ray0[:, 2]
-            lo, hi = _t_interval(hA, hB, h_lo, h_hi)
-            t_lo, t_hi = np.maximum(t_lo, lo), np.minimum(t_hi, hi)
-            lo, hi = _t_interval(TA, TB, 0.0, np.inf)
-            t_lo, t_hi = np.maximum(t_lo, lo), np.minimum(t_hi, hi)
-            band = _HeightBand(
-                hA.ravel(),
-                hB.ravel(),
-                TA.ravel(),
-                TB.ravel(),
-                h_lo,
-                d_h,
-                nh,
-                float(n1 * n2),
+        pieces = [
+            _vote_rows(
+                ca,
+                sa,
+                m[p0 : p0 + pc],
+                rows[p0 : p0 + pc],
+                weight[p0 : p0 + pc],
+                axes,
+                steps,
+                half,
+                None if band_of is None else _pair_slice(band_of, p0, pc),
             )
-        # Cell of vote t of a row: base + stride_t t + stride_o k_other
-        # (+ n1 n2 ih), relative to its alpha's slab (each alpha is summed
-        # alone). The votes are laid out (alpha, height, k1, k2): a line's
-        # successive votes then touch nearby cells (the height changes slowly
-        # along it), which keeps the accumulation in cache; transposed to
-        # (alpha, k1, k2, height) at the end.
-        s1, s2 = float(n2), 1.0
-        base = np.full(A_o.shape, half[0] * s1 + half[1] * s2)
-        lines = _VoteRows(
-            A_o.ravel(),
-            B_o.ravel(),
-            half_o.ravel(),
-            t_lo.ravel(),
-            t_hi.ravel(),
-            base.ravel(),
-            np.where(iter_2, s2, s1).ravel(),
-            np.where(iter_2, s1, s2).ravel(),
-            np.broadcast_to(weight, A_o.shape).ravel(),
-        )
+            for p0 in range(0, P, pc)
+        ]
+        lines, band, ia = _join_pieces(pieces)
+        group_ends = np.searchsorted(ia, np.arange(len(ka) + 1))
         off = k0 * slab
         acc[off : off + len(ka) * slab] += _rasterise(
-            lines, band, slab, groups=len(ka), work=work
+            lines, band, slab, groups=len(ka), work=work, group_ends=group_ends
         )
     from scipy.ndimage import uniform_filter
 
@@ -1058,6 +1010,139 @@ def _hough(
     return grid
 
 
+#: Pairs per piece of Hough rows (:func:`_hough`).
+_ROW_PIECE = 1 << 14
+
+
+def _vote_rows(
+    ca: np.ndarray,
+    sa: np.ndarray,
+    m: np.ndarray,
+    rows: np.ndarray,
+    weight: np.ndarray,
+    axes: np.ndarray,
+    steps: np.ndarray,
+    half: np.ndarray,
+    band_of: tuple | None,
+) -> tuple[_VoteRows, _HeightBand | None, np.ndarray]:
+    """The Hough rows of some alphas and pairs that cross the window.
+
+    For a fixed alpha, pair k's constraint is the line ``a1 k1 + a2 k2 =
+    rhs`` in cell units of the centre; it is iterated along the axis along
+    which it runs. Only the rows that cross the window are returned (a third
+    to a half do not), the same elementwise expressions on fewer rows.
+
+    Parameters
+    ----------
+    ca, sa : (A, 1) cos and sin of the alphas; m : (P, 2) ``m_xy`` of the
+    pairs' segments; rows : (P, 4) their constraint rows; weight : (P,);
+    axes, steps, half : of the grid (:class:`_HoughGrid`); band_of : None, or
+    (ray0 (P, 3), d_rel (P, 2), c0_z, h_lo, h_hi, d_h, nh, stride) for a
+    height axis.
+
+    Returns
+    -------
+    The rows, (alpha, pair) order; their height band or None; (R,) the
+    alpha (index into ``ca``) of each row.
+    """
+    mx, my = m[:, 0], m[:, 1]
+    rhs = rows[:, 0] * ca + rows[:, 1] * sa  # = g . (c - c_center)
+    gx, gy = ca * mx + sa * my, -sa * mx + ca * my
+    # In cell units: a1 k1 + a2 k2 = rhs.
+    a1 = (gx * axes[0, 0] + gy * axes[0, 1]) * steps[0]
+    a2 = (gx * axes[1, 0] + gy * axes[1, 1]) * steps[1]
+    iter_2 = np.abs(a1) >= np.abs(a2)  # iterate k2, solve k1 (else swap)
+    den = np.where(iter_2, a1, a2)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        A_o = rhs / den  # other = A_o + B_o t (cell units)
+        B_o = -np.where(iter_2, a2, a1) / den
+    half_it = np.where(iter_2, half[1], half[0])
+    half_o = np.where(iter_2, half[0], half[1])
+    t_lo, t_hi = _t_interval(A_o, B_o, -half_o - 0.5, half_o + 0.5)
+    t_lo, t_hi = np.maximum(t_lo, -half_it), np.minimum(t_hi, half_it)
+    sel = np.flatnonzero(t_lo <= t_hi)  # rows (alpha, pair)
+    ia, ip = np.divmod(sel, len(m))
+    A_o, B_o, iter_2 = A_o.ravel()[sel], B_o.ravel()[sel], iter_2.ravel()[sel]
+    t_lo, t_hi = t_lo.ravel()[sel], t_hi.ravel()[sel]
+    band = None
+    if band_of is not None:
+        ray0, d_rel, c0_z, h_lo, h_hi, d_h, nh, stride = band_of
+        ca, sa = ca[ia, 0], sa[ia, 0]
+        ray, d = ray0[ip], d_rel[ip]
+        # Horizontal run of the corner from the search centre along each
+        # bottom ray's heading is linear in the centre, hence in the cell
+        # index along the iterated axis. Centre offsets e1 = E1a + E1b t,
+        # e2 = E2a + E2b t (m).
+        E1a = np.where(iter_2, A_o * steps[0], 0.0)
+        E1b = np.where(iter_2, B_o * steps[0], steps[0])
+        E2a = np.where(iter_2, 0.0, A_o * steps[1])
+        E2b = np.where(iter_2, steps[1], B_o * steps[1])
+        rx = ca * ray[:, 0] + sa * ray[:, 1]
+        ry = -sa * ray[:, 0] + ca * ray[:, 1]
+        r2 = rx * rx + ry * ry
+        u1r = axes[0, 0] * rx + axes[0, 1] * ry
+        u2r = axes[1, 0] * rx + axes[1, 1] * ry
+        with np.errstate(divide="ignore", invalid="ignore"):
+            # Run along the ray: tt = TA + TB t (> 0: in front).
+            TA = (d[:, 0] * rx + d[:, 1] * ry - E1a * u1r - E2a * u2r) / r2
+            TB = -(E1b * u1r + E2b * u2r) / r2
+        hA = c0_z + TA * ray[:, 2]
+        hB = TB * ray[:, 2]
+        lo, hi = _t_interval(hA, hB, h_lo, h_hi)
+        t_lo, t_hi = np.maximum(t_lo, lo), np.minimum(t_hi, hi)
+        lo, hi = _t_interval(TA, TB, 0.0, np.inf)
+        t_lo, t_hi = np.maximum(t_lo, lo), np.minimum(t_hi, hi)
+        band = _HeightBand(hA, hB, TA, TB, h_lo, d_h, nh, float(stride))
+    # Cell of vote t of a row: base + stride_t t + stride_o k_other
+    # (+ n1 n2 ih), relative to its alpha's slab (each alpha is summed
+    # alone). The votes are laid out (alpha, height, k1, k2): a line's
+    # successive votes then touch nearby cells (the height changes slowly
+    # along it), which keeps the accumulation in cache; transposed to
+    # (alpha, k1, k2, height) at the end.
+    s1, s2 = float(2 * half[1] + 1), 1.0
+    lines = _VoteRows(
+        A_o,
+        B_o,
+        np.where(iter_2, half[0], half[1]),
+        t_lo,
+        t_hi,
+        np.full(len(sel), half[0] * s1 + half[1] * s2),
+        np.where(iter_2, s2, s1),
+        np.where(iter_2, s1, s2),
+        weight[ip],
+    )
+    return lines, band, ia
+
+
+def _pair_slice(band_of: tuple, p0: int, n: int) -> tuple:
+    """``band_of`` of :func:`_vote_rows` for the pairs ``p0:p0 + n``."""
+    ray0, d_rel, *rest = band_of
+    return (ray0[p0 : p0 + n], d_rel[p0 : p0 + n], *rest)
+
+
+def _join_pieces(pieces: list) -> tuple[_VoteRows, _HeightBand | None, np.ndarray]:
+    """The results of :func:`_vote_rows` over consecutive pair ranges of one
+    alpha (or one piece of several alphas), concatenated."""
+    if len(pieces) == 1:
+        return pieces[0]
+    lines = _VoteRows(
+        *(
+            np.concatenate([getattr(p[0], f.name) for p in pieces])
+            for f in dataclasses.fields(_VoteRows)
+        )
+    )
+    band = pieces[0][1]
+    if band is not None:
+        band = replace(
+            band,
+            **{
+                k: np.concatenate([getattr(p[1], k) for p in pieces])
+                for k in ("hA", "hB", "TA", "TB")
+            },
+        )
+    return lines, band, np.concatenate([p[2] for p in pieces])
+
+
 def _t_interval(
     A: np.ndarray, B: np.ndarray, lo: float, hi: float
 ) -> tuple[np.ndarray, np.ndarray]:
@@ -1067,8 +1152,15 @@ def _t_interval(
         t1, t2 = (lo - A) / B, (hi - A) / B
     t_lo = np.ceil(np.minimum(t1, t2))
     t_hi = np.floor(np.maximum(t1, t2))
-    # B = 0 (all t or none) and non-finite rows are rare: set sparsely.
-    odd = np.nonzero((B == 0) | ~np.isfinite(A) | np.isnan(B))
+    # B = 0 (all t or none) and non-finite rows are rare: set sparsely. With
+    # a finite lo they all have a non-finite t1, a cheaper first sieve.
+    if np.all(np.isfinite(lo)):
+        odd = np.flatnonzero(~np.isfinite(t1))
+        a, b = np.ravel(A)[odd], np.ravel(B)[odd]
+        odd = odd[(b == 0) | ~np.isfinite(a) | np.isnan(b)]
+        odd = np.unravel_index(odd, t1.shape)
+    else:
+        odd = np.nonzero((B == 0) | ~np.isfinite(A) | np.isnan(B))
     if len(odd[0]):
         a, b = A[odd], B[odd]
         lo_o = lo[odd] if np.ndim(lo) else lo
@@ -1197,12 +1289,14 @@ def _rasterise(
     size: int,
     groups: int = 1,
     work: _Workspace | None = None,
+    group_ends: np.ndarray | None = None,
 ) -> np.ndarray:
     """Sum of the rows' weights over the cells they cross.
 
-    The rows form ``groups`` consecutive groups of equal length that vote into
-    disjoint ranges of ``size`` cells (the alphas of the Hough vote; cell
-    indices relative to the range): returns (groups * size,) float64.
+    The rows form ``groups`` consecutive groups that vote into disjoint
+    ranges of ``size`` cells (the alphas of the Hough vote; cell indices
+    relative to the range), of equal length or group g the rows
+    ``group_ends[g]:group_ends[g + 1]``: returns (groups * size,) float64.
 
     Every row's votes are an interval of t (:func:`_trim`); they are generated
     densely, (t - t_lo) x rows (the inner loops run over rows, not over a
@@ -1225,7 +1319,9 @@ def _rasterise(
     stride_t, stride_o = rows.stride_t[r], rows.stride_o[r]
     if band is not None:
         hA, hB = band.hA[r], band.hB[r]
-    ends = np.searchsorted(r, np.arange(groups + 1) * (len(rows.A) // groups))
+    if group_ends is None:
+        group_ends = np.arange(groups + 1) * (len(rows.A) // groups)
+    ends = np.searchsorted(r, group_ends)
     for g in range(groups):
         g0, g1 = ends[g], ends[g + 1]
         if g0 == g1:
