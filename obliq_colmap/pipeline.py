@@ -74,6 +74,7 @@ from obliq_colmap.registration import (
     RegistrationOptions,
     RegistrationResult,
     block_ground_height,
+    chance_test,
     draw_registration_overlay,
     register_image,
 )
@@ -237,6 +238,24 @@ class _ImageTask:
         return self.camera.with_model(self.model or self.camera.model)
 
 
+def _registration_inputs(
+    task: _ImageTask, segments: np.ndarray, vertical: np.ndarray | None
+) -> tuple[np.ndarray, np.ndarray | None, Camera, bool]:
+    """(segments, vertical, camera, segments_undistorted) of stage 2 of one
+    image as :func:`register_image` takes them: the segments undistorted with
+    the priors' camera (as the vanishing stage gives them), or through
+    ``task.start``'s raw pixels when it is set."""
+    if task.start is None:
+        return segments, vertical, task.result_camera, True
+    raw = task.camera.distort_pixels(segments.reshape(-1, 2)).reshape(-1, 2, 2)
+    if vertical is not None:
+        # The detected quantity is the vanishing point's pixel: the same
+        # pixel through the start camera's focal length.
+        vertical = np.linalg.solve(task.start.K, task.camera.K @ vertical)
+        vertical = vertical / np.linalg.norm(vertical)
+    return raw, vertical, task.start, False
+
+
 def _register(
     task: _ImageTask,
     segments: np.ndarray,
@@ -249,29 +268,21 @@ def _register(
     Another start lens sees the segments through the raw pixels, and their
     inliers come back in the priors' frame, which the bundle expects.
     """
-    if task.start is None:
-        return register_image(
-            segments,
-            vertical,
-            task.result_camera,
-            task.prior,
-            _STATE["cadastre"],
-            options,
-            segments_undistorted=True,
-        )
-    raw = task.camera.distort_pixels(segments.reshape(-1, 2)).reshape(-1, 2, 2)
-    if vertical is not None:
-        # The detected quantity is the vanishing point's pixel: the same
-        # pixel through the start camera's focal length.
-        vertical = np.linalg.solve(task.start.K, task.camera.K @ vertical)
-        vertical = vertical / np.linalg.norm(vertical)
+    seg, vertical, camera, undistorted = _registration_inputs(task, segments, vertical)
     result = register_image(
-        raw, vertical, task.start, task.prior, _STATE["cadastre"], options
+        seg,
+        vertical,
+        camera,
+        task.prior,
+        _STATE["cadastre"],
+        options,
+        segments_undistorted=undistorted,
     )
-    inl = result.inlier_segments_px.reshape(-1, 2)
-    result.inlier_segments_px = task.camera.undistort_pixels(
-        task.start.distort_pixels(inl)
-    ).reshape(-1, 2, 2)
+    if task.start is not None:
+        inl = result.inlier_segments_px.reshape(-1, 2)
+        result.inlier_segments_px = task.camera.undistort_pixels(
+            task.start.distort_pixels(inl)
+        ).reshape(-1, 2, 2)
     return result
 
 
@@ -352,18 +363,44 @@ def _set_registration(out: ImageOutcome, result: RegistrationResult) -> None:
     out.message = "" if result.success else result.message
 
 
-def _reregister(
-    args: tuple[_ImageTask, np.ndarray, np.ndarray | None, float | None],
-) -> RegistrationResult:
-    """Register one image again with a given ground height (None: its own)."""
-    task, segments, vertical, ground = args
+def _reregister_options(
+    task: _ImageTask, vertical: np.ndarray | None, ground: float | None
+) -> RegistrationOptions:
     options = (
         task.registration
         if vertical is not None
         else _fallback_options(task.registration)
     )
-    options = _replace(options, ground_height=ground)
-    return _register(task, segments, vertical, options)
+    return _replace(options, ground_height=ground)
+
+
+def _reregister(
+    args: tuple[_ImageTask, np.ndarray, np.ndarray | None, float | None],
+) -> RegistrationResult:
+    """Register one image again with a given ground height (None: its own)."""
+    task, segments, vertical, ground = args
+    return _register(task, segments, vertical, _reregister_options(task, *args[2:]))
+
+
+def _chance_checked(
+    args: tuple[
+        _ImageTask, np.ndarray, np.ndarray | None, float | None, RegistrationResult
+    ],
+) -> RegistrationResult:
+    """The chance test (:func:`~obliq_colmap.registration.chance_test`) of a
+    result of :func:`_reregister` on the same first four arguments."""
+    task, segments, vertical, ground, result = args
+    seg, n, camera, undistorted = _registration_inputs(task, segments, vertical)
+    return chance_test(
+        result,
+        seg,
+        n,
+        camera,
+        task.prior,
+        _STATE["cadastre"],
+        _reregister_options(task, vertical, ground),
+        segments_undistorted=undistorted,
+    )
 
 
 def _draw_overlay(args: tuple[_ImageTask, RegistrationResult, Path]) -> None:
@@ -732,16 +769,34 @@ def _rescue(
         len(weak),
         np.round(heights, 1).tolist(),
     )
+    # The tries go untested; only each image's best meets the chance test
+    # (each test costs a few searches).
+    untested = {
+        i: _replace(
+            tasks[i], registration=_replace(tasks[i].registration, chance_trials=0)
+        )
+        for i in weak
+    }
     jobs = [
-        (tasks[i], outcomes[i].segments, outcomes[i].vertical_direction, float(h))
+        (untested[i], outcomes[i].segments, outcomes[i].vertical_direction, float(h))
         for i in weak
         for h in heights
     ]
     tries = pool.map(_reregister, jobs, "rescue")
-    names = []
+    checks = []
     for k, i in enumerate(weak):
         mine = tries[k * len(heights) : (k + 1) * len(heights)]
-        best = max(mine, key=lambda r: (r.success, r.num_inliers))
+        mine = list(zip(heights, mine, strict=True))
+        h, best = max(mine, key=lambda hr: (hr[1].success, hr[1].num_inliers))
+        old = outcomes[i].registration
+        if best.success and (not old.success or best.num_inliers > old.num_inliers):
+            o = outcomes[i]
+            checks.append(
+                (i, (tasks[i], o.segments, o.vertical_direction, float(h), best))
+            )
+    tested = pool.map(_chance_checked, [c[1] for c in checks], "rescue: chance test")
+    names = []
+    for (i, _), best in zip(checks, tested, strict=True):
         old = outcomes[i].registration
         if best.success and (not old.success or best.num_inliers > old.num_inliers):
             _set_registration(outcomes[i], best)
@@ -1138,6 +1193,7 @@ def run_report(
             "num_segments": int(len(o.segments)),
             "num_candidates": r.num_candidates if r is not None else 0,
             "num_inlier_corners": r.num_inliers if r is not None else 0,
+            "chance_inlier_corners": r.chance_inliers if r is not None else -1,
             "inlier_ratio": r.inlier_ratio if r is not None else 0.0,
             "ransac_trials": r.num_trials if r is not None else 0,
             "residual_rms_px": _finite(r.residual_rms_px) if r is not None else None,

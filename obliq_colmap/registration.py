@@ -228,6 +228,23 @@ class RegistrationOptions:
         scale about it (camera height over ground) to the ground-height
         search (measured on the UAVD4L drone image 0.9 deg off nadir: 15
         inliers, 20 m wrong).
+    chance_trials : int
+        Searches run with the segments mirrored about lines through the
+        vertical VP (:func:`chance_counts`): the same segments and the same
+        map corners in view, no relation between them, so whatever inliers
+        they find are chance. 0 switches the test off. One search draws from
+        a wide space of poses and ground heights, so its best chance
+        consensus is far above what a local count predicts
+        (docs/BENCHMARKS.md).
+    chance_factor : float
+        A result needs more than this times the most inliers found by the
+        turned searches (the turned counts of one image spread by ~22 %
+        (1 sigma) about their mean, so a chance result rarely beats the
+        largest of three by half).
+    chance_test_below : int
+        Only results with fewer inlier corners are tested (each test costs
+        ``chance_trials`` searches); at least ``chance_factor`` x the
+        largest chance count measured (22, above) with a margin.
     seed : int
         Seed of the random generator; the result is a deterministic function
         of the inputs and the seed.
@@ -274,6 +291,9 @@ class RegistrationOptions:
     refine_distortion: bool = False
     distortion_sigma_px: float = 20.0
     allow_vp_in_frame: bool = False
+    chance_trials: int = 3
+    chance_factor: float = 1.5
+    chance_test_below: int = 40
     seed: int = 0
 
     def __post_init__(self) -> None:
@@ -326,6 +346,10 @@ class RegistrationOptions:
             )
         if self.min_inliers < 3:
             raise ValueError("min_inliers must be >= 3")
+        if self.chance_trials < 0 or self.chance_test_below < 0:
+            raise ValueError("chance_trials and chance_test_below must be >= 0")
+        if not self.chance_factor >= 1.0:
+            raise ValueError("chance_factor must be >= 1")
 
 
 @dataclass
@@ -356,6 +380,8 @@ class RegistrationResult:
         success the height plane at the inlier corners' centroid, else the
         coarse estimate; NaN if unknown.
     num_segments : int, usable segments.
+    num_map_corners : int, map corners in view of the prior (wide margins:
+        any ground height of the search, a quarter image beyond the frame).
     num_candidates : int, RANSAC candidate pairs.
     num_inliers : int, final inlier pairs (one per corner).
     num_trials : int, RANSAC samples drawn.
@@ -370,6 +396,9 @@ class RegistrationResult:
     distortion_refined : bool
         ``camera``'s radial distortion was refined (enough inliers, a model
         with a radial term).
+    chance_inliers : int
+        The most inlier corners the searches with the segments mirrored
+        found (:func:`chance_counts`); -1 when not tested.
     """
 
     success: bool
@@ -381,6 +410,7 @@ class RegistrationResult:
     height_plane: np.ndarray = field(default_factory=lambda: np.full(3, np.nan))
     ground_height: float = math.nan
     num_segments: int = 0
+    num_map_corners: int = 0
     num_candidates: int = 0
     num_inliers: int = 0
     num_trials: int = 0
@@ -390,6 +420,7 @@ class RegistrationResult:
     timings: dict = field(default_factory=dict)
     camera: Camera | None = None
     distortion_refined: bool = False
+    chance_inliers: int = -1
 
     def __bool__(self) -> bool:
         return self.success
@@ -1904,9 +1935,116 @@ def register_image(
     ValueError
         Malformed inputs (shapes, non-finite vertical direction).
     """
+    options = options or RegistrationOptions()
+    args = (segments_px, vertical_direction_cam, camera, prior, cadastre, options)
+    result = _search(*args, segments_undistorted)
+    return chance_test(result, *args, segments_undistorted=segments_undistorted)
+
+
+def chance_test(
+    result: RegistrationResult,
+    segments_px: np.ndarray,
+    vertical_direction_cam: np.ndarray | None,
+    camera: Camera,
+    prior: Pose,
+    cadastre,
+    options: RegistrationOptions,
+    *,
+    segments_undistorted: bool = False,
+) -> RegistrationResult:
+    """``result`` (of :func:`register_image` on these arguments, with or
+    without the test) refused as a failure when its inlier count is no more
+    than ``options.chance_factor`` x what chance gives (:func:`chance_counts`);
+    results with ``options.chance_test_below`` inliers or more pass untested.
+    """
+    if (
+        options.chance_trials == 0
+        or not result.success
+        or result.num_inliers >= options.chance_test_below
+        or result.chance_inliers >= 0
+    ):
+        return result
+    t0 = time.perf_counter()
+    args = (segments_px, vertical_direction_cam, camera, prior, cadastre, options)
+    chance = max(chance_counts(*args, segments_undistorted))
+    timings = dict(result.timings)
+    timings["chance"] = time.perf_counter() - t0
+    timings["total"] = timings.get("total", 0.0) + timings["chance"]
+    result = dataclasses.replace(result, chance_inliers=chance, timings=timings)
+    if result.num_inliers > options.chance_factor * chance:
+        return result
+    return dataclasses.replace(
+        result,
+        success=False,
+        cam_from_world=prior,
+        camera=None,
+        message=(
+            f"no consensus: {result.num_inliers} inlier corners is no more than "
+            f"chance (the same search with the segments mirrored finds up to "
+            f"{chance}; need more than {options.chance_factor:g} x that)"
+        ),
+    )
+
+
+def _mirrored(segments: np.ndarray, vp: np.ndarray, point: np.ndarray) -> np.ndarray:
+    """(N, 2, 2) segments reflected about the image line through the vertical
+    VP ``vp`` (3,) (homogeneous, may lie at infinity) and the pixel ``point``
+    (2,): lines through the VP stay lines through it."""
+    u = vp[:2] - point * vp[2]
+    u = u / np.linalg.norm(u)
+    reflect = 2.0 * np.outer(u, u) - np.eye(2)
+    return (segments - point) @ reflect.T + point
+
+
+def chance_counts(
+    segments_px: np.ndarray,
+    vertical_direction_cam: np.ndarray | None,
+    camera: Camera,
+    prior: Pose,
+    cadastre,
+    options: RegistrationOptions,
+    segments_undistorted: bool = False,
+) -> list[int]:
+    """Inlier corners the same search finds with the segments mirrored (one
+    count per mirror, ``options.chance_trials`` of them): what chance alone
+    gives this image's segments against this map.
+
+    The mirror axes pass through the vertical VP and points on the image's
+    middle row spread by an eighth of the width around the principal point.
+    A mirror about the axis through the principal point is the image of the
+    map mirrored about the camera's vertical plane: the same corners at the
+    same distances in view, the same segments, but no relation between them.
+    Arguments as :func:`register_image`. Each mirror is one more search.
+    """
+    seg = np.asarray(segments_px, float).reshape(-1, 2, 2)
+    if camera.has_distortion and not segments_undistorted and len(seg):
+        seg = camera.undistort_pixels(seg.reshape(-1, 2)).reshape(-1, 2, 2)
+    n = vertical_direction_cam
+    down = n if n is not None else prior.rotation @ -_EZ
+    vp = camera.K @ np.asarray(down, float)
+    null = replace(options, min_inliers=3, chance_trials=0)
+    m = options.chance_trials
+    counts = []
+    for k in range(m):
+        shift = (k - (m - 1) / 2.0) * camera.width / 8.0
+        point = np.array([camera.K[0, 2] + shift, camera.K[1, 2]])
+        r = _search(_mirrored(seg, vp, point), n, camera, prior, cadastre, null, True)
+        counts.append(r.num_inliers)
+    return counts
+
+
+def _search(
+    segments_px: np.ndarray,
+    vertical_direction_cam: np.ndarray | None,
+    camera: Camera,
+    prior: Pose,
+    cadastre,
+    options: RegistrationOptions,
+    segments_undistorted: bool,
+) -> RegistrationResult:
+    """:func:`register_image` without the chance test."""
     from obliq_colmap.cadastre import visible_corners
 
-    options = options or RegistrationOptions()
     t_start = time.perf_counter()
     timings: dict[str, float] = {}
     seg, n = _check_inputs(segments_px, vertical_direction_cam)
@@ -1923,6 +2061,8 @@ def register_image(
     refine_focal = bool(options.refine_focal)
     view = _make_view(camera, prior, n)
 
+    known: dict = {}  # counts known so far, reported on failure too
+
     def fail(message: str, **kw) -> RegistrationResult:
         timings["total"] = time.perf_counter() - t_start
         logger.debug("registration failed: %s", message)
@@ -1933,7 +2073,7 @@ def register_image(
             vertical_source=vertical_source,
             message=message,
             timings=timings,
-            **kw,
+            **{**known, **kw},
         )
 
     if not options.allow_vp_in_frame and (vp := _vp_in_frame(camera, n)) is not None:
@@ -1982,6 +2122,7 @@ def register_image(
         margin_px=0.25 * max(camera.width, camera.height),
         use_building_heights=False,
     )
+    known["num_map_corners"] = len(wide)
     if len(wide) < options.min_inliers:
         return fail(
             f"too few map corners in view of the prior: {len(wide)}",
@@ -2105,6 +2246,7 @@ def register_image(
     )
     num_candidates = len(cand.corner)
     common = dict(
+        **known,
         num_segments=len(segs),
         num_candidates=num_candidates,
         num_trials=trials + sum(t.trials for t in tries),

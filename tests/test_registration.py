@@ -559,6 +559,51 @@ def test_no_consensus_fails_with_message(block):
     assert "segments" in result.message or "consensus" in result.message
 
 
+def _random_verticals(block, num: int, seed: int) -> np.ndarray:
+    """(num, 2, 2) segments through the block's vertical VP at random places:
+    valid verticals that match no map corner but by chance."""
+    rng = np.random.default_rng(seed)
+    vp = block.camera.K @ vertical_of(block.pose)
+    vp = vp[:2] / vp[2]
+    start = rng.uniform([0, 0], [block.camera.width, block.camera.height], (num, 2))
+    unit = (vp - start) / np.linalg.norm(vp - start, axis=1, keepdims=True)
+    length = rng.uniform(20.0, 120.0, num)
+    return np.stack([start, start + length[:, None] * unit], axis=1)
+
+
+def test_chance_consensus_fails_and_a_true_one_passes(block):
+    """Segments that match the map only by chance: the search alone still
+    finds a consensus; the same search with the segments mirrored finds as
+    many, so the result is refused. The true segments beat their chance
+    count by far."""
+    prior = perturbed_prior(block.pose, 9)
+    junk = _random_verticals(block, 300, seed=4)
+    args = (junk, vertical_of(block.pose), block.camera, prior, block.cadastre)
+    untested = register_image(
+        *args, RegistrationOptions(chance_trials=0), segments_undistorted=True
+    )
+    assert untested.success and untested.chance_inliers == -1
+    tested = register_image(*args, segments_undistorted=True)
+    assert not tested.success and tested.cam_from_world is prior
+    assert "no more than chance" in tested.message
+    assert tested.num_inliers == untested.num_inliers
+    assert untested.num_inliers <= 1.5 * tested.chance_inliers
+
+    always = RegistrationOptions(chance_test_below=10_000)
+    true = register_image(
+        block.segments,
+        vertical_of(block.pose),
+        block.camera,
+        prior,
+        block.cadastre,
+        always,
+        segments_undistorted=True,
+    )
+    assert true.success and true.chance_inliers >= 0
+    assert true.num_inliers > 3 * true.chance_inliers
+    assert "chance" in true.timings
+
+
 def test_map_out_of_view_fails(block):
     far = Pose.from_center(block.pose.rotation, block.pose.center + [5000.0, 0, 0])
     result = register_image(
