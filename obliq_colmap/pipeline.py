@@ -936,7 +936,7 @@ def reregister_failed(
     tries = pool.map(_reregister, jobs, "against the block")
     poses, cameras = dict(state.poses), dict(state.cameras)
     planes = {i: p.copy() for i, p in state.planes.items()}
-    names = []
+    names, new = [], set()
     for k, job, result in zip(todo, jobs, tries, strict=True):
         o = outcomes[k]
         before = o.registration.num_inliers if o.registered else -1
@@ -950,7 +950,11 @@ def reregister_failed(
         cameras[o.image_id] = job[0].start
         planes[o.image_id] = result.height_plane.copy()
         names.append(o.name)
-    return BlockState(poses, cameras, planes, state.shared), names
+        new.add(o.image_id)
+    # The new poses are per-image registrations: the next bundle corrects
+    # their datum against the solved images.
+    solved = state.solved - new
+    return BlockState(poses, cameras, planes, state.shared, solved), names
 
 
 def _head_offsets(

@@ -459,3 +459,40 @@ def test_head_cameras_are_the_median_of_the_confident_refined_images():
     assert set(heads) == {3}
     np.testing.assert_allclose(heads[3].params, [1020.0, 500.0, 333.5, -0.04, 0.0])
     assert head_cameras(tasks, outcomes, 100) == {}
+
+
+def test_block_state_after_a_bundle_keeps_its_ground_and_datum():
+    """After a bundle the ground planes stay in the world (a camera the bundle
+    moves does not move the ground), and a later datum correction moves only
+    the images not yet solved, relative to the solved ones' median."""
+    from types import SimpleNamespace
+
+    from obliq_colmap.adjustment import BlockState
+    from obliq_colmap.geometry import Camera, Pose
+
+    cam = Camera("PINHOLE", 100, 80, [100.0, 100.0, 50.0, 40.0])
+    pose = {
+        i: Pose.from_center(np.eye(3), np.r_[0.0, 0.0, 100.0 + i]) for i in (1, 2, 3)
+    }
+    planes = {i: np.r_[0.0, 0.0, 10.0 * i] for i in (1, 2, 3)}
+    state = BlockState(pose, {i: cam for i in pose}, planes)
+    moved = {i: Pose.from_center(np.eye(3), np.r_[1.0, 0.0, 90.0 + i]) for i in pose}
+    result = SimpleNamespace(poses=moved, cameras={7: cam})
+    solved = state.with_bundle(result, {1: 7, 2: 7, 3: 7})
+    assert solved.shared and solved.solved == {1, 2, 3}
+    for i in pose:
+        np.testing.assert_array_equal(solved.planes[i], planes[i])
+        assert solved.poses[i] is moved[i]
+
+    # Image 3 registered again per image: only it takes a correction, the
+    # solved images' median (here 0.5 m) being the reference.
+    again = BlockState(
+        solved.poses, solved.cameras, solved.planes, True, frozenset({1, 2})
+    )
+    corrected = again.with_datum_correction({1: 0.4, 2: 0.6, 3: 2.5})
+    for i in (1, 2):
+        np.testing.assert_allclose(corrected.poses[i].center, moved[i].center)
+        np.testing.assert_allclose(corrected.planes[i], planes[i])
+    np.testing.assert_allclose(corrected.poses[3].center, moved[3].center - [0, 0, 2.0])
+    np.testing.assert_allclose(corrected.planes[3], planes[3] - [0, 0, 2.0])
+    assert corrected.solved == {1, 2}
