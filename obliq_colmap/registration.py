@@ -1821,6 +1821,138 @@ def _refine(
     return view, camera, float(x[0]), x[1:3].copy(), r.reshape(-1, 2)
 
 
+@dataclass
+class _Fit:
+    """Step 5's outcome: the refined view, segments (undistorted with the
+    refined lens), lens, pose (alpha, c_xy), relative height plane (3,), the
+    inlier pairs (ci into corner_rel, sj into segs, both (K,)), their
+    residuals (K, 2) px, and whether the distortion moved."""
+
+    view: _View
+    segs: _Segments
+    lens: _Lens | None
+    alpha: float
+    c_xy: np.ndarray
+    plane: np.ndarray
+    ci: np.ndarray
+    sj: np.ndarray
+    resid: np.ndarray
+    distortion_refined: bool
+
+
+def _lens_of(
+    camera: Camera, k_index: int | None, options: RegistrationOptions
+) -> _Lens | None:
+    """The current camera when its distortion matters (has or refines one):
+    the residuals then come from the raw segments, undistorted with it."""
+    if not (camera.has_distortion or k_index is not None):
+        return None
+    k_prior = float(camera.params[k_index]) if k_index is not None else 0.0
+    k_sigma = options.distortion_sigma_px / _corner_px_per_k(camera)
+    return _Lens(camera, k_index, k_prior, k_sigma)
+
+
+def _refine_rounds(
+    view: _View,
+    segs: _Segments,
+    raw: np.ndarray,
+    corner_rel: np.ndarray,
+    vis: np.ndarray,
+    cand: _Candidates,
+    alpha: float,
+    c_xy: np.ndarray,
+    plane: np.ndarray,
+    lens: _Lens | None,
+    moving: tuple[bool, bool, bool],
+    depth_m: float,
+    cadastre,
+    options: RegistrationOptions,
+) -> _Fit:
+    """Step 5: the inliers of a pose, refined and re-scored
+    (``options.refine_rounds``), then the pose alone on the final inliers.
+
+    ``raw``: the segments' raw pixels (N, 2, 2) (for a ``lens``); ``vis``:
+    the cadastre's indices of ``corner_rel``; ``cand``: the candidate pairs
+    of the starting pose; ``moving``: (focal, vertical, distortion) may move
+    (each from ``options.min_inliers_intrinsics`` inliers on); ``options`` at
+    the image's scale.
+    """
+    ci, sj = _inlier_assignment(
+        view, segs, corner_rel, cand, alpha, c_xy, plane, options
+    )
+    resid = np.zeros((0, 2))
+    k_index = lens.k_index if lens is not None else None
+    distortion_refined = False
+
+    def refine(free):
+        if lens is None:
+            v, _, a, c, r = _refine(
+                view, corner_rel[ci], segs.ends[sj], alpha, c_xy, free, options
+            )
+            return v, None, a, c, r
+        ends = raw[segs.index[sj]]
+        return _refine(view, corner_rel[ci], ends, alpha, c_xy, free, options, lens)
+
+    for _ in range(options.refine_rounds):
+        if len(ci) < options.min_inliers:
+            break
+        # The focal, the vertical and the distortion move only with enough
+        # inliers.
+        enough = len(ci) >= options.min_inliers_intrinsics
+        free = (
+            moving[0] and enough,
+            moving[1] and enough,
+            moving[2] and k_index is not None and enough,
+        )
+        distortion_refined |= free[2]
+        new_view, new_cam, alpha, c_xy, resid = refine(free)
+        # Whole buildings that do not fit (a building shifted in the map).
+        bld = cadastre.corner_building[vis[ci]]
+        res_pair = np.sqrt(np.mean(resid**2, axis=1))
+        bad = np.zeros(len(ci), bool)
+        for b in np.unique(bld):
+            sel = bld == b
+            if (
+                np.median(res_pair[sel])
+                > options.building_outlier_factor * options.inlier_threshold_px
+            ):
+                bad |= sel
+        if bad.any() and (~bad).sum() >= options.min_inliers:
+            ci, sj = ci[~bad], sj[~bad]
+            new_view, new_cam, alpha, c_xy, resid = refine(free)
+        view = new_view
+        if lens is not None:
+            # The segments again, undistorted with the refined camera.
+            lens = dataclasses.replace(lens, camera=new_cam)
+            und = new_cam.undistort_pixels(raw.reshape(-1, 2)).reshape(raw.shape)
+            segs = _prepare_segments(und, view, options, index=segs.index)
+        plane = _final_plane(view, segs, corner_rel, ci, sj, alpha, c_xy, options)
+        # Re-score every pair near the refined pose.
+        ground = _plane_at(plane[None], corner_rel)[0]
+        cand = _candidates(
+            view,
+            segs,
+            corner_rel,
+            alpha,
+            c_xy,
+            ground,
+            4.0 * options.inlier_threshold_px,
+            options.along_segment_stretch
+            * options.inlier_threshold_px
+            * depth_m
+            / view.focal
+            * 2.0
+            + 2.0,
+        )
+        ci, sj = _inlier_assignment(
+            view, segs, corner_rel, cand, alpha, c_xy, plane, options
+        )
+    if len(ci) >= options.min_inliers:
+        _, _, alpha, c_xy, resid = refine((False, False, False))
+        plane = _final_plane(view, segs, corner_rel, ci, sj, alpha, c_xy, options)
+    return _Fit(view, segs, lens, alpha, c_xy, plane, ci, sj, resid, distortion_refined)
+
+
 def _corner_px_per_k(camera: Camera) -> float:
     """Displacement (px) at the image corners per unit of radial ``k1``."""
     f = float(np.mean(np.diag(camera.K)[:2]))
@@ -2262,88 +2394,34 @@ def _search(
 
     # 5. Refinement and re-scoring.
     t0 = time.perf_counter()
-    alpha, c_xy, plane = alpha_r, c_r, plane_r
-    ci, sj = _inlier_assignment(
-        view, segs, corner_rel, cand, alpha, c_xy, plane, options
-    )
-    resid = np.zeros((0, 2))
     f0 = view.focal
     k_index = _radial_index(camera.model) if options.refine_distortion else None
-    # The current camera when its distortion matters (has or refines one):
-    # the residuals then come from the raw segments, undistorted with it.
-    lens = None
-    if camera.has_distortion or k_index is not None:
-        k_prior = float(camera.params[k_index]) if k_index is not None else 0.0
-        k_sigma = options.distortion_sigma_px / _corner_px_per_k(camera)
-        lens = _Lens(camera, k_index, k_prior, k_sigma)
-    distortion_refined = False
-
-    def refine(free):
-        if lens is None:
-            v, _, a, c, r = _refine(
-                view, corner_rel[ci], segs.ends[sj], alpha, c_xy, free, options
-            )
-            return v, None, a, c, r
-        ends = raw[segs.index[sj]]
-        return _refine(view, corner_rel[ci], ends, alpha, c_xy, free, options, lens)
-
-    for _ in range(options.refine_rounds):
-        if len(ci) < options.min_inliers:
-            break
-        # The focal, the vertical and the distortion move only with enough
-        # inliers.
-        enough = len(ci) >= options.min_inliers_intrinsics
-        free = (
-            refine_focal and enough,
-            refine_vertical and enough,
-            k_index is not None and enough,
-        )
-        distortion_refined |= free[2]
-        new_view, new_cam, alpha, c_xy, resid = refine(free)
-        # Whole buildings that do not fit (a building shifted in the map).
-        bld = cadastre.corner_building[vis[ci]]
-        res_pair = np.sqrt(np.mean(resid**2, axis=1))
-        bad = np.zeros(len(ci), bool)
-        for b in np.unique(bld):
-            sel = bld == b
-            if (
-                np.median(res_pair[sel])
-                > options.building_outlier_factor * options.inlier_threshold_px
-            ):
-                bad |= sel
-        if bad.any() and (~bad).sum() >= options.min_inliers:
-            ci, sj = ci[~bad], sj[~bad]
-            new_view, new_cam, alpha, c_xy, resid = refine(free)
-        view = new_view
-        if lens is not None:
-            # The segments again, undistorted with the refined camera.
-            lens = dataclasses.replace(lens, camera=new_cam)
-            und = new_cam.undistort_pixels(raw.reshape(-1, 2)).reshape(raw.shape)
-            segs = _prepare_segments(und, view, options, index=segs.index)
-        plane = _final_plane(view, segs, corner_rel, ci, sj, alpha, c_xy, options)
-        # Re-score every pair near the refined pose.
-        ground = _plane_at(plane[None], corner_rel)[0]
-        cand = _candidates(
-            view,
-            segs,
-            corner_rel,
-            alpha,
-            c_xy,
-            ground,
-            4.0 * options.inlier_threshold_px,
-            options.along_segment_stretch
-            * options.inlier_threshold_px
-            * depth_m
-            / view.focal
-            * 2.0
-            + 2.0,
-        )
-        ci, sj = _inlier_assignment(
-            view, segs, corner_rel, cand, alpha, c_xy, plane, options
-        )
-    if len(ci) >= options.min_inliers:
-        _, _, alpha, c_xy, resid = refine((False, False, False))
-        plane = _final_plane(view, segs, corner_rel, ci, sj, alpha, c_xy, options)
+    fit = _refine_rounds(
+        view,
+        segs,
+        raw,
+        corner_rel,
+        vis,
+        cand,
+        alpha_r,
+        c_r,
+        plane_r,
+        _lens_of(camera, k_index, options),
+        (refine_focal, refine_vertical, k_index is not None),
+        depth_m,
+        cadastre,
+        options,
+    )
+    view, segs, lens, alpha, c_xy, plane = (
+        fit.view,
+        fit.segs,
+        fit.lens,
+        fit.alpha,
+        fit.c_xy,
+        fit.plane,
+    )
+    ci, sj, resid = fit.ci, fit.sj, fit.resid
+    distortion_refined = fit.distortion_refined
     timings["refine"] = time.perf_counter() - t0
     common["num_inliers"] = len(ci)
     if len(ci) < options.min_inliers:
