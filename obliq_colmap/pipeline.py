@@ -25,11 +25,13 @@ exception: it is named in a warning and left out of the model.
 from __future__ import annotations
 
 import dataclasses
+import functools
 import json
 import logging
 import math
 import os
 import time
+from collections import Counter
 from collections.abc import Callable, Sequence
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass, field
@@ -73,9 +75,13 @@ from obliq_colmap.lines import Segments
 from obliq_colmap.registration import (
     RegistrationOptions,
     RegistrationResult,
+    _scaled_camera,
     block_ground_height,
     chance_test,
+    consensus_peak,
     draw_registration_overlay,
+    focal_profile,
+    refine_with_camera,
     register_image,
 )
 from obliq_colmap.vanishing import (
@@ -114,6 +120,16 @@ class PipelineOptions:
     #: Images with fewer inlier corners are registered again with the block's
     #: ground height (0 disables the rescue).
     rescue_min_inliers: int = 20
+    #: A head's focal length is found from all its images with at least
+    #: ``registration.min_inliers_intrinsics`` inliers when there are this
+    #: many (fewer: each image keeps its own), and its images are refined
+    #: again with it held (:func:`_head_focal_pass`; 3 is what was measured).
+    #: 0, the default, disables it: stage 2 gains (``paper``: 86-94 % -> 92-100 %
+    #: below 2 px), but the bundle's own focal refinement moves the heads' focal
+    #: lengths away from it, and the full deviation after the bundle got worse
+    #: on the sample (1.04 -> 2.25 px) and seed 1 (0.66 -> 0.99 px), better on
+    #: seed 2 (0.78 -> 0.41 px); docs/bench_registration.md, 2026-12-02.
+    head_focal_min_images: int = 0
     #: Images that failed per image are registered once more after the
     #: bundle, against the solved block (their head's solved camera, the
     #: block's ground, the head's significant systematic prior offset), and
@@ -686,7 +702,8 @@ def initial_stage(
 ) -> tuple[list[ImageOutcome], list[RegistrationResult | None], list[str]]:
     """Stages 1 and 2 of every image, as ``register --stop_after initial``:
     the vanishing point and the registration per image, the pass from the
-    heads' lenses (``refine_distortion``), the rescue of weak images.
+    heads' lenses (``refine_distortion``), the heads' focal lengths from all
+    their images (:func:`_head_focal_pass`), the rescue of weak images.
 
     ``tasks`` may be changed (the head pass sets their start camera);
     ``timings`` gets the wall time of each step (s).
@@ -705,6 +722,10 @@ def initial_stage(
         t0 = time.perf_counter()
         _head_pass(pool, tasks, outcomes, options)
         timings["head_pass"] = time.perf_counter() - t0
+    if options.head_focal_min_images > 0:
+        t0 = time.perf_counter()
+        _head_focal_pass(pool, tasks, outcomes, options)
+        timings["head_focal"] = time.perf_counter() - t0
     t0 = time.perf_counter()
     rescued = _rescue(pool, tasks, outcomes, options)
     timings["rescue"] = time.perf_counter() - t0
@@ -1061,6 +1082,125 @@ def _head_pass(
             _set_registration(outcomes[k], new)
             names.append(outcomes[k].name)
     return names
+
+
+def _profile_job(
+    args: tuple[RegistrationResult, Camera, np.ndarray, np.ndarray, Camera, Any],
+) -> np.ndarray:
+    result, camera, scales, segments, segments_camera, options = args
+    return focal_profile(
+        result, camera, scales, segments, segments_camera, _STATE["cadastre"], options
+    )
+
+
+def _refine_job(
+    args: tuple[RegistrationResult, Camera, np.ndarray, Camera, Any],
+) -> RegistrationResult:
+    result, camera, segments, segments_camera, options = args
+    return refine_with_camera(
+        result, camera, segments, segments_camera, _STATE["cadastre"], options
+    )
+
+
+def _head_profile(
+    pool: _Workers, jobs: list[tuple], base: Camera, log_scales: np.ndarray
+) -> np.ndarray:
+    """(G,) sum over a head's images of their consensus with ``base``'s
+    focal scaled by ``exp`` of each of (G,) ``log_scales``; ``jobs``:
+    (result, segments, segments_camera, options) per image."""
+    args = [(j[0], base, np.exp(log_scales), *j[1:]) for j in jobs]
+    return np.sum(pool.map(_profile_job, args, "heads' focal"), axis=0)
+
+
+def _head_focal_pass(
+    pool: _Workers,
+    tasks: list[_ImageTask],
+    outcomes: list[ImageOutcome],
+    options: PipelineOptions,
+) -> dict[int, Camera]:
+    """One focal length per head from all its images, then each of its
+    registered images refined again with it held.
+
+    One image observes its focal length poorly, and its inliers were chosen
+    with the priors' focal, so its refinement keeps most of the priors'
+    error, the same for all the images of a head; their median, and any
+    pooled estimate from those inliers, keeps it too (measured on
+    ``paper``). What the images agree on instead: the consensus (soft inlier
+    count) of each image re-scored with a candidate focal held
+    (:func:`~obliq_colmap.registration.focal_profile`), summed over the head,
+    peaks near the true focal. The peak is searched on a grid of the priors'
+    focal sigma (widened when it lies at an end), then refined on a grid of a
+    third of it, each by a parabola. A head with fewer than
+    ``options.head_focal_min_images`` images with enough inliers keeps the
+    per-image results. The tasks of the heads start from the pooled camera
+    afterwards (the rescue).
+
+    Returns the heads' cameras (camera_id -> Camera).
+    """
+    reg = options.registration
+    counted = [
+        k
+        for k, o in enumerate(outcomes)
+        if o.registered
+        and o.registration.camera is not None
+        and o.registration.num_inliers >= reg.min_inliers_intrinsics
+    ]
+    per_head = Counter(tasks[k].camera.camera_id for k in counted)
+    counted = [
+        k
+        for k in counted
+        if per_head[tasks[k].camera.camera_id] >= options.head_focal_min_images
+    ]
+    if not counted:
+        return {}
+
+    def job(k: int) -> tuple:
+        o = outcomes[k]
+        opts = _reregister_options(tasks[k], o.vertical_direction, None)
+        return (o.registration, o.segments, tasks[k].camera, opts)
+
+    jobs: dict[int, list[tuple]] = {}
+    base: dict[int, Camera] = {}
+    for k in counted:
+        jobs.setdefault(tasks[k].camera.camera_id, []).append(job(k))
+    for cid, js in jobs.items():
+        # The images' lens (median), at the priors' focal length.
+        cam = js[0][0].camera
+        params = np.median(np.array([j[0].camera.params for j in js]), axis=0)
+        cam = Camera(cam.model, cam.width, cam.height, params, cid)
+        prior = next(t.camera for t in tasks if t.camera.camera_id == cid)
+        base[cid] = _scaled_camera(cam, _mean_focal(prior) / _mean_focal(cam))
+    sigma = max(reg.prior_focal_sigma, 0.01)
+    heads = {}
+    for cid, js in jobs.items():
+        profile = functools.partial(_head_profile, pool, js, base[cid])
+        peak = consensus_peak(profile, sigma)
+        heads[cid] = _scaled_camera(base[cid], math.exp(peak))
+    logger.info(
+        "the heads' focal lengths from all their images: %s",
+        {cid: round(_mean_focal(c), 1) for cid, c in heads.items()},
+    )
+    todo = [
+        k
+        for k, o in enumerate(outcomes)
+        if o.registered and tasks[k].camera.camera_id in heads
+    ]
+    args = []
+    for k in todo:
+        r, seg, seg_cam, opts = job(k)
+        args.append((r, heads[tasks[k].camera.camera_id], seg, seg_cam, opts))
+    new = pool.map(_refine_job, args, "heads' focal: refine")
+    for k, r in zip(todo, new, strict=True):
+        if r.success:
+            _set_registration(outcomes[k], r)
+    for k, t in enumerate(tasks):
+        if t.camera.camera_id in heads:
+            tasks[k] = _replace(t, start=heads[t.camera.camera_id])
+    return heads
+
+
+def _mean_focal(camera: Camera) -> float:
+    return float(np.mean(np.diag(camera.K)[:2]))
 
 
 def _result_block(inputs: Inputs, state: BlockState) -> Block:

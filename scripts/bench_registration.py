@@ -7,12 +7,14 @@ as ``register`` reads them (:func:`~obliq_colmap.pipeline.load_inputs`), per
 image the vertical VP with the INS prior cone of the prior rotation and focal
 errors, the registration (a doubtful VP falls back to the prior's vertical
 and all first-pass segments), the pass from the heads' lenses (only with
-``refine_distortion``), then the rescue of weak images from the ground
-heights of the confident ones. The result of the registered images (pose and
-refined focal length) is scored with :func:`obliq_colmap.evaluate.evaluate_block`
-across the projected verticals (what one image can observe); an image that
-failed is left out of the model, as ``register`` leaves it out, so it counts
-as missing (above every threshold), never at its prior.
+``refine_distortion``), the heads' focal lengths from all their images
+(``--head_focal 3``; off by default, as in the pipeline), then the rescue of
+weak images from the ground heights of the confident ones. The result of
+the registered images (pose and refined focal length) is scored with
+:func:`obliq_colmap.evaluate.evaluate_block` across the projected verticals
+(what one image can observe); an image that failed is left out of the model,
+as ``register`` leaves it out, so it counts as missing (above every
+threshold), never at its prior.
 
 Printed per setting: the fraction of images with a mean deviation below 2 px
 and 5 px after the first pass and after the rescue; the median inlier ratio
@@ -202,13 +204,20 @@ def _cached_detect_vertical_vp(img, options, camera, prior, rng=None):
 # --------------------------------------------------------------------------
 
 
-def run_pipeline(scene, priors_dir: Path, map_path: Path, reg: RegistrationOptions):
-    """The pipeline's stages 1-2 on one setting, one process.
+def run_pipeline(
+    scene, priors_dir: Path, map_path: Path, reg: RegistrationOptions, head_focal: int
+):
+    """The pipeline's stages 1-2 on one setting, one process
+    (``head_focal``: ``PipelineOptions.head_focal_min_images``).
 
     Returns (inputs, tasks, outcomes, first-pass results, timings, cpu s).
     """
     options = PipelineOptions(
-        stop_after="initial", num_workers=1, progress=False, registration=reg
+        stop_after="initial",
+        num_workers=1,
+        progress=False,
+        registration=reg,
+        head_focal_min_images=head_focal,
     )
     inputs = load_inputs(scene.path / "images", map_path, priors_dir, options)
     tasks = image_tasks(inputs, options)
@@ -373,6 +382,13 @@ def main(argv=None) -> int:
         "(4 values each) or reduced_<name> (the values other than the default)",
     )
     ap.add_argument("--prior_seed", type=int, default=0)
+    ap.add_argument(
+        "--head_focal",
+        type=int,
+        default=PipelineOptions().head_focal_min_images,
+        help="PipelineOptions.head_focal_min_images (the heads' focal lengths "
+        "from all their images; 0: off)",
+    )
     ap.add_argument("--output", help="JSON file for the rows (rewritten per row)")
     args = ap.parse_args(argv)
     pipeline.detect_vertical_vp = _cached_detect_vertical_vp
@@ -409,7 +425,7 @@ def main(argv=None) -> int:
                 first, outcomes, t_vp = final, [], [np.nan]
             else:
                 inputs, tasks, outcomes, first, timings, cpu = run_pipeline(
-                    scene, priors_dir, map_path, reg
+                    scene, priors_dir, map_path, reg, args.head_focal
                 )
                 final = [o.registration for o in outcomes]
                 t_reg = [o.time_s.get("registration", np.nan) for o in outcomes]
@@ -422,7 +438,7 @@ def main(argv=None) -> int:
             ok1 = [r for r in first if r is not None and r.success]
             n_img = len(tasks)
             stage2 = timings["initial"] - np.nansum(t_vp) + timings["rescue"]
-            stage2 += timings.get("head_pass", 0.0)
+            stage2 += timings.get("head_pass", 0.0) + timings.get("head_focal", 0.0)
             row = dict(
                 scene=str(path),
                 setting=name,
@@ -448,6 +464,7 @@ def main(argv=None) -> int:
                 time_max_s=float(np.nanmax(t_reg)),
                 vp_time_median_s=float(np.nanmedian(t_vp)),
                 stage2_per_image_s=float(stage2 / n_img),
+                head_focal_s=float(timings.get("head_focal", 0.0)),
                 rescue_s=float(timings["rescue"]),
                 wall_s=wall,
                 cpu_s=cpu,
@@ -460,7 +477,8 @@ def main(argv=None) -> int:
                 f"<5px {f5_1:.3f} -> {f5_2:.3f}  inl {row['inlier_ratio_median']:.2f}  "
                 f"trials {row['trials_median']:.0f}  reg {row['time_median_s']:.2f}/"
                 f"{row['time_max_s']:.2f} s  vp {row['vp_time_median_s']:.2f} s  "
-                f"stage2 {row['stage2_per_image_s']:.2f} s/img  "
+                f"stage2 {row['stage2_per_image_s']:.2f} s/img "
+                f"(heads' focal {row['head_focal_s'] / n_img:.2f})  "
                 f"(rescued {row['rescued']}, vp ok {row['vp_ok']}/{n_img}, "
                 f"wall {wall:.0f} s, load {row['load'][0]:.1f})",
                 flush=True,

@@ -26,8 +26,12 @@ from obliq_colmap.geometry import (
 )
 from obliq_colmap.registration import (
     RegistrationOptions,
+    _scaled_camera,
+    consensus_peak,
     draw_registration_overlay,
+    focal_profile,
     inlier_threshold_px,
+    refine_with_camera,
     register_image,
 )
 
@@ -918,3 +922,55 @@ def test_t_interval_brute_force():
             want = (lo <= x) & (x <= hi) & np.isfinite(A) & ~np.isnan(B)
         np.testing.assert_array_equal((t_lo <= t) & (t <= t_hi), want)
         assert want.any() and not want.all()
+
+
+def test_head_focal_from_the_consensus_of_its_images(tmp_path):
+    """Three images of one lens registered with the priors' focal 3 % off and
+    held (on ``paper`` each image's refinement keeps 45-86 % of its head's
+    error: a weakly observed focal, and inliers chosen with the wrong one):
+    the sum of their consensus profiles, each image re-scored with a focal
+    held, peaks at the true focal, and an image refined with it is closer
+    to its true pose."""
+    rng = np.random.default_rng(5)
+    options = RegistrationOptions(prior_focal_sigma=0.03, chance_trials=0)
+    held = dataclasses.replace(options, refine_focal=False)
+    images = []
+    for heading in (10.0, 35.0, 60.0):
+        blk = make_block(0, num_outliers=60, tmp_path=tmp_path, heading_deg=heading)
+        camera = _scaled_camera(blk.camera, 1.03)  # the priors' focal
+        seg = blk.segments + rng.normal(0.0, 0.3, blk.segments.shape)
+        prior = perturbed_prior(blk.pose, 2)
+        result = register_image(
+            seg,
+            vertical_of(blk.pose),
+            camera,
+            prior,
+            blk.cadastre,
+            held,
+            segments_undistorted=True,
+        )
+        assert result.success, result.message
+        images.append((blk, camera, seg, result))
+
+    def profile(log_scales):
+        return sum(
+            focal_profile(r, cam, np.exp(log_scales), seg, cam, b.cadastre, options)
+            for b, cam, seg, r in images
+        )
+
+    log_scale = consensus_peak(profile, options.prior_focal_sigma)
+    # measured: 1.03 * exp(peak) = 1.0004; every image alone: 1.03
+    assert abs(1.03 * math.exp(log_scale) - 1.0) < 0.003
+    blk, camera, seg, result = images[0]
+    head = _scaled_camera(camera, math.exp(log_scale))
+    again = refine_with_camera(result, head, seg, camera, blk.cadastre, options)
+    assert again.success and again.camera is head
+    errors = [
+        (
+            rotation_angle_deg(r.cam_from_world.rotation, blk.pose.rotation),
+            np.linalg.norm(r.cam_from_world.center[:2] - blk.pose.center[:2]),
+        )
+        for r in (result, again)
+    ]
+    # measured: 2.33 -> 0.066 deg, 2.09 -> 0.21 m
+    assert errors[1][0] < errors[0][0] / 3 and errors[1][1] < errors[0][1] / 3
