@@ -89,6 +89,7 @@ def _stage12(scene: Path, options: pl.PipelineOptions, cache: Path):
             options.registration,
             options.cone_deg,
             options.rescue_min_inliers,
+            options.head_focal_min_images,
         )
     )
     path = cache / (hashlib.sha1(key.encode()).hexdigest()[:16] + ".pkl")
