@@ -595,3 +595,49 @@ def test_orthogonal_partner_picks_the_vertical_over_a_bigger_strip_pencil():
             VPPrior.aerial(),
         )
         assert direction_error_deg(plain.vp, false) < 2.0
+
+
+def test_second_pass_joins_a_corner_whose_background_flips():
+    # A wall (grey 150) left of lines through the VP; right of each line the
+    # background is brighter above ym and darker below, so the corner's
+    # polarity flips halfway: two pieces of 13 px that stop short of the
+    # junction, each below the 15 px length limit, one corner of 26 px.
+    vp = np.array([380.0, 2600.0, 1.0])
+    rng = np.random.default_rng(5)
+    ss = 4
+    hi = np.full((H * ss, W * ss), 150, np.uint8)
+    corners = []
+    for xa in np.linspace(60, 560, 6):
+        y0 = rng.uniform(60, 380)
+        ym, y1 = y0 + 13, y0 + 26
+        q = (xa, y0)
+        for ya, yb, grey in ((y0, ym, 205), (ym, y1, 95)):
+            poly = [
+                (point_on_line_at_y(vp, q, ya), ya),
+                (point_on_line_at_y(vp, q, ya) + 30, ya),
+                (point_on_line_at_y(vp, q, yb) + 30, yb),
+                (point_on_line_at_y(vp, q, yb), yb),
+            ]
+            pts = np.round((np.array(poly) * ss - 0.5) * 16).astype(np.int32)
+            cv2.fillPoly(hi, [pts], grey, shift=4)
+        corners.append((xa, y0, y1))
+    img = cv2.resize(hi, (W, H), interpolation=cv2.INTER_AREA).astype(float)
+    img = cv2.GaussianBlur(img, (0, 0), 0.7) + rng.normal(0, 2.0, (H, W))
+    img = np.clip(img, 0, 255).astype(np.uint8)
+
+    def found(options):
+        segs = vertical_segments(img, vp, options)
+        n = 0
+        for xa, y0, y1 in corners:
+            for e in segs.endpoints:
+                ys = np.sort(e[:, 1])
+                x_true = point_on_line_at_y(vp, (xa, y0), e[:, 1])
+                if np.abs(e[:, 0] - x_true).max() < 1.0 and (
+                    ys[0] < y0 + 2 and ys[1] > y1 - 2
+                ):
+                    n += 1
+                    break
+        return n
+
+    assert found(SecondPassOptions()) == len(corners)
+    assert found(SecondPassOptions(merge_flip_max_gap_px=0)) == 0
