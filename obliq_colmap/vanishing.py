@@ -183,11 +183,6 @@ class SecondPassOptions:
     merge: bool = True
     merge_max_distance_px: float = 1.0
     merge_max_gap_px: float = 12.0
-    #: with ``merge``, pieces of opposite polarity are merged too when, after
-    #: the end extension, they meet end to end (gap at most this, px; 0:
-    #: never): a corner whose background changes from brighter to darker
-    #: than the wall part way up.
-    merge_flip_max_gap_px: float = 4.0
     #: segment ends are moved outwards along their line to where the
     #: contrast across it halves, by at most this much, px (0: off).
     extend_max_px: float = 6.0
@@ -834,9 +829,6 @@ class _SecondPass:
 
     segments: Segments
     scatter: np.ndarray  # (G, 3, 3)
-    #: (R, 3, 3) the scatter of the chains that refine the VP (those of
-    #: one polarity); None: ``scatter``.
-    refine_scatter: np.ndarray | None = None
 
     def through(self, vp: np.ndarray, T: np.ndarray) -> Segments:
         """The same segments refitted through another (nearby) VP."""
@@ -961,80 +953,22 @@ def _second_pass(
         keep = np.ones(len(Sc), bool)
     Tinv = np.linalg.inv(T)
     ends_px = ends @ Tinv[:2, :2].T + Tinv[:2, 2]
-    normal = _bright_normals(ends_px, sign, (vx, vy, vw))
-    if options.extend_max_px > 0:
-        ends_px = _extend_ends(
-            ends_px, normal, strength, gx, gy, camera, options.extend_max_px
-        )
-
-    def passes(ends_px, count):
-        length = np.linalg.norm(ends_px[:, 1] - ends_px[:, 0], axis=1)
-        return (length >= options.min_length_px) & (
-            count >= options.min_density * length
-        )
-
-    keep &= passes(ends_px, count)
-    # The VP is refined on single-polarity chains only (merged across
-    # polarity, the two pieces are offset by their different backgrounds).
-    S_refine = Sc[keep]
-    if options.merge and options.merge_flip_max_gap_px > 0:
-        # The two pieces of a corner whose polarity flips stop short of the
-        # junction (the gradient turns there); extended, they meet. Pieces
-        # too short alone (not in ``keep``) take part.
-        ends = ends_px @ T[:2, :2].T + T[:2, 2]
-        Sc, ends, sign, strength, count, lines = _merge_pencil(
-            Sc,
-            ends,
-            sign,
-            strength,
-            count,
-            lines,
-            vn,
-            options.merge_max_distance_px / s,
-            -np.inf,
-            options.merge_flip_max_gap_px / s,
-            sides=_side_means(img, ends_px, (vx, vy, vw), camera),
-        )
-        ends_px = ends @ Tinv[:2, :2].T + Tinv[:2, 2]
-        normal = _bright_normals(ends_px, sign, (vx, vy, vw))
-        keep = passes(ends_px, count)
-    return _SecondPass(
-        Segments(ends_px[keep], normal[keep], strength[keep]), Sc[keep], S_refine
-    )
-
-
-def _bright_normals(ends_px: np.ndarray, sign: np.ndarray, vp) -> np.ndarray:
-    """(G, 2) unit normals of (G, 2, 2) segments through ``vp`` (vx, vy, vw),
-    towards the brighter side (``sign`` >= 0: the derivative along
-    (-uy, ux), u towards the VP, is positive)."""
-    vx, vy, vw = vp
+    # Edge normal n was (-uy, ux) with u towards the VP; D > 0: brighter on +n.
     mid = ends_px.mean(axis=1)
     ux = vx - mid[:, 0] * vw
     uy = vy - mid[:, 1] * vw
     nrm = np.sqrt(ux * ux + uy * uy)
     nrm = np.where(nrm > 0, nrm, 1.0)
-    return np.stack([-uy / nrm, ux / nrm], axis=1) * np.where(sign >= 0, 1, -1)[:, None]
-
-
-def _side_means(img, ends_px, vp, camera, offset_px=2.5) -> np.ndarray:
-    """(G, 2) mean grey 2.5 px either side of (G, 2, 2) segments through
-    ``vp`` (vx, vy, vw): on +n and -n, n = (-uy, ux) / |u|, u towards the VP
-    (5 points at 10..90 % of each segment)."""
-    vx, vy, vw = vp
-    f = np.linspace(0.1, 0.9, 5)
-    P = (
-        ends_px[:, None, 0]
-        + f[None, :, None] * (ends_px[:, 1] - ends_px[:, 0])[:, None]
+    normal = (
+        np.stack([-uy / nrm, ux / nrm], axis=1) * np.where(sign >= 0, 1, -1)[:, None]
     )
-    ux = vx - P[..., 0] * vw
-    uy = vy - P[..., 1] * vw
-    nrm = np.maximum(np.sqrt(ux * ux + uy * uy), 1e-30)
-    n = np.stack([-uy / nrm, ux / nrm], axis=-1)
-    Q = np.concatenate([P + offset_px * n, P - offset_px * n]).reshape(-1, 2)
-    if camera is not None and camera.has_distortion:
-        Q = camera.distort_pixels(Q)
-    g = _bilinear_many((img.astype(np.float32),), Q)[0].reshape(2, len(P), len(f))
-    return g.mean(axis=2).T
+    if options.extend_max_px > 0:
+        ends_px = _extend_ends(
+            ends_px, normal, strength, gx, gy, camera, options.extend_max_px
+        )
+    length = np.linalg.norm(ends_px[:, 1] - ends_px[:, 0], axis=1)
+    keep &= (length >= options.min_length_px) & (count >= options.min_density * length)
+    return _SecondPass(Segments(ends_px[keep], normal[keep], strength[keep]), Sc[keep])
 
 
 def _extend_ends(ends, normal, strength, gx, gy, camera, max_px, step=0.5):
@@ -1098,10 +1032,8 @@ def _merge_pencil(
     vn,
     max_dist,
     max_gap,
-    max_flip_gap=0.0,
-    sides=None,
 ):
-    """Merge segments on (nearly) the same line through the VP.
+    """Merge segments on (nearly) the same line through the VP, same polarity.
 
     Segments are ordered by their line's angle in the pencil; neighbours whose
     endpoints lie within ``max_dist`` of each other's line and whose gap along
@@ -1110,15 +1042,9 @@ def _merge_pencil(
     Candidates are the
     ``_MERGE_WINDOW`` neighbours in pencil order (many chains share nearly
     one line through the VP; 20 instead of 6 changed nothing measurable).
-    Same polarity: across gaps up to ``max_gap``. Opposite polarity (the
-    background behind a corner changing from brighter to darker than the
-    wall): only pieces that meet end to end, gap at most ``max_flip_gap``
-    and an overlap of at most ``max_dist`` (the second pass does this after
-    the end extension) and, with ``sides`` ((n, 2) mean grey either side,
-    :func:`_side_means`), only when one side continues from one piece to the
-    other within half the weaker piece's contrast (the wall) while the other
-    (the background) crosses it; merging across polarity at ``max_gap``
-    gained 1-2 % recall for 4 % precision (third round).
+    Across polarity (the background behind a corner changing from brighter
+    to darker than the wall) nothing is merged: measured, that gained 1-2 %
+    recall for 4 % precision.
     """
     n = len(Sc)
     if n < 2:
@@ -1132,7 +1058,7 @@ def _merge_pencil(
     nw = min(_MERGE_WINDOW, n - 1)
     i = np.tile(order, nw)
     j = np.concatenate([np.roll(order, -w) for w in range(1, nw + 1)])
-    same = (sign[i] >= 0) == (sign[j] >= 0)
+    ok = (sign[i] >= 0) == (sign[j] >= 0)
     li, lj, ei, ej = lines[i], lines[j], ends[i], ends[j]
     # Distances of j's endpoints to i's line and vice versa, and the gap
     # between the two along i's line.
@@ -1145,18 +1071,7 @@ def _merge_pencil(
     si = -ei[:, :, 0] * li[:, 1, None] + ei[:, :, 1] * li[:, 0, None]
     sj = -ej[:, :, 0] * li[:, 1, None] + ej[:, :, 1] * li[:, 0, None]
     gap = np.maximum(sj.min(1) - si.max(1), si.min(1) - sj.max(1))
-    flip = (gap <= max_flip_gap) & (gap >= -max_dist) & (max_flip_gap > 0)
-    if sides is not None:
-        # One side continuous (the wall), the other crossing it.
-        cont = np.minimum(
-            np.abs(sides[i, 0] - sides[j, 0]), np.abs(sides[i, 1] - sides[j, 1])
-        )
-        weaker = np.minimum(
-            np.abs(sides[i, 0] - sides[i, 1]), np.abs(sides[j, 0] - sides[j, 1])
-        )
-        flip &= cont <= 0.5 * weaker
-    ok = np.where(same, gap <= max_gap, flip)
-    ok &= np.maximum(di.max(1), dj.max(1)) <= max_dist
+    ok &= (np.maximum(di.max(1), dj.max(1)) <= max_dist) & (gap <= max_gap)
     pi, pj = i[ok], j[ok]
     G, grp = connected_pairs(n, pi, pj)
     if n == G:
@@ -1607,22 +1522,15 @@ def _refine_on_chains(
     v_n : (3,) the refined VP; keep : (G,) bool, the chains through it within
     ``second_pass.max_rms_px`` that fit it better than any competing VP.
     """
-    max_cost = (options.second_pass.max_rms_px / s_px) ** 2
-
-    def costs(S, v_n):
-        # Chains that fit a competing VP (a street's direction) better than
-        # the vertical one are not vertical edges.
-        n_pts = np.maximum(S[:, 2, 2], 1)
-        other = np.full(len(S), np.inf)
-        if len(comps):
-            other = _pencil_costs_each(S, comps).min(axis=0) / n_pts
-        return _pencil_cost(S, v_n) / n_pts, other
-
-    S = sp.scatter if sp.refine_scatter is None else sp.refine_scatter
-    if len(S) < 3:
-        S = sp.scatter
+    S = sp.scatter
     n_pts = np.maximum(S[:, 2, 2], 1)
-    cost, other = costs(S, v_n)
+    max_cost = (options.second_pass.max_rms_px / s_px) ** 2
+    # Chains that fit a competing VP (a street's direction) better than the
+    # vertical one are not vertical edges.
+    other = np.full(len(S), np.inf)
+    if len(comps):
+        other = _pencil_costs_each(S, comps).min(axis=0) / n_pts
+    cost = _pencil_cost(S, v_n) / n_pts
     # Re-select the segments with each refined VP: a few long non-vertical
     # edges that passed near the first-pass VP (streets receding towards the
     # horizon) drop out as the VP improves.
@@ -1643,7 +1551,6 @@ def _refine_on_chains(
         if np.array_equal(new, use) or new.sum() < 3:
             break
         use = new
-    cost, other = costs(sp.scatter, v_n)
     return v_n, (cost <= max_cost) & (cost < other)
 
 
