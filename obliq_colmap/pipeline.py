@@ -154,6 +154,8 @@ class PipelineOptions:
             )
         if self.num_workers < 0:
             raise ValueError("num_workers must be >= 0")
+        if self.head_focal_min_images < 0:
+            raise ValueError("head_focal_min_images must be >= 0")
 
     @property
     def workers(self) -> int:

@@ -525,3 +525,21 @@ def test_block_state_after_a_bundle_keeps_its_ground_and_datum():
     np.testing.assert_allclose(corrected.poses[3].center, moved[3].center - [0, 0, 2.0])
     np.testing.assert_allclose(corrected.planes[3], planes[3] - [0, 0, 2.0])
     assert corrected.solved == {1, 2}
+
+
+@pytest.mark.parametrize(
+    "option, message",
+    [
+        (["--head_focal_min_images", "-1"], "head_focal_min_images must be >= 0"),
+        (["--num_workers", "0"], "--num_workers must be >= 1"),
+    ],
+)
+def test_register_option_out_of_range_is_one_line(tmp_path, capsys, option, message):
+    argv = ["register", "--image_path", str(tmp_path), "--cadastre_path", "m.geojson"]
+    argv += ["--input_path", str(tmp_path), "--output_path", str(tmp_path / "out")]
+    with pytest.raises(SystemExit) as exit_info:
+        main(argv + option)
+    assert exit_info.value.code == 2
+    err = capsys.readouterr().err
+    assert message in err and "Traceback" not in err
+    assert not (tmp_path / "out").exists()
