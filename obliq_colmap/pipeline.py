@@ -97,6 +97,15 @@ STOP_AFTER = ("initial", "bundle")
 REPORT_FILE = "report.json"
 
 
+def default_head_focal_min_images(stop_after: str) -> int:
+    """``register``'s default of ``PipelineOptions.head_focal_min_images``: 3
+    when the run stops after stage 2 (its per-image poses are the product, and
+    the heads' pooled focal makes them agree across the verticals), else 0
+    (the bundle estimates the focal lengths itself and measured no better
+    from the pooled start: docs/BENCHMARKS.md, stage 2)."""
+    return 3 if stop_after == "initial" else 0
+
+
 def available_cores() -> int:
     """CPU cores this process may use (affinity-aware)."""
     try:

@@ -32,7 +32,12 @@ import numpy as np
 from obliq_colmap.adjustment import AdjustmentOptions
 from obliq_colmap.evaluate import EvaluateOptions, evaluate_model
 from obliq_colmap.geometry import SUPPORTED_MODELS
-from obliq_colmap.pipeline import PipelineOptions, run_register, write_run
+from obliq_colmap.pipeline import (
+    PipelineOptions,
+    default_head_focal_min_images,
+    run_register,
+    write_run,
+)
 from obliq_colmap.registration import RegistrationOptions
 
 logger = logging.getLogger("bench_register")
@@ -81,6 +86,11 @@ def bench_scene(scene: Path, args: argparse.Namespace) -> dict:
         ),
         adjustment=adjustment,
         reregister_failed=bool(args.reregister_failed),
+        head_focal_min_images=(
+            default_head_focal_min_images(args.stop_after)
+            if args.head_focal_min_images is None
+            else args.head_focal_min_images
+        ),
     )
     t0 = time.perf_counter()
     run = run_register(
@@ -161,6 +171,13 @@ def add_run_arguments(parser: argparse.ArgumentParser) -> None:
         choices=(0, 1),
         default=0,
         help="refine the distortion in the bundle (register's option)",
+    )
+    parser.add_argument(
+        "--head_focal_min_images",
+        type=int,
+        default=None,
+        help="register's option (default as register: 3 with --stop_after "
+        "initial, else 0)",
     )
     parser.add_argument(
         "--reregister_failed",

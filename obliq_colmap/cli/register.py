@@ -24,6 +24,7 @@ from obliq_colmap.pipeline import (
     STOP_AFTER,
     PipelineOptions,
     available_cores,
+    default_head_focal_min_images,
     run_register,
     summary_table,
     write_run,
@@ -84,12 +85,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     run.add_argument(
         "--head_focal_min_images",
         type=int,
-        default=0,
+        default=None,
         help="stage 2: estimate each camera's (head's) focal length from all its "
-        "images when at least this many registered with enough inliers (0: off, "
-        "the default). Recommended with --stop_after initial (paper preset: "
-        "97-100 %% of images below 2 px across the verticals instead of 89-94 %%); "
-        "the bundle re-estimates the focal lengths anyway",
+        "images when at least this many registered with enough inliers (0: off). "
+        "Default: 3 with --stop_after initial (paper preset: 97-100 %% of the "
+        "images below 2 px across the verticals instead of 89-94 %%), else 0 (the "
+        "bundle estimates the focal lengths itself)",
     )
     prior = parser.add_argument_group("Priors")
     defaults = RegistrationOptions()
@@ -160,6 +161,9 @@ def run(args: argparse.Namespace) -> int:
     check_output_path(output_path)  # fail before hours of work, not after
     if args.num_workers < 1:
         _option_error("--num_workers must be >= 1")
+    head_focal = args.head_focal_min_images
+    if head_focal is None:
+        head_focal = default_head_focal_min_images(args.stop_after)
     try:
         options = PipelineOptions(
             stop_after=args.stop_after,
@@ -167,7 +171,7 @@ def run(args: argparse.Namespace) -> int:
             camera_model=args.camera_model,
             overlay_path=Path(args.overlay_path) if args.overlay_path else None,
             progress=not args.no_progress,
-            head_focal_min_images=args.head_focal_min_images,
+            head_focal_min_images=head_focal,
             registration=RegistrationOptions(
                 prior_position_sigma_m=args.prior_position_sigma,
                 prior_rotation_sigma_deg=args.prior_rotation_sigma,
