@@ -381,8 +381,6 @@ class RegistrationResult:
         success the height plane at the inlier corners' centroid, else the
         coarse estimate; NaN if unknown.
     num_segments : int, usable segments.
-    num_map_corners : int, map corners in view of the prior (wide margins:
-        any ground height of the search, a quarter image beyond the frame).
     num_candidates : int, RANSAC candidate pairs.
     num_inliers : int, final inlier pairs (one per corner).
     num_trials : int, RANSAC samples drawn.
@@ -411,7 +409,6 @@ class RegistrationResult:
     height_plane: np.ndarray = field(default_factory=lambda: np.full(3, np.nan))
     ground_height: float = math.nan
     num_segments: int = 0
-    num_map_corners: int = 0
     num_candidates: int = 0
     num_inliers: int = 0
     num_trials: int = 0
@@ -2194,8 +2191,6 @@ def _search(
     refine_focal = bool(options.refine_focal)
     view = _make_view(camera, prior, n)
 
-    known: dict = {}  # counts known so far, reported on failure too
-
     def fail(message: str, **kw) -> RegistrationResult:
         timings["total"] = time.perf_counter() - t_start
         logger.debug("registration failed: %s", message)
@@ -2206,7 +2201,7 @@ def _search(
             vertical_source=vertical_source,
             message=message,
             timings=timings,
-            **{**known, **kw},
+            **kw,
         )
 
     if not options.allow_vp_in_frame and (vp := _vp_in_frame(camera, n)) is not None:
@@ -2255,7 +2250,6 @@ def _search(
         margin_px=0.25 * max(camera.width, camera.height),
         use_building_heights=False,
     )
-    known["num_map_corners"] = len(wide)
     if len(wide) < options.min_inliers:
         return fail(
             f"too few map corners in view of the prior: {len(wide)}",
@@ -2379,7 +2373,6 @@ def _search(
     )
     num_candidates = len(cand.corner)
     common = dict(
-        **known,
         num_segments=len(segs),
         num_candidates=num_candidates,
         num_trials=trials + sum(t.trials for t in tries),
