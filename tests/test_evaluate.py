@@ -187,6 +187,29 @@ def test_constant_vertical_shift_is_removed(scene):
         assert r.vertical_error_m == pytest.approx(37.5, abs=1e-6)
 
 
+def test_vertical_offset_is_the_scene_datum_not_the_camera_heights(scene):
+    """A camera raised and re-aimed at the same target (its height traded for
+    pitch, the bundle's weak mode) still images the scene nearly right: the
+    removed offset is the one its projections ask for. The median of the
+    camera-height errors (``vertical_offset="cameras"``) takes the raised
+    cameras' height for the datum and shifts every image's corners by ~5 px."""
+    gt, corners, visible = scene
+    datum, raised = 20.0, 3.0
+    est = copy_block(gt)
+    for i, im in est.images.items():
+        c = im.cam_from_world.center + [0.0, 0.0, datum + (raised if i <= 2 else 0.0)]
+        im.cam_from_world = look_at(c, ORIGIN + [0.0, 0.0, datum])
+    ev = evaluate_block(est, gt, corners, visible)
+    assert ev.summary.vertical_offset_m == pytest.approx(datum, abs=0.2)
+    assert ev.summary.num_registered == 4
+    assert ev.summary.deviation_max_px < 1.5  # the trade is exact at one depth
+    old = evaluate_block(
+        est, gt, corners, visible, EvaluateOptions(vertical_offset="cameras")
+    )
+    assert old.summary.vertical_offset_m == pytest.approx(datum + raised / 2)
+    assert old.summary.num_registered == 0
+
+
 def test_horizontal_shift_at_known_depth():
     """1 m sideways with all corners at depth d: deviation = f * 1 m / d."""
     gt = make_gt_block()
@@ -436,6 +459,29 @@ def test_cli(files, tmp_path, capsys):
     assert rc == 0
     data = json.loads(report.read_text())
     assert data["result_path"] == str(result) and data["baseline"]["result_path"]
+
+    rc = main(
+        [
+            "evaluate",
+            "--input_path",
+            str(result),
+            "--gt_path",
+            str(scene_path),
+            "--vertical_offset",
+            "cameras",
+            "--output_path",
+            str(report),
+        ]
+    )
+    assert rc == 0
+    data = json.loads(report.read_text())
+    assert data["options"]["vertical_offset"] == "cameras"
+    assert data["summary"]["num_registered"] == 3
+
+
+def test_unknown_vertical_offset_is_refused():
+    with pytest.raises(ValueError, match="vertical_offset"):
+        EvaluateOptions(vertical_offset="median")
 
 
 def test_cli_errors(files, tmp_path, capsys):

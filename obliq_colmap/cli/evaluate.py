@@ -2,7 +2,8 @@
 
     obliq-colmap evaluate --input_path RESULT_MODEL --gt_path SCENE
                           [--baseline] [--across_vertical]
-                          [--registered_threshold_px 2] [--output_path report.json]
+                          [--registered_threshold_px 2] [--vertical_offset corners]
+                          [--output_path report.json]
 
 With ``--baseline`` the scene's ``priors/`` model is evaluated; ``--input_path``
 is then optional, and when given both are evaluated (the JSON report holds the
@@ -18,7 +19,12 @@ import tempfile
 from pathlib import Path
 
 from obliq_colmap.errors import InputError
-from obliq_colmap.evaluate import EvaluateOptions, evaluate_baseline, evaluate_model
+from obliq_colmap.evaluate import (
+    VERTICAL_OFFSETS,
+    EvaluateOptions,
+    evaluate_baseline,
+    evaluate_model,
+)
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -53,7 +59,16 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--keep_vertical_offset",
         action="store_true",
-        help="do not remove the median vertical offset of the camera centres",
+        help="do not remove the model's vertical offset",
+    )
+    parser.add_argument(
+        "--vertical_offset",
+        choices=VERTICAL_OFFSETS,
+        default=EvaluateOptions().vertical_offset,
+        help="the model's vertical offset is the median over the images of "
+        "the height that best fits each image's projections of its true "
+        "corners (corners) or of its camera-centre height error (cameras, "
+        "the measure before 2026-12-02); default %(default)s",
     )
     parser.add_argument("--output_path", help="write the report as JSON to this file")
 
@@ -82,6 +97,7 @@ def run(args: argparse.Namespace) -> int:
             registered_threshold_px=args.registered_threshold_px,
             across_vertical=args.across_vertical,
             remove_vertical_offset=not args.keep_vertical_offset,
+            vertical_offset=args.vertical_offset,
         )
     except ValueError as exc:
         raise InputError(None, str(exc)) from None
