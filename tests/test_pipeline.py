@@ -130,10 +130,11 @@ def test_bundle_makes_the_images_agree_in_height(initial_run, bundle_run):
         bundle_run[0], SAMPLE, EvaluateOptions(across_vertical=True)
     )
     assert full["bundle"].num_missing == full["initial"].num_missing == 0
-    # measured 16 / 16 below 2 px, median 0.79 px (stage 2 alone: 12-31 px); with
-    # the priors' own noise as the options (bench_register) 14 / 16, 1.29 px
+    # measured 16 / 16 below 2 px, median 0.43 px (stage 2 alone: 12.8 px); with
+    # the priors' own noise as the options (bench_register) 16 / 16, 0.47 px;
+    # over 8 stage-2 RANSAC seeds 0.27-0.53 px (docs/BENCHMARKS.md, issue 5)
     assert full["bundle"].num_registered >= 0.8 * full["bundle"].num_total
-    assert full["bundle"].deviation_median_px < 1.5
+    assert full["bundle"].deviation_median_px < 1.0
     assert full["bundle"].deviation_median_px < full["initial"].deviation_median_px / 3
     assert across.summary.deviation_median_px < 0.6
     report = bundle_run[1].report
