@@ -161,14 +161,14 @@ def run_scene(scene: Path, args: argparse.Namespace) -> None:
 
     def report(label: str, problem: BundleProblem) -> None:
         result = solve_bundle(problem, opts)
-        full, across = br._evaluate(
+        full, across, _ = br._evaluate(
             inputs, state.with_bundle(result, P.image_camera), gt
         )
         print(br._fmt_eval(f"{label}, full", full).replace("  ", " ", 1))
         print(br._fmt_eval(f"{label}, across", across).replace("  ", " ", 1))
         print(f"      cost {result.summary.final_cost:.1f}")
 
-    full, across = br._evaluate(inputs, new, gt)
+    full, across, _ = br._evaluate(inputs, new, gt)
     print(br._fmt_eval("pipeline's bundle, full", full))
     print(br._fmt_eval("pipeline's bundle, across", across))
     vl, xy_true, hl, anchor, h, cams, poses = _exact_lines(

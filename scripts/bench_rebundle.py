@@ -40,7 +40,7 @@ def main() -> int:
         state, result, stage3 = adj.bundle_stage(
             inputs, outcomes, state, options.adjustment, {}
         )
-        full, _ = brz._evaluate(inputs, state, gt)
+        full, _, _ = brz._evaluate(inputs, state, gt)
         dc = np.abs(np.asarray(stage3.tracks.datum_correction))
         dc = dc[np.isfinite(dc)]
         worst = [

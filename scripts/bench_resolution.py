@@ -136,13 +136,13 @@ def _evaluate(inputs, state: adj.BlockState, gt) -> tuple:
         -np.array([cad.origin[0], cad.origin[1], 0.0])
     )
     out = []
-    for across in (False, True):
+    for across, offset in ((False, "corners"), (True, "corners"), (False, "cameras")):
         ev = evaluate_block(
             block,
             gt.block,
             gt.corners_world,
             gt.visible,
-            EvaluateOptions(across_vertical=across),
+            EvaluateOptions(across_vertical=across, vertical_offset=offset),
         )
         out.append(ev)
     return out
@@ -168,7 +168,7 @@ def _vertical_at_truth(cam, pose, xy: np.ndarray, h: np.ndarray, line: np.ndarra
 def stage2_report(scene, inputs, outcomes, gt, gtb, by_name, per_image=False) -> None:
     reg = [o for o in outcomes.values() if o.registered]
     state = adj.BlockState.from_outcomes(reg)
-    full, across = _evaluate(inputs, state, gt)
+    full, across, _ = _evaluate(inputs, state, gt)
     print(_fmt_eval("stage 2 full", full))
     print(_fmt_eval("stage 2 across vert.", across))
     nseg = np.array([len(o.segments) for o in outcomes.values()])
@@ -266,9 +266,10 @@ def stage3_report(scene, inputs, outcomes, options, gt, gtb, by_name) -> None:
         f"                   horizontal ({len(result.horizontal_residuals_px)})"
         f" {_q(result.horizontal_residuals_px)}"
     )
-    full, across = _evaluate(inputs, new, gt)
+    full, across, cameras = _evaluate(inputs, new, gt)
     print(_fmt_eval("bundle full", full))
     print(_fmt_eval("bundle across vert.", across))
+    print(_fmt_eval("bundle full, cam. dz", cameras))
     # The bundle's first problem at the true cameras.
     stage3b = adj.Stage3(stage3.ids, stage3.facades, stage3.tracks)
     st = state.with_datum_correction(
