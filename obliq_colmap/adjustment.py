@@ -37,7 +37,6 @@ from obliq_colmap.matching import (
     FacadeTracks,
     MatchingOptions,
     match_facade_edges,
-    rim_ties,
     triangulate_tracks,
 )
 
@@ -51,7 +50,6 @@ __all__ = [
     "build_bundle_problem",
     "bundle_stage",
     "facade_stage",
-    "tied_groups",
     "vertical_constraints",
     "with_track_lines",
     "with_variance_components",
@@ -93,21 +91,12 @@ class AdjustmentOptions:
     #: cameras, tracks as free 3D lines fit to 0.000 px median, pinned to the
     #: wall to 0.23 px; scripts/bench_bundle_diagnostics.py).
     track_offset_sigma_m: float = 10.0
-    #: Between rounds: tracks on different walls of one building at one
-    #: height (roof rims, floor lines running round the building) share one
-    #: height unknown (:func:`matching.rim_ties`): a tie between the heads
-    #: that see the walls.
-    rim_ties: bool = False
-    #: Standard deviations within which two rims' heights must agree.
-    rim_tie_sigma: float = 3.0
 
     def __post_init__(self) -> None:
         if self.outlier_rounds < 0 or self.outlier_factor <= 0:
             raise ValueError("outlier_rounds must be >= 0 and outlier_factor > 0")
         if self.track_offset_sigma_m <= 0:
             raise ValueError("track_offset_sigma_m must be > 0")
-        if self.rim_tie_sigma <= 0:
-            raise ValueError("rim_tie_sigma must be > 0")
 
 
 def _finite(x: float) -> float | None:
@@ -211,9 +200,6 @@ class Stage3:
         pixels (set by :func:`build_bundle_problem`).
     row_obs : (R,) int array, per horizontal row of the bundle problem the
         track observation it holds (set by :func:`build_bundle_problem`).
-    track_group : (J,) int array, the bundle's height unknown of each track
-        (tracks tied across the corners of a building share one: see
-        :func:`matching.rim_ties`); identity until ties are made.
     """
 
     ids: tuple[int, ...]
@@ -221,24 +207,14 @@ class Stage3:
     tracks: FacadeTracks
     ends_raw: np.ndarray = field(default_factory=lambda: np.zeros((0, 2, 2)))
     row_obs: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
-    track_group: np.ndarray | None = None
     #: Per image id: RMS (px) of its final vertical and horizontal residuals.
     bundle_rms: dict[int, tuple[float, float]] = field(default_factory=dict)
-
-    def groups(self) -> np.ndarray:
-        """(J,) the height unknown of each track (identity without ties)."""
-        if self.track_group is None:
-            return np.arange(self.tracks.num_tracks)
-        return self.track_group
 
     def report(self, outcomes: dict[int, ImageOutcome]) -> dict[str, Any]:
         t = self.tracks
         obs = np.bincount(t.image, minlength=len(self.ids))
-        size = np.bincount(self.groups())[self.groups()] if t.num_tracks else []
         return {
             "num_tracks": t.num_tracks,
-            "num_tracks_tied": int(np.sum(np.asarray(size) > 1)),
-            "num_heights": int(len(np.unique(self.groups()))),
             "num_observations": t.num_observations,
             "num_image_pairs": len(t.pairs),
             "num_pair_matches": int(sum(p.num_matches for p in t.pairs)),
@@ -457,10 +433,6 @@ def build_bundle_problem(
     stage3.ends_raw = ends
     lines = lines_through(ends[:, 0], ends[:, 1])
     stage3.row_obs = np.arange(t.num_observations)
-    group = stage3.groups()
-    G = int(group.max()) + 1 if len(group) else 0
-    count = np.maximum(np.bincount(group, None, G), 1)
-    heights = np.bincount(group, t.height, G) / count
     cameras = _group_cameras(inputs, state, outcomes)
     return BundleProblem(
         cameras=cameras,
@@ -472,9 +444,9 @@ def build_bundle_problem(
         vertical_image=v["image"],
         vertical_corner=np.arange(len(v["xy"])),
         vertical_line=v["line"],
-        facade_heights=heights,
+        facade_heights=t.height,
         horizontal_image=t.image,
-        horizontal_height=group[t.track],
+        horizontal_height=t.track,
         horizontal_anchor_xy=t.anchor_xy[t.track],
         horizontal_line=lines,
     )
@@ -541,25 +513,15 @@ def bundle_stage(
                 )
                 obs = obs[kh]
                 if options.track_lines:
-                    group = None
-                    if options.rim_ties:
-                        group = tied_groups(
-                            result, problem, kh, inputs, stage3, obs, options
-                        )
                     problem = with_track_lines(
-                        problem, result, inputs, stage3, obs, options, group
+                        problem, result, inputs, stage3, obs, options
                     )
                 if options.variance_components:
                     # Each kind weighted by its own noise (map corners ~1 px,
                     # facade edges ~0.15 px).
                     unknowns = 2 if options.track_lines else 1
                     problem, bundle_options = with_variance_components(
-                        problem,
-                        result,
-                        bundle_options,
-                        kh,
-                        unknowns,
-                        stage3.tracks.track[obs],
+                        problem, result, bundle_options, kh, unknowns
                     )
                 result = solve_bundle(problem, bundle_options)
                 if kv.all() and kh.all():
@@ -611,7 +573,6 @@ def with_variance_components(
     options: BundleOptions,
     kept: np.ndarray,
     unknowns_per_track: int,
-    row_track: np.ndarray | None = None,
 ) -> tuple[BundleProblem, BundleOptions]:
     """Both residual kinds weighted by their robust standard deviation in
     the last solve: vertical (map corners) and horizontal (facade tracks).
@@ -622,21 +583,12 @@ def with_variance_components(
     sqrt((n - u) / n): they are scaled back, and tracks with n <= u (no
     redundancy, zero residuals) do not count. Without that the spread of the
     two-image tracks, half of all, reads as ~0 and the facade lines get
-    hundreds of times the weight their noise deserves. Tracks tied into one
-    height (``row_track`` (R,): each row's track, when its height unknown
-    holds several) share it: a group of T tracks has ``T (u - 1) + 1``
-    unknowns.
+    hundreds of times the weight their noise deserves.
     """
     rh = result.horizontal_residuals_px[kept]
-    g = problem.horizontal_height
-    G = len(problem.facade_heights)
-    n = np.bincount(g, minlength=G)[g]
-    u = np.full(G, unknowns_per_track)
-    if row_track is not None and len(g):
-        pairs = np.unique(np.column_stack([g, row_track]), axis=0)
-        T = np.bincount(pairs[:, 0], minlength=G)
-        u = T * (unknowns_per_track - 1) + 1
-    u = u[g]
+    track = problem.horizontal_height
+    n = np.bincount(track, minlength=len(problem.facade_heights))[track]
+    u = unknowns_per_track
     scaled = rh * np.sqrt(n / np.maximum(n - u, 1))
     options = dataclasses.replace(
         options,
@@ -653,80 +605,6 @@ def with_variance_components(
     return problem, options
 
 
-def _track_lines_at(
-    result: BundleResult,
-    problem: BundleProblem,
-    inputs: Inputs,
-    stage3: Stage3,
-    obs: np.ndarray,
-    options: AdjustmentOptions,
-    group: np.ndarray | None,
-):
-    """(d, h, information) of every track at the solved cameras, from the
-    observations ``obs`` (see :func:`matching.triangulate_tracks`)."""
-    t = stage3.tracks
-    ids = problem.image_ids
-    cams = [result.cameras[problem.image_camera[i]] for i in ids]
-    poses = [result.poses[i] for i in ids]
-    px_per_m = np.concatenate([f.px_per_m for f in stage3.facades])
-    offset = np.cumsum([0] + [len(f) for f in stage3.facades])
-    ppm = px_per_m[offset[t.image[obs]] + t.row[obs]]
-    return triangulate_tracks(
-        t.image[obs],
-        t.track[obs],
-        stage3.ends_raw[obs],
-        cams,
-        poses,
-        t.anchor_xy,
-        inputs.cadastre.edge_normal[t.edge],
-        ppm,
-        offset_sigma_m=options.track_offset_sigma_m,
-        group=group,
-        return_information=True,
-    )
-
-
-def tied_groups(
-    result: BundleResult,
-    problem: BundleProblem,
-    kept: np.ndarray,
-    inputs: Inputs,
-    stage3: Stage3,
-    obs: np.ndarray,
-    options: AdjustmentOptions,
-) -> np.ndarray:
-    """(J,) the height unknown of each track with the roof rims tied
-    (:func:`matching.rim_ties`), judged at the solved block.
-
-    Each track is triangulated on its own from its kept observations
-    ``obs``; its height's standard deviation comes from its information and
-    the facade rows' robust spread in the last solve (``kept``: its rows
-    still in ``problem``), scaled back for the two unknowns of each track as
-    in :func:`with_variance_components`.
-    """
-    _, h, info = _track_lines_at(result, problem, inputs, stage3, obs, options, None)
-    g = problem.horizontal_height
-    n = np.bincount(g, minlength=len(problem.facade_heights))[g]
-    r = result.horizontal_residuals_px[kept] * np.sqrt(n / np.maximum(n - 2, 1))
-    sigma_px = _robust_sigma(r[n > 2], 1.0)
-    with np.errstate(divide="ignore"):
-        sigma_m = sigma_px / np.sqrt(info)
-    group = rim_ties(
-        stage3.tracks.edge,
-        np.where(np.isfinite(sigma_m), h, np.nan),
-        sigma_m,
-        inputs.cadastre.edge_building,
-        options.rim_tie_sigma,
-    )
-    logger.info(
-        "bundle: roof rims tied: %d tracks into %d heights (facade sigma %.3f px)",
-        int(np.sum(np.bincount(group)[group] > 1)),
-        int(np.sum(np.bincount(group) > 1)),
-        sigma_px,
-    )
-    return group
-
-
 def with_track_lines(
     problem: BundleProblem,
     result: BundleResult,
@@ -734,7 +612,6 @@ def with_track_lines(
     stage3: Stage3,
     obs: np.ndarray,
     options: AdjustmentOptions,
-    group: np.ndarray | None = None,
 ) -> BundleProblem:
     """The problem with each track re-triangulated as a 3D horizontal line.
 
@@ -743,29 +620,36 @@ def with_track_lines(
     to the track's line (:func:`matching.triangulate_tracks`, with the
     solved cameras) and its height restarted there. ``obs``: indices into
     the tracks' observations of the problem's horizontal constraints.
-    ``group`` (J,): the height unknown of each track from now on (default
-    ``stage3.groups()``); ``stage3.track_group`` is set to it.
     """
-    old_group = stage3.groups()
-    group = old_group if group is None else group
     t = stage3.tracks
+    ids = problem.image_ids
+    cams = [result.cameras[problem.image_camera[i]] for i in ids]
+    poses = [result.poses[i] for i in ids]
     o = obs
+    px_per_m = np.concatenate([f.px_per_m for f in stage3.facades])
+    offset = np.cumsum([0] + [len(f) for f in stage3.facades])
+    ppm = px_per_m[offset[t.image[o]] + t.row[o]]
     normal = inputs.cadastre.edge_normal[t.edge]
-    d, h, _ = _track_lines_at(result, problem, inputs, stage3, o, options, group)
-    # Heights of the groups no observation reaches any more keep their last
-    # value (through any of their tracks).
-    h = np.where(np.isfinite(h), h, result.facade_heights[old_group])
-    G = int(group.max()) + 1 if len(group) else 0
-    heights = np.zeros(G)
-    heights[group] = h
-    stage3.track_group = group
-    anchor = (t.anchor_xy + d[:, None] * normal)[t.track[o]]
+    d, h = triangulate_tracks(
+        t.image[o],
+        t.track[o],
+        stage3.ends_raw[o],
+        cams,
+        poses,
+        t.anchor_xy,
+        normal,
+        ppm,
+        offset_sigma_m=options.track_offset_sigma_m,
+    )
+    J = t.num_tracks
+    heights = result.facade_heights.copy()
+    heights[:J] = np.where(np.isfinite(h), h, heights[:J])
+    anchor = (t.anchor_xy + d[:, None] * normal)[problem.horizontal_height]
     return dataclasses.replace(
         problem,
         cameras=result.cameras,
         poses=result.poses,
         facade_heights=heights,
-        horizontal_height=group[t.track[o]],
         horizontal_anchor_xy=anchor,
     )
 

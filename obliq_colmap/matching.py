@@ -43,7 +43,6 @@ __all__ = [
     "PairMatch",
     "match_facade_edges",
     "match_pair",
-    "rim_ties",
 ]
 
 logger = logging.getLogger(__name__)
@@ -561,9 +560,7 @@ def triangulate_tracks(
     normal_xy: np.ndarray,
     px_per_m: np.ndarray,
     offset_sigma_m: float,
-    group: np.ndarray | None = None,
-    return_information: bool = False,
-):
+) -> tuple[np.ndarray, np.ndarray]:
     """Each track as a horizontal 3D line parallel to its map edge.
 
     A horizontal edge on or near a wall (a roof rim overhangs by tens of
@@ -584,17 +581,10 @@ def triangulate_tracks(
     base_xy, normal_xy : (J, 2) arrays, track anchor on the map edge and the
         edge's outward normal.
     px_per_m : (H,) array, image scale of one metre of height (weights).
-    group : (J,) int array, optional: tracks of one group share one height
-        (:func:`rim_ties`), each keeping its own offset; default one group
-        per track.
 
     Returns
     -------
-    d, h : (J,) arrays, metres (offset along the normal, height; equal
-        within a group).
-    information : (J,) array, only with ``return_information``: the
-        information of the height, px^2 per m^2 (1 / variance for residuals
-        of 1 px; the group's, equal within it); 0 where unobserved.
+    d, h : (J,) arrays, metres (offset along the normal, height).
     """
     J = len(base_xy)
     pi = np.zeros((len(image), 3))
@@ -624,95 +614,9 @@ def triangulate_tracks(
     # prior on d in pixels: the track's mean scale over sigma
     mean_w = s22 / np.maximum(np.bincount(tr, None, J), 1)
     s11 = s11 + mean_w / offset_sigma_m**2
-    if group is None:
-        group = np.arange(J)
-    # Each track's offset eliminated (s11 > 0 by the prior), then one height
-    # per group from the sum of its tracks' reduced equations.
-    G = int(group.max()) + 1 if J else 0
-    seen = s22 > 0
+    det = s11 * s22 - s12 * s12
     with np.errstate(divide="ignore", invalid="ignore"):
-        a = np.where(seen, s22 - s12 * s12 / s11, 0.0)
-        b = np.where(seen, b2 - s12 * b1 / s11, 0.0)
-        hg = np.bincount(group, b, G) / np.bincount(group, a, G)
-        h = hg[group]
-        d = (b1 - s12 * h) / s11
+        d = (s22 * b1 - s12 * b2) / det
+        h = (s11 * b2 - s12 * b1) / det
     bad = ~(np.isfinite(d) & np.isfinite(h))
-    d, h = np.where(bad, 0.0, d), np.where(bad, np.nan, h)
-    if return_information:
-        return d, h, np.where(bad, 0.0, np.bincount(group, a, G)[group])
-    return d, h
-
-
-# --------------------------------------------------------------------------
-# Ties between the walls of one building
-# --------------------------------------------------------------------------
-
-
-def _top_per_wall(edge: np.ndarray, height: np.ndarray) -> np.ndarray:
-    """Indices of the highest finite track of each wall that has one."""
-    h = np.where(np.isfinite(height), height, -np.inf)
-    order = np.lexsort((-h, edge))
-    first = np.r_[True, edge[order][1:] != edge[order][:-1]]
-    top = order[first]
-    return top[np.isfinite(height[top])]
-
-
-def rim_ties(
-    edge: np.ndarray,
-    height: np.ndarray,
-    height_sigma: np.ndarray,
-    edge_building: np.ndarray,
-    num_sigma: float = 3.0,
-    group_chi2: float | None = None,
-) -> np.ndarray:
-    """Tracks to tie into one height: the roof rims round a building.
-
-    A roof rim (the eave of a flat roof, the eaves of a pitched one) runs at
-    one height round the building, and it is the highest horizontal edge of
-    each of its walls. The walls are seen by different heads, whose tracks
-    take up any relative height shift of the heads (each track has its own
-    offset and height): one height for the rim on all walls ties them. The
-    highest track of each wall is paired with those of the building's other
-    walls that agree within ``num_sigma`` combined standard deviations;
-    pairs chain into groups, and a group whose heights fail a chi-square
-    test (``group_chi2`` per degree of freedom, default ``num_sigma**2``)
-    is not tied.
-
-    Parameters
-    ----------
-    edge : (J,) int array, map edge (wall) of each track.
-    height, height_sigma : (J,) arrays, each track's height (NaN if
-        unobserved) and its standard deviation, metres.
-    edge_building : (E,) int array, building of each map edge.
-
-    Returns
-    -------
-    group : (J,) int array, the height unknown of each track, in [0, G).
-    """
-    J = len(edge)
-    top = _top_per_wall(edge, height)
-    i, j = np.triu_indices(len(top), 1)
-    i, j = top[i], top[j]
-    sig = np.hypot(height_sigma[i], height_sigma[j])
-    pair = (
-        (edge_building[edge[i]] == edge_building[edge[j]])
-        & (edge[i] != edge[j])
-        & (np.abs(height[i] - height[j]) <= num_sigma * sig)
-    )
-    i, j = i[pair], j[pair]
-    graph = sp.csr_matrix((np.ones(len(i)), (i, j)), shape=(J, J))
-    _, group = connected_components(graph, directed=False)
-    # Chains can join heights that do not agree: test each group as a whole.
-    w = np.zeros(J)
-    tied = np.zeros(J, bool)
-    tied[i] = tied[j] = True
-    w[tied] = 1.0 / height_sigma[tied] ** 2
-    G = int(group.max()) + 1 if J else 0
-    hw = np.bincount(group, w * np.nan_to_num(height), G)
-    mean = hw / np.maximum(np.bincount(group, w, G), 1e-300)
-    chi2 = np.bincount(group, w * (np.nan_to_num(height) - mean[group]) ** 2, G)
-    dof = np.bincount(group, tied, G) - 1
-    limit = (num_sigma**2 if group_chi2 is None else group_chi2) * np.maximum(dof, 1)
-    bad = (dof > 0) & (chi2 > limit)
-    group = np.where(bad[group] | ~tied, G + np.arange(J), group)
-    return np.unique(group, return_inverse=True)[1]
+    return np.where(bad, 0.0, d), np.where(bad, np.nan, h)

@@ -1316,7 +1316,7 @@ def constrained_points(
     points = [Point3D(X[c], o) for c, o in enumerate(obs) if len(o) >= 2]
     if bundle is not None and stage3 is not None:
         t = stage3.tracks
-        F = np.column_stack([t.anchor_xy, bundle.facade_heights[stage3.groups()]])
+        F = np.column_stack([t.anchor_xy, bundle.facade_heights])
         fobs: list[list[tuple[int, np.ndarray]]] = [[] for _ in range(len(F))]
         for k, i in enumerate(stage3.ids):
             tr = np.unique(t.track[t.image == k])

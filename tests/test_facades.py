@@ -21,7 +21,6 @@ from obliq_colmap.matching import (
     datum_corrections,
     match_facade_edges,
     match_pair,
-    rim_ties,
     triangulate_tracks,
 )
 
@@ -287,93 +286,6 @@ def test_triangulated_track_finds_a_line_off_the_wall(offset):
     assert h[0] == pytest.approx(12.0, abs=1e-6)
     d, _ = solve(1e-3)  # a tight prior holds the line on the wall
     assert abs(d[0]) < 1e-3
-
-
-def _west_wall_segments(x_wall, y0, y1, heights, offset=0.0):
-    """(K, 2, 3) horizontal 3D segments along the west wall x = x_wall."""
-    return np.array(
-        [[[x_wall - offset, y0, h], [x_wall - offset, y1, h]] for h in heights]
-    )
-
-
-@pytest.mark.parametrize("west_height", [12.0, 13.0])
-def test_tied_tracks_share_one_height(west_height):
-    """A rim on the south wall and one on the west wall, each seen by two
-    cameras of its own: tied into one height, both are recovered exactly
-    when they are at one height, and pulled to a compromise when not."""
-    cam = _camera()
-    # (two views of a line parallel to their baseline cannot place it)
-    south = [
-        _oblique_pose(np.array([-60.0, -300.0, 420.0]), 0.0),
-        _oblique_pose(np.array([60.0, -420.0, 300.0]), 0.0),
-    ]
-    west = [
-        _oblique_pose(np.array([-310.0, 40.0, 420.0]), 90.0),
-        _oblique_pose(np.array([-430.0, 160.0, 300.0]), 90.0),
-    ]
-    seg_s = _south_wall_segments(100.0, -8.0, 2.0, [12.0], offset=0.3)[0]
-    seg_w = _west_wall_segments(-10.0, 105.0, 115.0, [west_height], offset=0.3)[0]
-    ends = np.stack(
-        [_project(cam, p, seg_s) for p in south]
-        + [_project(cam, p, seg_w) for p in west]
-    )
-
-    def solve(group):
-        return triangulate_tracks(
-            np.arange(4),
-            np.array([0, 0, 1, 1]),
-            ends,
-            [cam] * 4,
-            south + west,
-            np.array([[-3.0, 100.0], [-10.0, 110.0]]),
-            np.array([[0.0, -1.0], [-1.0, 0.0]]),
-            np.full(4, 5.0),
-            offset_sigma_m=1e6,
-            group=np.array(group),
-            return_information=True,
-        )
-
-    d, h, info = solve([0, 1])
-    np.testing.assert_allclose(d, [0.3, 0.3], atol=1e-6)
-    np.testing.assert_allclose(h, [12.0, west_height], atol=1e-6)
-    d, h, tied_info = solve([0, 0])
-    assert h[0] == h[1]
-    assert np.all(tied_info > info)  # one height from both walls
-    if west_height == 12.0:
-        np.testing.assert_allclose(d, [0.3, 0.3], atol=1e-6)
-        assert h[0] == pytest.approx(12.0, abs=1e-6)
-    else:  # tied wrongly: neither height is right
-        assert 12.05 < h[0] < 12.95
-
-
-def test_rim_ties_join_the_highest_edges_of_one_building():
-    # building 0: walls 0-3, building 1: walls 4-5
-    edge_building = np.array([0, 0, 0, 0, 1, 1])
-    edge = np.array([0, 0, 1, 1, 2, 3, 4, 5])
-    height = np.array([20.0, 17.0, 20.1, 17.0, 19.0, 20.05, 20.0, 23.0])
-    sigma = np.full(8, 0.05)
-    group = rim_ties(edge, height, sigma, edge_building)
-    rim = group[[0, 2, 5]]
-    assert len(set(rim)) == 1  # the rims of walls 0, 1, 3
-    # a floor line (not its wall's highest), a gable wall's highest edge 1 m
-    # below the rim, and the other building's edges stay on their own
-    others = group[[1, 3, 4, 6, 7]]
-    assert len(set(others)) == 5 and rim[0] not in others
-    assert group.max() == 5
-    # unobserved tracks are never tied
-    height[5] = np.nan
-    group = rim_ties(edge, height, sigma, edge_building)
-    assert group[5] not in group[[0, 2]] and group[0] == group[2]
-
-
-def test_rim_ties_refuse_a_chain_that_drifts():
-    """Three walls whose neighbours agree within 3 sigma but whose ends do
-    not: the group fails its chi-square test and nothing is tied."""
-    edge = np.array([0, 1, 2])
-    group = rim_ties(
-        edge, np.array([20.0, 20.12, 20.24]), np.full(3, 0.03), np.zeros(3, int)
-    )
-    assert len(set(group)) == 3
 
 
 def test_facade_options_are_checked():
