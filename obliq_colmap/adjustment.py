@@ -91,22 +91,12 @@ class AdjustmentOptions:
     #: cameras, tracks as free 3D lines fit to 0.000 px median, pinned to the
     #: wall to 0.23 px; scripts/bench_bundle_diagnostics.py).
     track_offset_sigma_m: float = 10.0
-    #: Relative 1-sigma of the heads' focal lengths measured in stage 2 from
-    #: all their images (``PipelineOptions.head_focal_min_images``): the
-    #: bundle holds those heads' focal lengths near them by a prior of this
-    #: width (None: free). 0.003 is their measured RMS error (0.28 % over 28
-    #: heads of 7 synthetic blocks); the focal length is the block's weakest
-    #: unknown (a head slides along its viewing rays with it), and left free
-    #: the bundle moved it 0.5-1 % away (docs/BENCHMARKS.md, issue 5).
-    head_focal_sigma: float | None = 0.003
 
     def __post_init__(self) -> None:
         if self.outlier_rounds < 0 or self.outlier_factor <= 0:
             raise ValueError("outlier_rounds must be >= 0 and outlier_factor > 0")
         if self.track_offset_sigma_m <= 0:
             raise ValueError("track_offset_sigma_m must be > 0")
-        if self.head_focal_sigma is not None and self.head_focal_sigma <= 0:
-            raise ValueError("head_focal_sigma must be > 0 or None")
 
 
 def _finite(x: float) -> float | None:
@@ -410,21 +400,6 @@ def _group_cameras(
     return out
 
 
-def _measured_heads(
-    inputs: Inputs, outcomes: dict[int, ImageOutcome], state: BlockState
-) -> list[int]:
-    """Camera ids whose start focal length (:func:`_group_cameras`: the median
-    over the head's images) is the head's own, measured from all its images:
-    more than half of its registered images hold it (``head_focal``)."""
-    count: dict[int, list[int]] = {}
-    for i in state.poses:
-        r = outcomes[i].registration
-        c = count.setdefault(inputs.priors.images[i].camera_id, [0, 0])
-        c[0] += int(r is not None and r.head_focal)
-        c[1] += 1
-    return sorted(cid for cid, (k, n) in count.items() if 2 * k > n)
-
-
 def build_bundle_problem(
     inputs: Inputs,
     outcomes: dict[int, ImageOutcome],
@@ -510,15 +485,6 @@ def bundle_stage(
         )
         problem = build_bundle_problem(inputs, outcomes, state, stage3)
         bundle_options = dataclasses.replace(options.bundle, corner_heights="fixed")
-        # The heads' measured focal lengths (stage 2) stay the prior's centre
-        # through all rounds; after a bundle (state.shared) they are spent.
-        measured = [] if state.shared else _measured_heads(inputs, outcomes, state)
-        start = {cid: problem.cameras[cid] for cid in measured}
-        if start and options.head_focal_sigma is not None:
-            bundle_options = dataclasses.replace(
-                bundle_options, focal_prior_sigma=options.head_focal_sigma
-            )
-            problem = dataclasses.replace(problem, prior_cameras=start)
         try:
             # A wide loss first: after stage 2 and the datum corrections some
             # images still sit metres too high or low (tens of pixels), where
@@ -557,7 +523,6 @@ def bundle_stage(
                     problem, bundle_options = with_variance_components(
                         problem, result, bundle_options, kh, unknowns
                     )
-                problem = dataclasses.replace(problem, prior_cameras=start)
                 result = solve_bundle(problem, bundle_options)
                 if kv.all() and kh.all():
                     break

@@ -398,9 +398,6 @@ class RegistrationResult:
     chance_inliers : int
         The most inlier corners the searches with the segments mirrored
         found (:func:`chance_counts`); -1 when not tested.
-    head_focal : bool
-        ``camera``'s focal length is its head's, measured from all the
-        head's images and held here (``pipeline._head_focal_pass``).
     """
 
     success: bool
@@ -421,7 +418,6 @@ class RegistrationResult:
     timings: dict = field(default_factory=dict)
     camera: Camera | None = None
     distortion_refined: bool = False
-    head_focal: bool = False
     chance_inliers: int = -1
 
     def __bool__(self) -> bool:

@@ -34,6 +34,7 @@ from obliq_colmap.evaluate import EvaluateOptions, evaluate_model
 from obliq_colmap.geometry import SUPPORTED_MODELS
 from obliq_colmap.pipeline import (
     PipelineOptions,
+    default_head_focal_min_images,
     run_register,
     write_run,
 )
@@ -85,7 +86,11 @@ def bench_scene(scene: Path, args: argparse.Namespace) -> dict:
         ),
         adjustment=adjustment,
         reregister_failed=bool(args.reregister_failed),
-        head_focal_min_images=args.head_focal_min_images,
+        head_focal_min_images=(
+            default_head_focal_min_images(args.stop_after)
+            if args.head_focal_min_images is None
+            else args.head_focal_min_images
+        ),
     )
     t0 = time.perf_counter()
     run = run_register(
@@ -170,8 +175,9 @@ def add_run_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--head_focal_min_images",
         type=int,
-        default=PipelineOptions().head_focal_min_images,
-        help="register's option (default %(default)s)",
+        default=None,
+        help="register's option (default as register: 3 with --stop_after "
+        "initial, else 0)",
     )
     parser.add_argument(
         "--reregister_failed",

@@ -679,34 +679,6 @@ def test_fx_fy_move_together_unless_the_aspect_ratio_is_refined():
     assert free.summary.num_camera_params == out.summary.num_camera_params + 4
 
 
-def test_focal_prior_holds_the_listed_cameras_only():
-    """``focal_prior_sigma`` with ``prior_cameras``: a camera held by a tight
-    prior keeps its prior focal length, the others are recovered from the
-    noise-free constraints; a prior centred on the truth costs nothing."""
-    syn = make_synthetic_problem(
-        seed=5, buildings=(5, 5), stations=(2, 2), models=("PINHOLE",) * 4
-    )
-    opts = dataclasses.replace(EXACT, corner_heights="fixed", focal_prior_sigma=1e-7)
-    cids = sorted(syn.problem.cameras)
-    held = {cids[0]: syn.problem.cameras[cids[0]]}  # its (wrong) start
-    out = solve_bundle(dataclasses.replace(syn.problem, prior_cameras=held), opts)
-    start_fx = held[cids[0]].params[0]
-    assert out.cameras[cids[0]].params[0] == pytest.approx(start_fx, rel=1e-6)
-    assert abs(start_fx / syn.cameras[cids[0]].params[0] - 1) > 1e-3  # was off
-    for cid in cids[1:]:  # free: still moves off its start
-        assert out.cameras[cid].params[0] != pytest.approx(
-            syn.problem.cameras[cid].params[0], rel=1e-4
-        )
-    truth = {c: syn.cameras[c] for c in cids}
-    exact = solve_bundle(dataclasses.replace(syn.problem, prior_cameras=truth), opts)
-    for cid in cids:
-        np.testing.assert_allclose(
-            exact.cameras[cid].params, syn.cameras[cid].params, rtol=EXACT_PARAM_REL
-        )
-    with pytest.raises(ValueError):
-        BundleOptions(focal_prior_sigma=0.0)
-
-
 def test_residual_kinds_are_weighted_by_their_sigmas(noisy):
     """A small horizontal sigma buys horizontal fit at the vertical's cost."""
     base = BundleOptions(loss="none", corner_heights="fixed")

@@ -112,10 +112,6 @@ class BundleOptions:
     refine_principal_point: bool = True
     #: Refine the distortion parameters of every camera.
     refine_extra_params: bool = False
-    #: Relative standard deviation of a prior holding each camera's focal
-    #: length near its initial value (None: no prior), e.g. the heads' focal
-    #: lengths measured in stage 2 (``PipelineOptions.head_focal_min_images``).
-    focal_prior_sigma: float | None = None
     #: "free": one unknown height per map corner, shared by its observations
     #: in all images; "fixed": corners at ``BundleProblem.corner_heights``.
     corner_heights: str = "free"
@@ -149,8 +145,6 @@ class BundleOptions:
             raise ValueError("vertical_sigma_px and horizontal_sigma_px must be > 0")
         if self.corner_height_prior_m is not None and self.corner_height_prior_m <= 0:
             raise ValueError("corner_height_prior_m must be > 0 or None")
-        if self.focal_prior_sigma is not None and self.focal_prior_sigma <= 0:
-            raise ValueError("focal_prior_sigma must be > 0 or None")
 
 
 def _as(a, shape_tail: tuple[int, ...], name: str, dtype=float) -> np.ndarray:
@@ -190,10 +184,6 @@ class BundleProblem:
         Map-edge anchor ``(x, y)`` of each (the edge centre), metres.
     horizontal_line : (H, 3) array
         Homogeneous horizontal image line (pixels) of each.
-    prior_cameras : dict camera_id -> Camera, optional
-        The intrinsics that ``BundleOptions.focal_prior_sigma`` holds the
-        focal lengths of these cameras near (the others are free); default
-        ``cameras`` (all).
     """
 
     cameras: dict[int, Camera]
@@ -210,7 +200,6 @@ class BundleProblem:
     horizontal_anchor_xy: np.ndarray
     horizontal_line: np.ndarray
     image_ids: tuple[int, ...] | None = None
-    prior_cameras: dict[int, Camera] | None = None
 
     def __post_init__(self) -> None:
         if self.image_ids is None:
@@ -487,18 +476,6 @@ class _Setup:
                 self.intr_col[s] = col
                 col += basis.shape[1]
         self.n_red = col
-        # Focal prior: (camera slot, parameter index, reduced column) of each
-        # refined focal column (fx where fx and fy move together).
-        prior = []
-        if opts.focal_prior_sigma is not None:
-            for s, cid in enumerate(self.camera_ids):
-                basis = self.refined[s]
-                focal, _, _ = res.focal_principal_extra_indices(P.cameras[cid].model)
-                for q in range(basis.shape[1]):
-                    i = next((i for i in focal if basis[i, q] == 1.0), None)
-                    if i is not None:
-                        prior.append((s, i, self.intr_col[s] + q))
-        self.focal_prior = np.array(prior, np.int64).reshape(-1, 3)
         self.L = 6 + max((b.shape[1] for b in self.refined), default=0)
         # (N, L) global columns of each residual's camera-side Jacobian; the
         # padding column n_red is dropped after assembly.
@@ -787,16 +764,6 @@ def _solve(problem: BundleProblem, opts: BundleOptions) -> BundleResult:
     )
     prior_mask = np.zeros(S.n_heights, bool)
     prior_mask[nJ:] = prior_w > 0
-    ref = P.prior_cameras if P.prior_cameras is not None else P.cameras
-    S.focal_prior = S.focal_prior[
-        [S.camera_ids[s] in ref for s in S.focal_prior[:, 0]]
-    ].reshape(-1, 3)
-    f0 = np.array([ref[S.camera_ids[s]].params[i] for s, i, _ in S.focal_prior])
-    f_w = 1.0 / (opts.focal_prior_sigma * f0) ** 2 if len(f0) else f0
-
-    def focal_offset(params: list[np.ndarray]) -> np.ndarray:
-        """(Q,) focal lengths minus their prior values, px."""
-        return np.array([params[s][i] for s, i, _ in S.focal_prior]).reshape(-1) - f0
 
     st = _State(
         np.stack([P.poses[i].rotation for i in P.image_ids]),
@@ -805,15 +772,12 @@ def _solve(problem: BundleProblem, opts: BundleOptions) -> BundleResult:
         heights0.copy(),
     )
 
-    def cost_of(r: np.ndarray, state: _State) -> float:
+    def cost_of(r: np.ndarray, heights: np.ndarray) -> float:
         rho, _ = _loss(opts.loss, opts.loss_scale_px, r * r)
         c = 0.5 * float(np.sum(S.weight * rho))
         if prior_w:
-            dh = (state.heights - heights0)[prior_mask]
+            dh = (heights - heights0)[prior_mask]
             c += 0.5 * prior_w * float(dh @ dh)
-        if len(f0):
-            df = focal_offset(state.params)
-            c += 0.5 * float(f_w @ (df * df))
         return c if np.isfinite(c) else np.inf
 
     def rmse(r: np.ndarray) -> tuple[float, float]:
@@ -828,7 +792,7 @@ def _solve(problem: BundleProblem, opts: BundleOptions) -> BundleResult:
             f"{len(bad)} constrained points are behind their camera (or project to "
             f"infinity) at the start, e.g. in image {P.image_ids[S.img[bad[0]]]}"
         )
-    cost = cost_of(r, st)
+    cost = cost_of(r, st.heights)
     initial_cost, initial_rmse = cost, rmse(r)
 
     # Height-only Gauss-Newton steps (cameras fixed): cheap, diagonal.
@@ -844,7 +808,7 @@ def _solve(problem: BundleProblem, opts: BundleOptions) -> BundleResult:
         trial = st.copy()
         trial.heights = st.heights - gh / np.maximum(Hh, 1e-12)
         r_t, _, _ = _evaluate(S, trial, jac=False)
-        c_t = cost_of(r_t, trial)
+        c_t = cost_of(r_t, trial.heights)
         if not c_t < cost:
             break
         st, cost = trial, c_t
@@ -861,10 +825,6 @@ def _solve(problem: BundleProblem, opts: BundleOptions) -> BundleResult:
             _, w = _loss(opts.loss, opts.loss_scale_px, r * r)
             w = w * S.weight
             H_cc, g_c, H_hh, g_h, F = _normal_equations(S, Jc, Jh, r, w)
-            if len(f0):
-                cols = S.focal_prior[:, 2]
-                H_cc[cols, cols] += f_w
-                g_c[cols] += f_w * focal_offset(st.params)
             H_hh = H_hh + prior_w * prior_mask
             g_h = g_h + prior_w * prior_mask * (st.heights - heights0)
             schur = _Schur(S.coupling, H_hh, g_h, F)
@@ -875,7 +835,7 @@ def _solve(problem: BundleProblem, opts: BundleOptions) -> BundleResult:
         )
         trial = _apply(S, st, dc, dh)
         r_t, _, _ = _evaluate(S, trial, jac=False)
-        c_t = cost_of(r_t, trial)
+        c_t = cost_of(r_t, trial.heights)
         x_norm = np.sqrt(
             np.sum(st.c[S.active_images] ** 2)
             + sum(float(p @ p) for p in st.params)

@@ -24,6 +24,7 @@ from obliq_colmap.pipeline import (
     STOP_AFTER,
     PipelineOptions,
     available_cores,
+    default_head_focal_min_images,
     run_register,
     summary_table,
     write_run,
@@ -84,10 +85,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     run.add_argument(
         "--head_focal_min_images",
         type=int,
-        default=PipelineOptions().head_focal_min_images,
+        default=None,
         help="stage 2: estimate each camera's (head's) focal length from all its "
-        "images when at least this many registered with enough inliers, and hold "
-        "it in the bundle within --head_focal_sigma (0: off; default %(default)s)",
+        "images when at least this many registered with enough inliers (0: off). "
+        "Default: 3 with --stop_after initial (paper preset: 97-100 %% of the "
+        "images below 2 px across the verticals instead of 89-94 %%), else 0 (the "
+        "bundle estimates the focal lengths itself)",
     )
     prior = parser.add_argument_group("Priors")
     defaults = RegistrationOptions()
@@ -146,14 +149,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "bundle, from the median of its images' k1 (default 0)",
     )
     bundle.add_argument(
-        "--head_focal_sigma",
-        type=float,
-        default=AdjustmentOptions().head_focal_sigma,
-        help="relative 1-sigma with which the bundle holds the focal length of "
-        "each head measured in stage 2 (--head_focal_min_images); 0: free "
-        "(default %(default)s)",
-    )
-    bundle.add_argument(
         "--loss_scale",
         type=float,
         default=bdefaults.loss_scale_px,
@@ -167,6 +162,8 @@ def run(args: argparse.Namespace) -> int:
     if args.num_workers < 1:
         _option_error("--num_workers must be >= 1")
     head_focal = args.head_focal_min_images
+    if head_focal is None:
+        head_focal = default_head_focal_min_images(args.stop_after)
     try:
         options = PipelineOptions(
             stop_after=args.stop_after,
@@ -183,14 +180,13 @@ def run(args: argparse.Namespace) -> int:
                 refine_distortion=args.refine_extra_params,
             ),
             adjustment=AdjustmentOptions(
-                head_focal_sigma=args.head_focal_sigma or None,
                 bundle=dataclasses.replace(
                     AdjustmentOptions().bundle,
                     refine_focal_length=args.refine_focal_length,
                     refine_principal_point=args.refine_principal_point,
                     refine_extra_params=args.refine_extra_params,
                     loss_scale_px=args.loss_scale,
-                ),
+                )
             ),
         )
     except ValueError as exc:  # an option out of its range
