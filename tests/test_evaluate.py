@@ -410,69 +410,36 @@ def test_evaluate_model_bad_inputs(tmp_path, files, scene):
         evaluate_model(tmp_path / "other", scene_path)
 
 
+def _evaluate_cli(*args) -> int:
+    return main(["evaluate", *map(str, args)])
+
+
 def test_cli(files, tmp_path, capsys):
     scene_path, result = files
     report = tmp_path / "report.json"
-    rc = main(
-        [
-            "evaluate",
-            "--input_path",
-            str(result),
-            "--gt_path",
-            str(scene_path),
-            "--output_path",
-            str(report),
-        ]
-    )
-    assert rc == 0
+    common = ("--input_path", result, "--gt_path", scene_path)
+    assert _evaluate_cli(*common, "--output_path", report) == 0
     out = capsys.readouterr().out
     assert image_name(1) in out and "registered 3 / 4 images" in out
     data = json.loads(report.read_text())
     assert data["summary"]["num_registered"] == 3 and len(data["images"]) == 4
 
-    rc = main(
-        [
-            "evaluate",
-            "--gt_path",
-            str(scene_path),
-            "--baseline",
-            "--across_vertical",
-            "--registered_threshold_px",
-            "1.5",
-        ]
+    rc = _evaluate_cli(
+        "--gt_path",
+        scene_path,
+        "--baseline",
+        "--across_vertical",
+        "--registered_threshold_px",
+        1.5,
     )
     assert rc == 0
     assert "baseline" in capsys.readouterr().out
 
-    rc = main(
-        [
-            "evaluate",
-            "--input_path",
-            str(result),
-            "--gt_path",
-            str(scene_path),
-            "--baseline",
-            "--output_path",
-            str(report),
-        ]
-    )
-    assert rc == 0
+    assert _evaluate_cli(*common, "--baseline", "--output_path", report) == 0
     data = json.loads(report.read_text())
     assert data["result_path"] == str(result) and data["baseline"]["result_path"]
 
-    rc = main(
-        [
-            "evaluate",
-            "--input_path",
-            str(result),
-            "--gt_path",
-            str(scene_path),
-            "--vertical_offset",
-            "cameras",
-            "--output_path",
-            str(report),
-        ]
-    )
+    rc = _evaluate_cli(*common, "--vertical_offset", "cameras", "--output_path", report)
     assert rc == 0
     data = json.loads(report.read_text())
     assert data["options"]["vertical_offset"] == "cameras"
