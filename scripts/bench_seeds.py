@@ -18,6 +18,7 @@ below 2 px. Once stages 1-2 are cached a variant takes ~3 s per run.
 
 from __future__ import annotations
 
+import argparse
 import json
 import logging
 import os
@@ -40,8 +41,10 @@ from obliq_colmap import adjustment as adj
 
 def run_once(scene: Path, seed: int, args) -> dict:
     """One split run (stages 1-2 cached) of ``scene`` with stage-2 ``seed``."""
-    args.set = [*args.base_set, f"registration.seed={seed}"]
-    options = _options(scene, args)
+    run_args = argparse.Namespace(
+        **{**vars(args), "set": [*args.base_set, f"registration.seed={seed}"]}
+    )
+    options = _options(scene, run_args)
     inputs, outcomes, _ = _stage12(scene, options, Path(args.cache_path))
     gt, _, _ = _truth_local(scene, inputs)
     registered = [o for o in outcomes.values() if o.registered]
