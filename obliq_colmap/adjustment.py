@@ -91,30 +91,10 @@ class AdjustmentOptions:
     #: cameras, tracks as free 3D lines fit to 0.000 px median, pinned to the
     #: wall to 0.23 px; scripts/bench_bundle_diagnostics.py).
     track_offset_sigma_m: float = 10.0
-    #: Rounds that extract and match the facade edges again from the solved
-    #: block (its poses and cameras, the datum-corrected ground planes the
-    #: block keeps) and solve the bundle again from it with the new tracks.
-    #: The first track set is decided by the stage-2 poses, metres off in
-    #: height; the solved cameras are right to about a pixel.
-    rematch_rounds: int = 0
-    #: In those rounds the matching's candidate height offsets (m) and tilt
-    #: differences (deg) between two images, when > 0 (the solved block is
-    #: consistent: a narrow window also excludes the storey-periodic
-    #: matches of repeated facades).
-    rematch_max_offset_m: float = 0.0
-    rematch_max_tilt_deg: float = 0.0
-    #: In those rounds keep only the links between observations that the
-    #: previous track set had too (the meet of the two track partitions).
-    rematch_confirm: bool = False
-    #: In those rounds the facade edges' heights above one ground plane for
-    #: all images (the median of the images' planes) instead of each image's.
-    rematch_common_ground: bool = False
 
     def __post_init__(self) -> None:
         if self.outlier_rounds < 0 or self.outlier_factor <= 0:
             raise ValueError("outlier_rounds must be >= 0 and outlier_factor > 0")
-        if self.rematch_rounds < 0:
-            raise ValueError("rematch_rounds must be >= 0")
         if self.track_offset_sigma_m <= 0:
             raise ValueError("track_offset_sigma_m must be > 0")
 
@@ -481,10 +461,6 @@ def bundle_stage(
 ) -> tuple[BlockState, BundleResult | None, Stage3]:
     """Stage 3: facade edges, matching, datum corrections and the bundle.
 
-    With ``options.rematch_rounds`` the facade edges are extracted and
-    matched again from the solved block, and the bundle solved again from
-    it with the new tracks (see :class:`AdjustmentOptions`).
-
     Returns the block as it stands after it (the per-image state when there
     are no facade constraints or the solve fails), the bundle's result or
     None, and the facade edges and tracks.
@@ -493,61 +469,7 @@ def bundle_stage(
     stage3 = facade_stage(inputs, state, outcomes, options)
     timings["facades"] = time.perf_counter() - t0
     t0 = time.perf_counter()
-    state, result = _solve_block(inputs, outcomes, state, stage3, options)
-    timings["bundle"] = time.perf_counter() - t0
-    for _ in range(options.rematch_rounds if result is not None else 0):
-        t0 = time.perf_counter()
-        matching = options.matching
-        if options.rematch_max_offset_m > 0:
-            matching = dataclasses.replace(
-                matching, max_offset_m=options.rematch_max_offset_m
-            )
-        if options.rematch_max_tilt_deg > 0:
-            matching = dataclasses.replace(
-                matching, max_tilt_deg=options.rematch_max_tilt_deg
-            )
-        base = state
-        if options.rematch_common_ground:
-            # One ground for all: against the solved cameras the images'
-            # own planes (kept from stage 2) differ by ~1 m (paper seed 1:
-            # the pairs' offsets 0.8 m median), heights above one plane agree.
-            common = np.median(np.array(list(state.planes.values())), axis=0)
-            base = dataclasses.replace(
-                state, planes={i: common.copy() for i in state.planes}
-            )
-        again = facade_stage(
-            inputs,
-            base,
-            outcomes,
-            dataclasses.replace(options, matching=matching),
-        )
-        if options.rematch_confirm:
-            again = _confirmed(again, stage3, inputs)
-        timings["rematch_facades"] = (
-            timings.get("rematch_facades", 0.0) + time.perf_counter() - t0
-        )
-        t0 = time.perf_counter()
-        new_state, new_result = _solve_block(inputs, outcomes, state, again, options)
-        timings["rematch_bundle"] = (
-            timings.get("rematch_bundle", 0.0) + time.perf_counter() - t0
-        )
-        if new_result is None:
-            break
-        state, result, stage3 = new_state, new_result, again
-    return state, result, stage3
-
-
-def _solve_block(
-    inputs: Inputs,
-    outcomes: dict[int, ImageOutcome],
-    state: BlockState,
-    stage3: Stage3,
-    options: AdjustmentOptions,
-) -> tuple[BlockState, BundleResult | None]:
-    """The datum corrections and the bundle's rounds over ``stage3``'s tracks.
-
-    Returns the solved block and the bundle's result, or ``state`` and None
-    (no facade constraints, or the solve failed)."""
+    result = None
     if stage3.tracks.num_observations == 0:
         # Corner-to-vertical-line constraints alone cannot observe a camera's
         # height nor its focal/distance trade-off (measured: the solve drifts
@@ -557,146 +479,61 @@ def _solve_block(
             "no facade-edge constraints: the bundle is skipped and the "
             "per-image registration is written"
         )
-        return state, None
-    # On a solved block this moves only the images not solved yet (measured
-    # from the solved ones): none after a bundle over all of them.
-    state = state.with_datum_correction(
-        dict(zip(stage3.ids, stage3.tracks.datum_correction, strict=True))
-    )
-    problem = build_bundle_problem(inputs, outcomes, state, stage3)
-    bundle_options = dataclasses.replace(options.bundle, corner_heights="fixed")
-    try:
-        # A wide loss first: after stage 2 and the datum corrections some
-        # images still sit metres too high or low (tens of pixels), where
-        # a tight robust loss has no gradient left to pull them in.
-        first = bundle_options
-        if options.initial_loss_scale_px > 0:
-            first = dataclasses.replace(
-                bundle_options,
-                loss="huber",
-                loss_scale_px=max(
-                    options.initial_loss_scale_px, bundle_options.loss_scale_px
-                ),
-            )
-        result = solve_bundle(problem, first)
-        # Per horizontal row: the track observation it is (facade rows)
-        # or -1 (ground rows); filtered with the rows.
-        obs = stage3.row_obs
-        scale_obs = _observation_pixel_scale(stage3)
-        for _ in range(options.outlier_rounds):
-            problem, kv, kh = without_outliers(
-                problem,
-                result,
-                options.outlier_factor,
-                options.outlier_floor_px,
-                horizontal_pixel_scale=scale_obs[obs],
-            )
-            obs = obs[kh]
-            if options.track_lines:
-                problem = with_track_lines(
-                    problem, result, inputs, stage3, obs, options
-                )
-            if options.variance_components:
-                # Each kind weighted by its own noise (map corners ~1 px,
-                # facade edges ~0.15 px).
-                unknowns = 2 if options.track_lines else 1
-                problem, bundle_options = with_variance_components(
-                    problem, result, bundle_options, kh, unknowns
-                )
-            result = solve_bundle(problem, bundle_options)
-            if kv.all() and kh.all():
-                break
-    except ValueError as exc:
-        logger.warning("bundle failed (%s): the per-image result is kept", exc)
-        return state, None
-    stage3.bundle_rms = _rms_per_image(problem, result)
-    return state.with_bundle(result, problem.image_camera), result
-
-
-def _confirmed(again: Stage3, before: Stage3, inputs: Inputs) -> Stage3:
-    """``again`` with only the links between observations that ``before``
-    had too: each track of ``again`` split by the tracks of ``before`` its
-    observations (image, line segment, wall) were in, observations absent
-    from ``before`` dropped, tracks left in one image dropped."""
-    t2, t1 = again.tracks, before.tracks
-    if t2.num_observations == 0 or t1.num_observations == 0:
-        return dataclasses.replace(
-            again,
-            tracks=dataclasses.replace(
-                t2,
-                image=t2.image[:0],
-                row=t2.row[:0],
-                track=t2.track[:0],
-                anchor_xy=t2.anchor_xy[:0],
-                edge=t2.edge[:0],
-                height=t2.height[:0],
-            ),
+    else:
+        state = state.with_datum_correction(
+            dict(zip(stage3.ids, stage3.tracks.datum_correction, strict=True))
         )
-
-    def keys(stage3: Stage3) -> np.ndarray:
-        t = stage3.tracks
-        seg = np.concatenate([f.segment for f in stage3.facades])
-        offset = np.cumsum([0] + [len(f) for f in stage3.facades])
-        ids = np.asarray(stage3.ids, np.int64)
-        wall = t.edge[t.track].astype(np.int64)
-        return (ids[t.image] << 42) + (wall << 21) + seg[offset[t.image] + t.row]
-
-    k1, k2 = keys(before), keys(again)
-    order = np.argsort(k1)
-    pos = np.minimum(np.searchsorted(k1[order], k2), len(k1) - 1)
-    found = k1[order][pos] == k2
-    old_track = t1.track[order][pos]
-    sel = np.flatnonzero(found)
-    pair = t2.track[sel].astype(np.int64) * (t1.num_tracks + 1) + old_track[sel]
-    _, label = np.unique(pair, return_inverse=True)
-    # tracks seen in at least two images
-    n_img = np.bincount(
-        np.unique(label * len(again.ids) + t2.image[sel]) // len(again.ids)
-    )
-    sel = sel[n_img[label] >= 2]
-    label = label[n_img[label] >= 2]
-    _, track = np.unique(label, return_inverse=True)
-    J = int(track.max()) + 1 if len(track) else 0
-    cad = inputs.cadastre
-    image, row = t2.image[sel], t2.row[sel]
-    s = np.concatenate([f.s for f in again.facades])
-    offset = np.cumsum([0] + [len(f) for f in again.facades])
-    edge = np.zeros(J, np.int64)
-    edge[track] = t2.edge[t2.track[sel]]
-    height = np.zeros(J)
-    height[track] = t2.height[t2.track[sel]]
-    xy = _anchor_points(cad, edge[track], s[offset[image] + row])
-    cnt = np.maximum(np.bincount(track, minlength=J), 1)
-    anchor = (
-        np.column_stack(
-            [np.bincount(track, xy[:, 0], J), np.bincount(track, xy[:, 1], J)]
-        )
-        / cnt[:, None]
-    )
-    tracks = dataclasses.replace(
-        t2,
-        image=image,
-        row=row,
-        track=track.astype(np.int64),
-        anchor_xy=anchor,
-        edge=edge,
-        height=height,
-    )
-    logger.info(
-        "re-matching: %d of %d observations in %d tracks confirmed by the previous"
-        " track set",
-        len(sel),
-        t2.num_observations,
-        J,
-    )
-    return dataclasses.replace(again, tracks=tracks)
-
-
-def _anchor_points(cadastre, edge: np.ndarray, s: np.ndarray) -> np.ndarray:
-    """(N, 2) points at distance s (N,) along map edges (N,)."""
-    e = cadastre.edge_xy[edge]
-    d = (e[:, 1] - e[:, 0]) / cadastre.edge_length[edge][:, None]
-    return e[:, 0] + s[:, None] * d
+        problem = build_bundle_problem(inputs, outcomes, state, stage3)
+        bundle_options = dataclasses.replace(options.bundle, corner_heights="fixed")
+        try:
+            # A wide loss first: after stage 2 and the datum corrections some
+            # images still sit metres too high or low (tens of pixels), where
+            # a tight robust loss has no gradient left to pull them in.
+            first = bundle_options
+            if options.initial_loss_scale_px > 0:
+                first = dataclasses.replace(
+                    bundle_options,
+                    loss="huber",
+                    loss_scale_px=max(
+                        options.initial_loss_scale_px, bundle_options.loss_scale_px
+                    ),
+                )
+            result = solve_bundle(problem, first)
+            # Per horizontal row: the track observation it is (facade rows)
+            # or -1 (ground rows); filtered with the rows.
+            obs = stage3.row_obs
+            scale_obs = _observation_pixel_scale(stage3)
+            for _ in range(options.outlier_rounds):
+                problem, kv, kh = without_outliers(
+                    problem,
+                    result,
+                    options.outlier_factor,
+                    options.outlier_floor_px,
+                    horizontal_pixel_scale=scale_obs[obs],
+                )
+                obs = obs[kh]
+                if options.track_lines:
+                    problem = with_track_lines(
+                        problem, result, inputs, stage3, obs, options
+                    )
+                if options.variance_components:
+                    # Each kind weighted by its own noise (map corners ~1 px,
+                    # facade edges ~0.15 px).
+                    unknowns = 2 if options.track_lines else 1
+                    problem, bundle_options = with_variance_components(
+                        problem, result, bundle_options, kh, unknowns
+                    )
+                result = solve_bundle(problem, bundle_options)
+                if kv.all() and kh.all():
+                    break
+        except ValueError as exc:
+            logger.warning("bundle failed (%s): the per-image result is kept", exc)
+            result = None
+        else:
+            state = state.with_bundle(result, problem.image_camera)
+            stage3.bundle_rms = _rms_per_image(problem, result)
+    timings["bundle"] = time.perf_counter() - t0
+    return state, result, stage3
 
 
 def _observation_pixel_scale(stage3: Stage3) -> np.ndarray:
