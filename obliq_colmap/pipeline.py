@@ -71,7 +71,7 @@ from obliq_colmap.geometry import (
     axis_angle_from_rotation,
     rotation_from_axis_angle,
 )
-from obliq_colmap.lines import Segments
+from obliq_colmap.lines import RefineOptions, Segments, refine_segments
 from obliq_colmap.registration import (
     RegistrationOptions,
     RegistrationResult,
@@ -151,6 +151,10 @@ class PipelineOptions:
     #: Show progress bars.
     progress: bool = True
     vanishing: VanishingOptions = field(default_factory=VanishingOptions)
+    #: Sub-pixel refit of the first-pass segments on the full-resolution
+    #: image before they become facade edges (None: LSD's endpoints; 18 runs
+    #: of the `paper` preset: docs/BENCHMARKS.md, issue 5).
+    refine_segments: RefineOptions | None = field(default_factory=RefineOptions)
     registration: RegistrationOptions = field(default_factory=RegistrationOptions)
     #: Stage 3: facade edges, matching and the bundle's rounds.
     adjustment: AdjustmentOptions = field(default_factory=AdjustmentOptions)
@@ -254,6 +258,8 @@ class _ImageTask:
     cone_deg: float
     vanishing: VanishingOptions
     registration: RegistrationOptions
+    #: Sub-pixel refit of the facade segments (None: LSD's as they are).
+    refine: RefineOptions | None = None
     #: COLMAP model of the result: stage 2 refines the intrinsics in it.
     model: str = ""
     #: Intrinsics stage 2 starts from (result model), None: the priors'.
@@ -354,6 +360,12 @@ def _initial_image(task: _ImageTask) -> ImageOutcome:
     vp = detect_vertical_vp(img, task.vanishing, task.camera, prior, task.image_id)
     out.vp_status = vp.status
     out.line_segments = vp.segments
+    if task.refine is not None:
+        # Only stage 3 reads these (the facade edges): refitted on the
+        # full-resolution image, in the frame the vanishing stage gave them.
+        t1 = time.perf_counter()
+        out.line_segments = refine_segments(img, vp.segments, task.camera, task.refine)
+        out.time_s["refine_segments"] = time.perf_counter() - t1
     out.time_s["vanishing"] = vp.time_s.get("total", math.nan)
     options = task.registration
     if vp.status == "ok" and vp.vertical_segments is not None:
@@ -583,6 +595,7 @@ def image_tasks(inputs: Inputs, options: PipelineOptions) -> list[_ImageTask]:
             cone_deg=options.cone_deg,
             vanishing=options.vanishing,
             registration=options.registration,
+            refine=options.refine_segments,
             model=inputs.cameras[im.camera_id].model,
         )
         for im in sorted(inputs.priors.images.values(), key=lambda im: im.image_id)

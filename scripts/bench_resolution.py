@@ -86,6 +86,7 @@ def _stage12(scene: Path, options: pl.PipelineOptions, cache: Path):
         (
             str(scene.resolve()),
             options.vanishing,
+            options.refine_segments,
             options.registration,
             options.cone_deg,
             options.rescue_min_inliers,

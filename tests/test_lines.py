@@ -4,13 +4,16 @@ import cv2
 import numpy as np
 import pytest
 
+from obliq_colmap.geometry import Camera
 from obliq_colmap.lines import (
     LineOptions,
+    RefineOptions,
     Segments,
     connected_pairs,
     detect_segments,
     lsd_available,
     merge_collinear,
+    refine_segments,
 )
 
 DETECTORS = ["canny"] + (["lsd"] if lsd_available() else [])
@@ -136,3 +139,101 @@ def test_bad_image_shape():
         detect_segments(np.zeros((4, 4, 4, 4), np.uint8))
     with pytest.raises(ValueError, match="detector"):
         LineOptions(detector="hough")
+
+
+def blurred_edge(xy, p0, p1, blur, dark=50.0, bright=200.0):
+    """Intensities at (N, 2) points of a Gaussian-blurred step along p0-p1
+    (bright on the left of p0 -> p1), COLMAP pixels."""
+    from scipy.special import ndtr
+
+    d = (p1 - p0) / np.linalg.norm(p1 - p0)
+    left = np.array([d[1], -d[0]])
+    return dark + (bright - dark) * ndtr(((xy - p0) @ left) / blur)
+
+
+def pixel_grid(W, H):
+    x, y = np.meshgrid(np.arange(W) + 0.5, np.arange(H) + 0.5)
+    return np.column_stack([x.ravel(), y.ravel()])
+
+
+@pytest.mark.parametrize("noise", [0.0, 4.0])
+def test_refine_segments_moves_a_segment_onto_its_edge(noise):
+    """A segment 0.7 px off and tilted comes back onto the edge, to within the
+    noise's share: a profile's edge error is noise / slope at the crossing
+    (slope = contrast / (sqrt(2 pi) blur)), averaged over ~200 profiles."""
+    W, H, blur = 240, 260, 1.0
+    p0, p1 = np.array([100.3, 20.0]), np.array([140.9, 240.0])
+    img = blurred_edge(pixel_grid(W, H), p0, p1, blur).reshape(H, W)
+    img += np.random.default_rng(1).normal(0.0, noise, img.shape)
+    img = np.clip(np.round(img), 0, 255).astype(np.uint8)
+    d = (p1 - p0) / np.linalg.norm(p1 - p0)
+    left = np.array([d[1], -d[0]])
+    start = np.array([p0 + 0.4 * left, p1 - 0.2 * left])  # LSD-sized errors
+    segs = Segments(start[None], left[None], [100.0])  # bright side
+    options = RefineOptions()
+    out = refine_segments(img, segs, options=options)
+    dist = (out.endpoints[0] - p0) @ left
+    slope = 150.0 / (np.sqrt(2 * np.pi) * blur)
+    sigma_line = (noise + 0.3) / slope / np.sqrt(200)  # + rounding to grey levels
+    # an endpoint of a line fit: ~2 sigma of the offset (6 sigma bound); the
+    # start's offset shrinks ~2.3x per round (the near plateau's pull)
+    remainder = 0.4 / 2.3**options.rounds
+    assert np.abs(dist).max() < 6 * 2 * sigma_line + remainder, dist
+    # the endpoints keep their place along the segment (each round moves
+    # them across the previous one's direction)
+    np.testing.assert_allclose((out.endpoints[0] - start) @ d, 0.0, atol=0.01)
+    np.testing.assert_array_equal(out.normal, segs.normal)
+
+
+def test_refine_segments_keeps_segments_without_an_edge():
+    img = np.full((100, 100), 128, np.uint8)
+    segs = Segments(np.array([[[20.0, 50.0], [80.0, 50.0]]]), [[0.0, 1.0]], [10.0])
+    out = refine_segments(img, segs)
+    np.testing.assert_array_equal(out.endpoints, segs.endpoints)
+    assert len(refine_segments(img, Segments())) == 0
+
+
+def test_refine_segments_samples_through_the_lens():
+    """Segments in undistorted pixels of a camera with radial distortion are
+    refitted on the raw image: straight in undistorted pixels, curved in raw."""
+    W, H = 400, 300
+    cam = Camera("SIMPLE_RADIAL", W, H, [300.0, 200.0, 150.0, -0.15])
+    p0, p1 = np.array([40.0, 30.0]), np.array([370.0, 60.0])  # undistorted
+    raw = pixel_grid(W, H)
+    img = blurred_edge(cam.undistort_pixels(raw), p0, p1, 1.0).reshape(H, W)
+    img = np.round(img).astype(np.uint8)
+    d = (p1 - p0) / np.linalg.norm(p1 - p0)
+    left = np.array([d[1], -d[0]])
+    start = np.array([p0 + 0.6 * left, p1 - 0.4 * left])
+    segs = Segments(start[None], left[None], [100.0])
+    through = refine_segments(img, segs, cam).endpoints[0]
+    assert np.abs((through - p0) @ left).max() < 0.05
+    # without the lens the profiles miss the curved edge: worse or refused
+    plain = refine_segments(img, segs).endpoints[0]
+    assert np.abs((plain - p0) @ left).max() > 0.1
+
+
+def test_refine_options_are_checked():
+    with pytest.raises(ValueError):
+        RefineOptions(step_px=3.0, radius_px=2.0)
+
+
+def test_refine_segments_reach_follows_the_detection_scale():
+    """Segments detected at half resolution (pixel_scale 2) carry errors in
+    pixels of that image: the profile and the largest move scale with it."""
+    W, H, blur = 240, 260, 1.0
+    p0, p1 = np.array([100.3, 20.0]), np.array([140.9, 240.0])
+    img = blurred_edge(pixel_grid(W, H), p0, p1, blur).reshape(H, W)
+    img = np.round(img).astype(np.uint8)
+    d = (p1 - p0) / np.linalg.norm(p1 - p0)
+    left = np.array([d[1], -d[0]])
+    start = np.array([p0 + 2.8 * left, p1 + 2.8 * left])  # > max_move_px 1.5
+    options = RefineOptions()
+    error = {}
+    for scale in (1.0, 2.0):
+        segs = Segments(start[None], left[None], [100.0], pixel_scale=scale)
+        out = refine_segments(img, segs, options=options).endpoints[0]
+        error[scale] = np.abs((out - p0) @ left).max()
+    assert error[1.0] > 1.0  # out of reach: at most 1.5 px moved
+    # in reach; the start's offset shrinks ~2.3x per round (noise-free image)
+    assert error[2.0] < 2.8 / 2.3**options.rounds
