@@ -91,9 +91,6 @@ class AdjustmentOptions:
     #: cameras, tracks as free 3D lines fit to 0.000 px median, pinned to the
     #: wall to 0.23 px; scripts/bench_bundle_diagnostics.py).
     track_offset_sigma_m: float = 10.0
-    #: Weight each facade row by how far its segment's line is read beyond
-    #: the segment (:func:`_extrapolation_scale`). Trial.
-    extrapolation_weights: bool = False
 
     def __post_init__(self) -> None:
         if self.outlier_rounds < 0 or self.outlier_factor <= 0:
@@ -403,33 +400,11 @@ def _group_cameras(
     return out
 
 
-def _extrapolation_scale(state, ids, t, ends: np.ndarray) -> np.ndarray:
-    """(H,) relative standard deviation of each facade row: its segment's
-    line is read at the projection of the track's anchor, which may lie far
-    beyond the segment; a line fitted over length L, read at distance d from
-    its middle, has sigma(d) = sigma(0) sqrt(1 + 12 d^2 / L^2)."""
-    mid = ends.mean(axis=1)
-    v = ends[:, 1] - ends[:, 0]
-    L = np.maximum(np.linalg.norm(v, axis=1), 1e-9)
-    u = v / L[:, None]
-    out = np.ones(len(ends))
-    for k, i in enumerate(ids):
-        sel = np.flatnonzero(t.image == k)
-        if len(sel) == 0:
-            continue
-        X = np.column_stack([t.anchor_xy[t.track[sel]], t.height[t.track[sel]]])
-        px = state.cameras[i].img_from_cam(state.poses[i].transform(X))
-        d = np.sum((px - mid[sel]) * u[sel], axis=1)
-        out[sel] = np.sqrt(1.0 + 12.0 * (d / L[sel]) ** 2)
-    return np.where(np.isfinite(out), out, 1.0)
-
-
 def build_bundle_problem(
     inputs: Inputs,
     outcomes: dict[int, ImageOutcome],
     state: BlockState,
     stage3: Stage3,
-    extrapolation_weights: bool = False,
 ) -> BundleProblem:
     """The global bundle over the registered images (paper eq. 3).
 
@@ -459,11 +434,7 @@ def build_bundle_problem(
     lines = lines_through(ends[:, 0], ends[:, 1])
     stage3.row_obs = np.arange(t.num_observations)
     cameras = _group_cameras(inputs, state, outcomes)
-    scale = None
-    if extrapolation_weights:
-        scale = _extrapolation_scale(state, ids, t, ends)
     return BundleProblem(
-        horizontal_scale=scale,
         cameras=cameras,
         poses={i: state.poses[i] for i in ids},
         image_camera={i: inputs.priors.images[i].camera_id for i in ids},
@@ -512,9 +483,7 @@ def bundle_stage(
         state = state.with_datum_correction(
             dict(zip(stage3.ids, stage3.tracks.datum_correction, strict=True))
         )
-        problem = build_bundle_problem(
-            inputs, outcomes, state, stage3, options.extrapolation_weights
-        )
+        problem = build_bundle_problem(inputs, outcomes, state, stage3)
         bundle_options = dataclasses.replace(options.bundle, corner_heights="fixed")
         try:
             # A wide loss first: after stage 2 and the datum corrections some
@@ -617,8 +586,6 @@ def with_variance_components(
     hundreds of times the weight their noise deserves.
     """
     rh = result.horizontal_residuals_px[kept]
-    if problem.horizontal_scale is not None:
-        rh = rh / problem.horizontal_scale
     track = problem.horizontal_height
     n = np.bincount(track, minlength=len(problem.facade_heights))[track]
     u = unknowns_per_track
@@ -711,9 +678,8 @@ def without_outliers(
 
     rh = result.horizontal_residuals_px
     scale = 1.0 if horizontal_pixel_scale is None else horizontal_pixel_scale
-    rel = 1.0 if problem.horizontal_scale is None else problem.horizontal_scale
     kv = keep(result.vertical_residuals_px, floor_px)
-    kh = keep(rh / rel, floor_px * np.broadcast_to(scale, rh.shape))
+    kh = keep(rh, floor_px * np.broadcast_to(scale, rh.shape))
     p = problem
     reduced = BundleProblem(
         cameras=result.cameras,
@@ -730,7 +696,6 @@ def without_outliers(
         horizontal_height=p.horizontal_height[kh],
         horizontal_anchor_xy=p.horizontal_anchor_xy[kh],
         horizontal_line=p.horizontal_line[kh],
-        horizontal_scale=None if p.horizontal_scale is None else p.horizontal_scale[kh],
     )
     logger.info(
         "bundle: %d of %d vertical and %d of %d horizontal constraints rejected",

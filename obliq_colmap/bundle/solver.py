@@ -200,9 +200,6 @@ class BundleProblem:
     horizontal_anchor_xy: np.ndarray
     horizontal_line: np.ndarray
     image_ids: tuple[int, ...] | None = None
-    #: (H,) relative standard deviation of each horizontal row (>= 1), or
-    #: None (all 1).
-    horizontal_scale: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         if self.image_ids is None:
@@ -453,10 +450,7 @@ class _Setup:
         self.h_runs = [(a, b) for a, b in _runs(self.has_h) if self.has_h[a]]
         # Cost weight of each residual: 1 / sigma^2 of its kind.
         sigma = np.array([opts.vertical_sigma_px, opts.horizontal_sigma_px])
-        rel = np.ones(nv + nh)
-        if P.horizontal_scale is not None:
-            rel[nv:] = P.horizontal_scale
-        self.weight = 1.0 / (sigma[self.kind] * rel[order]) ** 2
+        self.weight = 1.0 / sigma[self.kind] ** 2
 
         # Active images and cameras; parameter columns of the camera block.
         counts = np.bincount(self.img, minlength=K)
