@@ -83,9 +83,6 @@ class MatchingOptions:
     #: Observations of one track in one image must agree in height to this
     #: (m); else the track joined different edges and is dropped.
     track_height_tolerance_m: float = 0.5
-    #: Trial: when the pair's roof-rim offset (:func:`_rim_offset`) exceeds
-    #: this (m), the candidate window is centred on it (0: off).
-    rim_offset_m: float = 0.0
     #: Random seed (deterministic results).
     seed: int = 0
 
@@ -175,28 +172,7 @@ def _anchor_xy(edge_xy: np.ndarray, edge_length: np.ndarray, s: np.ndarray):
     return edge_xy[:, 0] + s[:, None] * d
 
 
-def _rim_offset(fa: FacadeEdges, fb: FacadeEdges, min_walls: int) -> float:
-    """Median over shared walls of the difference of their highest rows (m).
-
-    The top of a wall (its roof rim) is seen from above in every oblique
-    image and is not periodic like the window rows, so the difference of the
-    two images' highest edges per wall estimates their height offset
-    without the storey ambiguity; 0 with fewer than ``min_walls`` walls."""
-    top_a = np.full(
-        int(max(fa.edge.max(initial=-1), fb.edge.max(initial=-1))) + 1, -np.inf
-    )
-    top_b = top_a.copy()
-    np.maximum.at(top_a, fa.edge, fa.height)
-    np.maximum.at(top_b, fb.edge, fb.height)
-    both = np.isfinite(top_a) & np.isfinite(top_b)
-    if both.sum() < min_walls:
-        return 0.0
-    return float(np.median(top_a[both] - top_b[both]))
-
-
-def _candidates(
-    fa: FacadeEdges, fb: FacadeEdges, max_offset_m: float, shift: float = 0.0
-):
+def _candidates(fa: FacadeEdges, fb: FacadeEdges, max_offset_m: float):
     """Pairs of rows on the same wall, same polarity, heights within the bound.
 
     Returns (ia, ib) int arrays. Vectorised by sorting on (wall, polarity).
@@ -212,7 +188,7 @@ def _candidates(
     start = np.repeat(lo, counts)
     offs = np.arange(len(ia)) - np.repeat(np.cumsum(counts) - counts, counts)
     ib = ob[start + offs]
-    near = np.abs(fa.height[ia] - fb.height[ib] - shift) <= max_offset_m
+    near = np.abs(fa.height[ia] - fb.height[ib]) <= max_offset_m
     return ia[near], ib[near]
 
 
@@ -285,18 +261,14 @@ def match_pair(
         centroid); number of candidates; number of trials.
     """
     empty = np.zeros(0, np.int64)
-    shift = 0.0
-    if options.rim_offset_m > 0:
-        r = _rim_offset(fa, fb, options.min_shared_walls)
-        shift = r if abs(r) > options.rim_offset_m else 0.0
-    ia, ib = _candidates(fa, fb, options.max_offset_m, shift)
+    ia, ib = _candidates(fa, fb, options.max_offset_m)
     n = len(ia)
     if n < 3 or len(np.unique(fa.edge[ia])) < options.min_shared_walls:
         return empty, empty, np.zeros(4), n, 0
     xy = 0.5 * (anchors_a[ia] + anchors_b[ib])
     xy = xy - xy.mean(axis=0)
     t = 0.5 * (fa.height[ia] + fb.height[ib])
-    dz = fa.height[ia] - fb.height[ib] - shift
+    dz = fa.height[ia] - fb.height[ib]
     D = _design(xy, t)
     # Threshold in metres: inlier_threshold_px (detection pixels) in the
     # coarser image.
@@ -354,7 +326,6 @@ def match_pair(
         options.min_match_walls
     ):
         return empty, empty, model, n, trials
-    model = model + np.array([0.0, 0.0, shift, 0.0])
     return ia, ib, model, n, trials
 
 
