@@ -590,8 +590,6 @@ class RefineOptions:
     #: A refit that moves an endpoint farther than this (px of the detection
     #: image) is refused.
     max_move_px: float = 1.5
-    #: Trial: the refitted segments' noise unit is the full-resolution pixel.
-    full_resolution_scale: bool = False
     #: Refits, each sampling about the previous one (LSD's ~0.3 px offsets
     #: shrink to ~0.02 px in three).
     rounds: int = 3
@@ -728,10 +726,7 @@ def refine_segments(
         ok = (stations >= options.min_stations) & (move <= max_move)
         ends[ok] = new[ok]
     return Segments(
-        ends,
-        segments.normal.copy(),
-        segments.strength.copy(),
-        1.0 if options.full_resolution_scale else segments.pixel_scale,
+        ends, segments.normal.copy(), segments.strength.copy(), segments.pixel_scale
     )
 
 
