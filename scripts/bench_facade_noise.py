@@ -1,7 +1,7 @@
 """Facade observation noise at the TRUE cameras: LSD's endpoints vs the refit.
 
 For each synthetic scene, one ``register`` run split at the end of stage 2
-with the refit OFF (``refine_segments=None``; stages 1-2 cached as in
+with the refit OFF (its default, ``refine_segments=None``; stages 1-2 cached as in
 ``bench_resolution.py``), its facade tracks formed as the pipeline forms
 them, and each track triangulated at the true cameras as a horizontal line
 parallel to its map edge (:func:`matching.triangulate_tracks`, offset and
@@ -10,7 +10,7 @@ line to the projection of the track's anchor point on that line, over the
 tracks with at least ``--min_views`` views, scaled by sqrt(n / (n - 2)) for
 the two unknowns per track. The same observations are then measured with
 their segments refitted on the image (:func:`lines.refine_segments`, the
-pipeline's default options): the matching is not rerun, so both columns
+default ``RefineOptions``): the matching is not rerun, so both columns
 measure the same rows.
 
     python scripts/bench_facade_noise.py --scene_path /work/scenes/paper_s1 \\

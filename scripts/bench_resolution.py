@@ -46,6 +46,7 @@ from obliq_colmap import adjustment as adj
 from obliq_colmap import pipeline as pl
 from obliq_colmap.bundle import residuals as res
 from obliq_colmap.evaluate import EvaluateOptions, evaluate_block, read_ground_truth
+from obliq_colmap.lines import RefineOptions
 from obliq_colmap.matching import triangulate_tracks
 from obliq_colmap.registration import RegistrationOptions
 
@@ -76,6 +77,8 @@ def _options(scene: Path, args: argparse.Namespace) -> pl.PipelineOptions:
             value = ast.literal_eval(text)
         except (ValueError, SyntaxError):
             value = text
+        if path == "refine_segments" and text == "on":  # off by default
+            value = RefineOptions()
         options = _set(options, path, value)
     return options
 

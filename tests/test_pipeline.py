@@ -168,6 +168,19 @@ def test_bundle_output_has_facade_points_seen_by_several_images(bundle_run):
         assert image.num_points3D > 0
 
 
+def test_cli_refits_the_facade_segments_on_request(tmp_path, initial_run):
+    """``--refine_facade_segments 1`` runs the refit in the per-image stage
+    (off by default)."""
+    _, run = initial_run
+    assert not any("refine_segments" in o.time_s for o in run.outcomes.values())
+    out = tmp_path / "model"
+    argv = _args(SAMPLE, out, "--stop_after", "initial", "--num_workers", "1")
+    assert main([*argv, "--refine_facade_segments", "1"]) == 0
+    report = json.loads((out / "report.json").read_text())
+    times = [im["time_s"] for im in report["images"].values()]
+    assert times and all("refine_segments" in t for t in times)
+
+
 def test_cli_refuses_a_non_empty_output_folder_before_working(tmp_path, capsys):
     out = tmp_path / "model"
     out.mkdir()

@@ -20,6 +20,7 @@ from pathlib import Path
 from obliq_colmap.adjustment import AdjustmentOptions
 from obliq_colmap.colmap_io import check_output_path
 from obliq_colmap.geometry import SUPPORTED_MODELS
+from obliq_colmap.lines import RefineOptions
 from obliq_colmap.pipeline import (
     STOP_AFTER,
     PipelineOptions,
@@ -149,6 +150,15 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "bundle, from the median of its images' k1 (default 0)",
     )
     bundle.add_argument(
+        "--refine_facade_segments",
+        type=_bool01,
+        default=0,
+        metavar="{0,1}",
+        help="refit the facade segments to sub-pixel edges on the full-resolution "
+        "image (less noise; better on the paper preset, worse with unknown "
+        "lenses: docs/BENCHMARKS.md; default 0)",
+    )
+    bundle.add_argument(
         "--loss_scale",
         type=float,
         default=bdefaults.loss_scale_px,
@@ -172,6 +182,7 @@ def run(args: argparse.Namespace) -> int:
             overlay_path=Path(args.overlay_path) if args.overlay_path else None,
             progress=not args.no_progress,
             head_focal_min_images=head_focal,
+            refine_segments=RefineOptions() if args.refine_facade_segments else None,
             registration=RegistrationOptions(
                 prior_position_sigma_m=args.prior_position_sigma,
                 prior_rotation_sigma_deg=args.prior_rotation_sigma,
