@@ -692,11 +692,11 @@ def refine_segments(
         n = np.stack([-d[:, 1], d[:, 0]], axis=1)
         # profiles rise towards the brighter side
         n = n * np.where(np.sum(n * segments.normal, axis=1) < 0, -1.0, 1.0)[:, None]
-        step = options.station_px
-        count = np.maximum(np.floor(length / step - 2).astype(np.int64) + 1, 0)
+        station = options.station_px
+        count = np.maximum(np.floor(length / station - 2).astype(np.int64) + 1, 0)
         seg = np.repeat(np.arange(K), count)
         first = np.repeat(np.cumsum(count) - count, count)
-        s = step * (1 + np.arange(len(seg)) - first)  # (S,) along from end 0
+        s = station * (1 + np.arange(len(seg)) - first)  # (S,) along from end 0
         base = (ends[seg, 0] + s[:, None] * d[seg]).astype(np.float32)
         ns = n[seg].astype(np.float32)
         o = offsets.astype(np.float32)[None, :]

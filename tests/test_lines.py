@@ -158,7 +158,7 @@ def pixel_grid(W, H):
 
 @pytest.mark.parametrize("noise", [0.0, 4.0])
 def test_refine_segments_moves_a_segment_onto_its_edge(noise):
-    """A segment 0.7 px off and tilted comes back onto the edge, to within the
+    """A segment 0.4 px off and tilted comes back onto the edge, to within the
     noise's share: a profile's edge error is noise / slope at the crossing
     (slope = contrast / (sqrt(2 pi) blur)), averaged over ~200 profiles."""
     W, H, blur = 240, 260, 1.0
