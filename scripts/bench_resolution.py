@@ -230,7 +230,9 @@ def stage2_report(scene, inputs, outcomes, gt, gtb, by_name, per_image=False) ->
     )
 
 
-def stage3_report(scene, inputs, outcomes, options, gt, gtb, by_name) -> None:
+def stage3_report(
+    scene, inputs, outcomes, options, gt, gtb, by_name, per_image=False
+) -> None:
     reg = [o for o in outcomes.values() if o.registered]
     state = adj.BlockState.from_outcomes(reg)
     timings: dict[str, float] = {}
@@ -274,6 +276,16 @@ def stage3_report(scene, inputs, outcomes, options, gt, gtb, by_name) -> None:
     print(_fmt_eval("bundle full", full))
     print(_fmt_eval("bundle across vert.", across))
     print(_fmt_eval("bundle full, cam. dz", cameras))
+    if per_image:
+        acr = {e.name: e for e in across.images}
+        for e in full.images:
+            a = acr[e.name]
+            print(
+                f"    {e.name:24s} {e.status:10s} full {e.mean_deviation_px:6.2f} px,"
+                f" across {a.mean_deviation_px:5.2f} px; rotation"
+                f" {e.rotation_error_deg:.3f} deg, centre dz"
+                f" {e.vertical_error_m:+.2f} m, dxy {e.horizontal_error_m:.2f} m"
+            )
     # The bundle's first problem at the true cameras.
     stage3b = adj.Stage3(stage3.ids, stage3.facades, stage3.tracks)
     st = state.with_datum_correction(
@@ -371,7 +383,9 @@ def main(argv: list[str] | None = None) -> int:
         gt, gtb, by_name = _truth_local(scene, inputs)
         stage2_report(scene, inputs, outcomes, gt, gtb, by_name, args.per_image)
         if args.stop_after == "bundle":
-            stage3_report(scene, inputs, outcomes, options, gt, gtb, by_name)
+            stage3_report(
+                scene, inputs, outcomes, options, gt, gtb, by_name, args.per_image
+            )
     print(f"load average {os.getloadavg()}, {time.strftime('%Y-%m-%d %H:%M')}")
     return 0
 
