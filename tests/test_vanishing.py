@@ -595,3 +595,94 @@ def test_orthogonal_partner_picks_the_vertical_over_a_bigger_strip_pencil():
             VPPrior.aerial(),
         )
         assert direction_error_deg(plain.vp, false) < 2.0
+
+
+# --------------------------------------------------------------------------
+# Several first-pass starts, judged by their second passes
+# --------------------------------------------------------------------------
+
+
+def render_pencils(pencils, rng, noise=2.0, ss=4):
+    """Bands of several pencils, each ``(vp, n_bands, x_min, x_max)`` drawn in
+    its own column range of the image (edges exact in COLMAP pixels)."""
+    hi = np.full((H * ss, W * ss), 90, np.uint8)
+    for vp, n_bands, x_min, x_max in pencils:
+        xs = np.sort(rng.uniform(x_min, x_max, 2 * n_bands)).reshape(-1, 2)
+        for xa, xb in xs:
+            if xb - xa < 6:
+                continue
+            y0, y1 = 0.08 * H, 0.92 * H
+            poly = [
+                (point_on_line_at_y(vp, (xa, H / 2), y0), y0),
+                (point_on_line_at_y(vp, (xb, H / 2), y0), y0),
+                (point_on_line_at_y(vp, (xb, H / 2), y1), y1),
+                (point_on_line_at_y(vp, (xa, H / 2), y1), y1),
+            ]
+            pts = np.round((np.array(poly) * ss - 0.5) * 16).astype(np.int32)
+            cv2.fillPoly(hi, [pts], int(rng.integers(150, 230)), shift=4)
+    img = cv2.resize(hi, (W, H), interpolation=cv2.INTER_AREA).astype(float)
+    img = cv2.GaussianBlur(img, (0, 0), 0.7) + rng.normal(0, noise, (H, W))
+    return np.clip(img, 0, 255).astype(np.uint8)
+
+
+def test_a_wider_start_finds_the_vp_outside_a_wrong_ins_cone():
+    """An INS prior 7 deg off with a 5 deg cone, and a weaker pencil inside
+    that cone: the cone alone returns the weak pencil; the start with twice
+    the cone finds the true VP, whose second pass is far longer, and wins."""
+    tilt = rotation_from_axis_angle([np.radians(-50.0), 0.0, 0.0])
+    d_true = tilt @ np.array([0.0, 0.0, 1.0])  # down the world, camera frame
+
+    def about_x(deg):
+        return rotation_from_axis_angle([np.radians(deg), 0.0, 0.0])
+
+    vp_true = CAMERA.K @ d_true
+    vp_wrong = CAMERA.K @ (about_x(10.0) @ d_true)  # 3 deg past the prior
+    down_prior = about_x(7.0) @ d_true
+    assert angle_deg(down_prior, d_true) == pytest.approx(7.0)
+    assert angle_deg(down_prior, about_x(10.0) @ d_true) == pytest.approx(3.0)
+    rng = np.random.default_rng(21)
+    img = render_pencils(
+        [(vp_true, 12, 0.03 * W, 0.62 * W), (vp_wrong, 3, 0.68 * W, 0.97 * W)], rng
+    )
+    # A rotation whose down axis is down_prior: the INS prior.
+    axis = np.cross([0.0, 0.0, -1.0], down_prior)
+    angle = np.arccos(np.clip(-down_prior[2], -1, 1))
+    R = rotation_from_axis_angle(axis / np.linalg.norm(axis) * angle)
+    assert np.allclose(R @ [0, 0, -1.0], down_prior)
+    prior = VPPrior.from_rotation(R, cone_deg=5.0)
+    one = detect_vertical_vp(img, VanishingOptions(start_cones=(1.0,)), CAMERA, prior)
+    assert one.vp is not None and direction_error_deg(one.vp, vp_wrong) < 0.5
+    res = detect_vertical_vp(img, VanishingOptions(), CAMERA, prior)
+    assert res.status == "ok", res.message
+    assert direction_error_deg(res.vp, vp_true) < 0.1
+    # The winner's second pass is the longer one.
+    assert np.sum(res.vertical_segments.lengths) > 2 * np.sum(
+        one.vertical_segments.lengths
+    )
+    # Oriented by the prior, and the starts' options are checked.
+    assert res.vertical_direction @ down_prior > 0
+    with pytest.raises(ValueError, match="start_cones"):
+        VanishingOptions(start_cones=())
+    with pytest.raises(ValueError, match="start_cones"):
+        VanishingOptions(start_cones=(1.0, 0.0))
+
+
+def test_starts_one_vp_within_the_tolerance_and_one_start_without_a_cone():
+    from obliq_colmap.vanishing import VanishingResult, _distinct, _start_priors
+
+    def at(deg):
+        d = rotation_from_axis_angle([np.radians(deg), 0.0, 0.0]) @ [0.0, 0.6, 0.8]
+        return VanishingResult("ok", vp=CAMERA.K @ d)
+
+    a, b, c = at(0.0), at(0.3), at(1.0)
+    none = VanishingResult("no_vp")
+    # 0.3 deg from the first is the same VP; 1 deg is another; no VP is none.
+    assert [id(r) for r in _distinct([none, a, b, c], CAMERA.K, 0.5)] == [
+        id(a),
+        id(c),
+    ]
+    assert [id(r) for r in _distinct([none], CAMERA.K, 0.5)] == [id(none)]
+    ins = VPPrior.from_rotation(np.eye(3), cone_deg=6.0)
+    assert [p.cone_deg for p in _start_priors(ins, (1.0, 0.5, 2.0))] == [6.0, 3.0, 12.0]
+    assert _start_priors(ins, (20.0,))[0].cone_deg == 80.0
+    assert len(_start_priors(VPPrior.aerial(), (1.0, 0.5, 2.0))) == 1
