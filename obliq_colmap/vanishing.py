@@ -358,6 +358,11 @@ class VanishingResult:
 # --------------------------------------------------------------------------
 
 
+def _nominal_K(W: int, H: int) -> np.ndarray:
+    """The nominal camera (focal max(W, H), centred) when K is unknown."""
+    return np.array([[max(W, H), 0, W / 2], [0, max(W, H), H / 2], [0, 0, 1.0]])
+
+
 def _normaliser(width: int, height: int) -> tuple[np.ndarray, float]:
     """T mapping pixels to centred coordinates scaled by half the longer side."""
     s = max(width, height) / 2.0
@@ -1362,11 +1367,7 @@ def estimate_vertical_vp(
     W, H = image_size
     T, s = _normaliser(W, H)
     K = camera.K if camera is not None else None
-    Knom = (
-        K
-        if K is not None
-        else np.array([[max(W, H), 0, W / 2], [0, max(W, H), H / 2], [0, 0, 1.0]])
-    )
+    Knom = K if K is not None else _nominal_K(W, H)
     limit = options.lines.max_image_size_px
     factor = max(1.0, max(W, H) / limit) if limit else 1.0
     thr_px = options.inlier_threshold_px * factor
@@ -1586,11 +1587,6 @@ def _refine_on_chains(
     return v_n, (cost <= max_cost) & (cost < other)
 
 
-def _nominal_K(W: int, H: int) -> np.ndarray:
-    """The nominal camera (focal max(W, H), centred) when K is unknown."""
-    return np.array([[max(W, H), 0, W / 2], [0, max(W, H), H / 2], [0, 0, 1.0]])
-
-
 def _start_priors(prior: VPPrior, factors: Sequence[float]) -> list[VPPrior]:
     """One prior per first-pass start: the INS cone times each factor (at
     most 80 deg); the other kinds have no cone and start once."""
@@ -1602,24 +1598,25 @@ def _start_priors(prior: VPPrior, factors: Sequence[float]) -> list[VPPrior]:
     ]
 
 
+def _same_vp(a: np.ndarray, b: np.ndarray, K: np.ndarray, same_deg: float) -> bool:
+    """Whether homogeneous VPs a, b (3,) are one: their directions through K
+    within ``same_deg`` (sign-free)."""
+    da, db = np.linalg.solve(K, a), np.linalg.solve(K, b)
+    cos = abs(float(da @ db)) / (np.linalg.norm(da) * np.linalg.norm(db))
+    return cos >= math.cos(math.radians(same_deg))
+
+
 def _distinct(
     results: list[VanishingResult], K: np.ndarray, same_deg: float
 ) -> list[VanishingResult]:
-    """The results with a VP whose directions (through K) differ by more than
-    ``same_deg`` from every earlier one, in order; the first result alone
-    when none has a VP."""
+    """The results with a VP that is not :func:`_same_vp` as any earlier
+    one, in order; the first result alone when none has a VP."""
     kept: list[VanishingResult] = []
-    dirs: list[np.ndarray] = []
-    cos_same = math.cos(math.radians(same_deg))
-    Kinv = np.linalg.inv(K)
     for r in results:
-        if r.vp is None:
-            continue
-        d = Kinv @ r.vp
-        d /= np.linalg.norm(d)
-        if all(abs(float(d @ e)) < cos_same for e in dirs):
+        if r.vp is not None and not any(
+            _same_vp(r.vp, k.vp, K, same_deg) for k in kept
+        ):
             kept.append(r)
-            dirs.append(d)
     return kept or results[:1]
 
 
@@ -1727,9 +1724,7 @@ def detect_vertical_vp(
         # not the most accurate VP within it.
         best = results[int(np.argmax(lengths))]
         result = next(
-            r
-            for r in results
-            if len(_distinct([best, r], K, options.starts_same_deg)) == 1
+            r for r in results if _same_vp(best.vp, r.vp, K, options.starts_same_deg)
         )
         result.time_s["second_pass_all"] = time.perf_counter() - t0
         if len(results) > 1:

@@ -72,6 +72,13 @@ def render(vp, rng, n_bands=10, noise=2.0, clutter=12, size=(W, H), ss=4):
         dy = rng.uniform(-0.1, 0.1) * (x1 - x0)
         p = (np.array([[x0, y], [x1, y + dy]]) * ss).astype(int)
         cv2.line(hi, tuple(p[0]), tuple(p[1]), int(rng.integers(0, 60)), 3 * ss)
+    return finish(hi, (w, h), rng, noise)
+
+
+def finish(hi, size, rng, noise=2.0):
+    """A supersampled drawing area-averaged to ``size`` (w, h), blurred
+    (optics) and noised (sensor), as uint8."""
+    w, h = size
     img = cv2.resize(hi, (w, h), interpolation=cv2.INTER_AREA).astype(float)
     img = cv2.GaussianBlur(img, (0, 0), 0.7) + rng.normal(0, noise, (h, w))
     return np.clip(img, 0, 255).astype(np.uint8)
@@ -247,9 +254,7 @@ def render_radial(center, rng, n=14, ss=4):
         ]
         pts = np.round((np.array(poly) * ss - 0.5) * 16).astype(np.int32)
         cv2.fillPoly(hi, [pts], int(rng.integers(150, 230)), shift=4)
-    img = cv2.resize(hi, (W, H), interpolation=cv2.INTER_AREA).astype(float)
-    img = cv2.GaussianBlur(img, (0, 0), 0.7) + rng.normal(0, 2.0, (H, W))
-    return np.clip(img, 0, 255).astype(np.uint8)
+    return finish(hi, (W, H), rng)
 
 
 def test_distorted_camera_segments_are_undistorted_first():
@@ -620,9 +625,7 @@ def render_pencils(pencils, rng, noise=2.0, ss=4):
             ]
             pts = np.round((np.array(poly) * ss - 0.5) * 16).astype(np.int32)
             cv2.fillPoly(hi, [pts], int(rng.integers(150, 230)), shift=4)
-    img = cv2.resize(hi, (W, H), interpolation=cv2.INTER_AREA).astype(float)
-    img = cv2.GaussianBlur(img, (0, 0), 0.7) + rng.normal(0, noise, (H, W))
-    return np.clip(img, 0, 255).astype(np.uint8)
+    return finish(hi, (W, H), rng, noise)
 
 
 def test_a_wider_start_finds_the_vp_outside_a_wrong_ins_cone():
@@ -644,10 +647,9 @@ def test_a_wider_start_finds_the_vp_outside_a_wrong_ins_cone():
     img = render_pencils(
         [(vp_true, 12, 0.03 * W, 0.62 * W), (vp_wrong, 3, 0.68 * W, 0.97 * W)], rng
     )
-    # A rotation whose down axis is down_prior: the INS prior.
-    axis = np.cross([0.0, 0.0, -1.0], down_prior)
-    angle = np.arccos(np.clip(-down_prior[2], -1, 1))
-    R = rotation_from_axis_angle(axis / np.linalg.norm(axis) * angle)
+    # The INS prior: a cam_from_world whose world down axis is down_prior
+    # (a half turn about x takes (0, 0, -1) to (0, 0, 1)).
+    R = about_x(7.0) @ tilt @ about_x(180.0)
     assert np.allclose(R @ [0, 0, -1.0], down_prior)
     prior = VPPrior.from_rotation(R, cone_deg=5.0)
     one = detect_vertical_vp(img, VanishingOptions(start_cones=(1.0,)), CAMERA, prior)
