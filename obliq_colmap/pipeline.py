@@ -48,6 +48,7 @@ from obliq_colmap.adjustment import (
     Stage3,
     _finite,
     bundle_stage,
+    rejected_images,
 )
 from obliq_colmap.bundle import BundleResult
 from obliq_colmap.cadastre import (
@@ -144,6 +145,14 @@ class PipelineOptions:
     #: block's ground, the head's significant systematic prior offset), and
     #: the bundle is solved again with those that succeed.
     reregister_failed: bool = True
+    #: An image of which the (last) bundle's outlier rounds keep less than
+    #: this share of the facade observations disagrees with the block (its
+    #: pose ended metres off along its verticals:
+    #: :func:`adjustment.rejected_images`) and is left out, named in the
+    #: report; 0 keeps every image. Registering it again against the solved
+    #: block and solving again did not bring it back (`hard` s1: 10 -> 97 px
+    #: and 35 -> 26 px) and made the second bundle reject others.
+    min_facade_kept: float = 0.7
     #: COLMAP camera model of the result (None: the priors' model).
     camera_model: str | None = None
     #: Write one overlay PNG per image here (None: none).
@@ -691,6 +700,8 @@ def run_register(
                     inputs, by_id, state, options.adjustment, timings
                 )
                 timings["bundle"] += first_bundle
+        rejected = rejected_images(stage3, options.min_facade_kept)
+        state = leave_out_rejected(state, stage3, by_id, rejected)
         registered = [o for o in outcomes if o.registered]
     ground = block_ground_height([o.registration for o in registered], 1)
     z0 = float(np.round(ground)) if ground is not None else 0.0
@@ -1004,6 +1015,35 @@ def reregister_failed(
     # their datum against the solved images.
     solved = state.solved - new
     return BlockState(poses, cameras, planes, state.shared, solved), names
+
+
+def leave_out_rejected(
+    state: BlockState,
+    stage3: Stage3 | None,
+    outcomes: dict[int, ImageOutcome],
+    rejected: Sequence[int],
+) -> BlockState:
+    """The block without the images the (last) bundle disagrees with; their
+    outcomes become failures that say why."""
+    out = [i for i in rejected if i in state.poses]
+    if not out or stage3 is None:
+        return state
+    for i in out:
+        o = outcomes[i]
+        o.status = "failed"
+        o.message = (
+            f"left out: the bundle rejected {1 - stage3.facade_kept[i]:.0%} of its"
+            " facade observations (its pose disagrees with the block's)"
+        )
+        logger.warning("%s: %s", o.name, o.message)
+    keep = set(state.poses) - set(out)
+    return dataclasses.replace(
+        state,
+        poses={i: p for i, p in state.poses.items() if i in keep},
+        cameras={i: c for i, c in state.cameras.items() if i in keep},
+        planes={i: p for i, p in state.planes.items() if i in keep},
+        solved=state.solved & keep,
+    )
 
 
 def _head_offsets(
@@ -1336,6 +1376,8 @@ def constrained_points(
         F = np.column_stack([t.anchor_xy, bundle.facade_heights])
         fobs: list[list[tuple[int, np.ndarray]]] = [[] for _ in range(len(F))]
         for k, i in enumerate(stage3.ids):
+            if i not in block.images:  # left out after the bundle
+                continue
             tr = np.unique(t.track[t.image == k])
             keep, px = _observations(block, i, F[tr])
             for j, p in zip(tr[keep], px, strict=True):

@@ -37,6 +37,7 @@ from bench_resolution import (
 )
 
 from obliq_colmap import adjustment as adj
+from obliq_colmap.pipeline import leave_out_rejected
 
 
 def run_once(scene: Path, seed: int, args) -> dict:
@@ -48,13 +49,16 @@ def run_once(scene: Path, seed: int, args) -> dict:
     inputs, outcomes, _ = _stage12(scene, options, Path(args.cache_path))
     gt, _, _ = _truth_local(scene, inputs)
     registered = [o for o in outcomes.values() if o.registered]
-    state, result, _ = adj.bundle_stage(
+    state, result, stage3 = adj.bundle_stage(
         inputs,
         outcomes,
         adj.BlockState.from_outcomes(registered),
         options.adjustment,
         {},
     )
+    # As ``register`` does after its last bundle (no re-registration here).
+    rejected = adj.rejected_images(stage3, options.min_facade_kept)
+    state = leave_out_rejected(state, stage3, outcomes, rejected)
     full, across, cameras = (e.summary for e in _evaluate(inputs, state, gt))
     return {
         "scene": scene.name,
@@ -67,6 +71,7 @@ def run_once(scene: Path, seed: int, args) -> dict:
         "max_px": full.deviation_max_px,
         "across_median_px": across.deviation_median_px,
         "camera_offset_median_px": cameras.deviation_median_px,
+        "left_out": [outcomes[i].name for i in rejected],
     }
 
 
@@ -102,7 +107,8 @@ def main(argv: list[str] | None = None) -> int:
                 f"{row['scene']:16s} seed {seed}: {row['registered']}/{row['total']}"
                 f" < 2 px, median {row['median_px']:.3f} p95 {row['p95_px']:.3f}"
                 f" max {row['max_px']:.3f} px (camera-height offset"
-                f" {row['camera_offset_median_px']:.3f}), {wall:.0f} s",
+                f" {row['camera_offset_median_px']:.3f}), left out"
+                f" {row['left_out'] or 'none'}, {wall:.0f} s",
                 flush=True,
             )
     print(summary(rows) + (f"; overrides {args.base_set}" if args.base_set else ""))
