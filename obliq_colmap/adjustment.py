@@ -210,9 +210,9 @@ class Stage3:
     row_obs: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
     #: Per image id: RMS (px) of its final vertical and horizontal residuals.
     bundle_rms: dict[int, tuple[float, float]] = field(default_factory=dict)
-    #: Per image id: the share of its facade observations that the bundle's
-    #: outlier rounds kept (NaN: it had none).
-    facade_kept: dict[int, float] = field(default_factory=dict)
+    #: Per image id: the share of its constraints (map corners and facade
+    #: observations) that the bundle's outlier rounds kept.
+    constraints_kept: dict[int, float] = field(default_factory=dict)
 
     def report(self, outcomes: dict[int, ImageOutcome]) -> dict[str, Any]:
         t = self.tracks
@@ -231,7 +231,7 @@ class Stage3:
                     "bundle_rms_px": [
                         _finite(x) for x in self.bundle_rms.get(i, (math.nan,) * 2)
                     ],
-                    "facade_kept": _finite(self.facade_kept.get(i, math.nan)),
+                    "constraints_kept": _finite(self.constraints_kept.get(i, math.nan)),
                 }
                 for k, (i, f) in enumerate(zip(self.ids, self.facades, strict=True))
             },
@@ -538,7 +538,7 @@ def bundle_stage(
         else:
             state = state.with_bundle(result, problem.image_camera)
             stage3.bundle_rms = _rms_per_image(problem, result)
-            stage3.facade_kept = _kept_share(initial, problem)
+            stage3.constraints_kept = _kept_share(initial, problem)
     timings["bundle"] = time.perf_counter() - t0
     return state, result, stage3
 
@@ -570,28 +570,36 @@ def _rms_per_image(
 
 
 def _kept_share(initial: BundleProblem, final: BundleProblem) -> dict[int, float]:
-    """Image id -> share of its horizontal rows of ``initial`` still in
-    ``final`` (NaN for an image without any)."""
+    """Image id -> share of its constraints (vertical and horizontal rows)
+    of ``initial`` still in ``final`` (NaN for an image without any)."""
     m = len(initial.image_ids)
-    n0 = np.bincount(initial.horizontal_image, minlength=m)
-    n1 = np.bincount(final.horizontal_image, minlength=m)
+
+    def rows(p: BundleProblem) -> np.ndarray:
+        return np.bincount(p.vertical_image, minlength=m) + np.bincount(
+            p.horizontal_image, minlength=m
+        )
+
     with np.errstate(invalid="ignore", divide="ignore"):
-        share = n1 / n0
+        share = rows(final) / rows(initial)
     return {i: float(share[k]) for k, i in enumerate(initial.image_ids)}
 
 
 def rejected_images(stage3: Stage3, min_kept: float) -> list[int]:
-    """The images whose facade observations the bundle mostly rejected.
+    """The images whose constraints the bundle rejected in large part.
 
-    The outlier rounds reject ~5-25 % of any image's facade observations
-    (measured over 18 `paper` runs: every image kept >= 74 %). An image the
-    bundle ends metres off along its verticals, where its own facade edges
-    no longer fit the block's tracks, loses far more (`hard` s1: 51 % and
-    33 %, ending 35 and 10 px off): a share below ``min_kept`` says its pose
-    disagrees with the block, which its RMS does not (the kept rows fit).
+    The outlier rounds reject some of every image's constraints (map
+    corners and facade observations together: at most 26 % in 18 `paper`
+    and `hard` runs for every image that ends < 2 px off). An image the
+    bundle leaves metres off along its verticals, where its own corners and
+    facade edges no longer fit the block, loses more (in those runs 6 of the
+    7 images that end > 5 px off, and one at 4.6 px: 31-49 %; the seventh
+    kept 81 %), and its RMS does not show it (the rows kept fit). A share
+    below ``min_kept`` flags it.
     """
     return sorted(
-        i for i, k in stage3.facade_kept.items() if math.isfinite(k) and k < min_kept
+        i
+        for i, k in stage3.constraints_kept.items()
+        if math.isfinite(k) and k < min_kept
     )
 
 

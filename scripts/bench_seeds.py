@@ -57,7 +57,7 @@ def run_once(scene: Path, seed: int, args) -> dict:
         {},
     )
     # As ``register`` does after its last bundle (no re-registration here).
-    rejected = adj.rejected_images(stage3, options.min_facade_kept)
+    rejected = adj.rejected_images(stage3, options.min_constraints_kept)
     state = leave_out_rejected(state, stage3, outcomes, rejected)
     full, across, cameras = (e.summary for e in _evaluate(inputs, state, gt))
     return {

@@ -562,12 +562,12 @@ def test_register_option_out_of_range_is_one_line(tmp_path, capsys, option, mess
 def test_the_bundle_flags_an_image_whose_facade_edges_disagree(
     initial_run, bundle_run, monkeypatch
 ):
-    """On the sample the bundle keeps >= 90 % of every image's facade
-    observations, and nothing is left out. Displace 60 % of one image's
-    facade edges by +-6 px along its verticals (after matching, so they
-    stay in their tracks but no longer fit the others' edges): the bundle
-    rejects them, that image alone falls below ``min_facade_kept``, and it
-    is left out with a message saying why."""
+    """On the sample the bundle keeps >= 90 % of every image's constraints,
+    and nothing is left out. Displace 70 % of one image's facade edges by
+    +-6 px along its verticals (after matching, so they stay in their
+    tracks but no longer fit the others' edges): the bundle rejects them,
+    that image alone falls below ``min_constraints_kept``, and it is left
+    out with a message saying why."""
     import copy
     import dataclasses
 
@@ -575,8 +575,8 @@ def test_the_bundle_flags_an_image_whose_facade_edges_disagree(
     from obliq_colmap.pipeline import leave_out_rejected, load_inputs
 
     _, run = bundle_run
-    kept = {n: v["facade_kept"] for n, v in run.report["facades"]["images"].items()}
-    assert min(kept.values()) >= 0.9
+    images = run.report["facades"]["images"]
+    assert min(v["constraints_kept"] for v in images.values()) >= 0.9
     assert all(o.registered for o in run.outcomes.values())
 
     _, first = initial_run
@@ -593,7 +593,7 @@ def test_the_bundle_flags_an_image_whose_facade_edges_disagree(
         stage3 = facade_stage(*args, **kwargs)
         k = stage3.ids.index(target)
         f = stage3.facades[k]
-        moved = rng.random(len(f)) < 0.6
+        moved = rng.random(len(f)) < 0.7
         shift = np.where(rng.random(len(f)) < 0.5, -6.0, 6.0)[:, None]
         ends = f.endpoints.copy()
         ends[moved, :, 1] += shift[moved]
@@ -606,13 +606,13 @@ def test_the_bundle_flags_an_image_whose_facade_edges_disagree(
         inputs, outcomes, state, options.adjustment, {}
     )
     assert result is not None
-    rejected = adj.rejected_images(stage3, options.min_facade_kept)
+    rejected = adj.rejected_images(stage3, options.min_constraints_kept)
     assert rejected == [target]
-    others = [v for i, v in stage3.facade_kept.items() if i != target]
+    others = [v for i, v in stage3.constraints_kept.items() if i != target]
     assert min(others) >= 0.8
 
     state = leave_out_rejected(state, stage3, outcomes, rejected)
     assert target not in state.poses and target not in state.solved
     assert len(state.poses) == len(outcomes) - 1
     o = outcomes[target]
-    assert not o.registered and "facade observations" in o.message
+    assert not o.registered and "facade constraints" in o.message
