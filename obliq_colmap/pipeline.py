@@ -674,37 +674,15 @@ def run_register(
             ]
             pool.map(_draw_overlay, jobs, "overlays")
     by_id = {o.image_id: o for o in outcomes}
-    registered = [o for o in outcomes if o.registered]
-    state = BlockState.from_outcomes(registered)
+    state = BlockState.from_outcomes([o for o in outcomes if o.registered])
     bundle_result: BundleResult | None = None
     stage3: Stage3 | None = None
     reregistered: list[str] = []
-    if options.stop_after == "bundle" and registered:
-        state, bundle_result, stage3 = bundle_stage(
-            inputs, by_id, state, options.adjustment, timings
+    if options.stop_after == "bundle" and state.poses:
+        state, bundle_result, stage3, reregistered = block_stage(
+            inputs, tasks, outcomes, options, timings, (workers, init_args)
         )
-        if options.reregister_failed and bundle_result is not None:
-            t0 = time.perf_counter()
-            with _Workers(workers, init_args, cad, options.progress) as pool:
-                state, reregistered = reregister_failed(
-                    pool, tasks, outcomes, state, options
-                )
-            timings["reregistration"] = time.perf_counter() - t0
-            if reregistered:
-                logger.info(
-                    "%d image(s) registered against the solved block (%s): "
-                    "the bundle is solved again",
-                    len(reregistered),
-                    ", ".join(reregistered),
-                )
-                first_bundle = timings["bundle"]
-                state, bundle_result, stage3 = bundle_stage(
-                    inputs, by_id, state, options.adjustment, timings
-                )
-                timings["bundle"] += first_bundle
-        rejected = rejected_images(stage3, options.min_constraints_kept)
-        state = leave_out_rejected(state, stage3, by_id, rejected)
-        registered = [o for o in outcomes if o.registered]
+    registered = [o for o in outcomes if o.registered]
     ground = block_ground_height([o.registration for o in registered], 1)
     z0 = float(np.round(ground)) if ground is not None else 0.0
     georef = Georef(
@@ -733,6 +711,56 @@ def run_register(
     }
     report["num_points3D"] = len(points)
     return RunResult(block, georef, points, by_id, report, bundle_result)
+
+
+def block_stage(
+    inputs: Inputs,
+    tasks: list[_ImageTask],
+    outcomes: list[ImageOutcome],
+    options: PipelineOptions,
+    timings: dict[str, float],
+    pool_args: tuple[int, tuple],
+) -> tuple[BlockState, BundleResult | None, Stage3, list[str]]:
+    """Stage 3 on the per-image outcomes, and what follows it.
+
+    The bundle (:func:`adjustment.bundle_stage`); the failed and weak
+    images registered again against the solved block and, where that
+    succeeds, the bundle solved again (:func:`reregister_failed`); then the
+    images the last bundle disagrees with are left out
+    (:func:`leave_out_rejected`). ``pool_args``: (workers, initializer
+    arguments) of the re-registration's process pool. Outcomes are updated
+    in place. Returns the block, the last bundle's result (None when it was
+    skipped or failed), its facade stage and the names registered again.
+    """
+    by_id = {o.image_id: o for o in outcomes}
+    state = BlockState.from_outcomes([o for o in outcomes if o.registered])
+    state, bundle_result, stage3 = bundle_stage(
+        inputs, by_id, state, options.adjustment, timings
+    )
+    reregistered: list[str] = []
+    if options.reregister_failed and bundle_result is not None:
+        t0 = time.perf_counter()
+        workers, init_args = pool_args
+        with _Workers(workers, init_args, inputs.cadastre, options.progress) as pool:
+            state, reregistered = reregister_failed(
+                pool, tasks, outcomes, state, options
+            )
+        timings["reregistration"] = time.perf_counter() - t0
+        if reregistered:
+            logger.info(
+                "%d image(s) registered against the solved block (%s): "
+                "the bundle is solved again",
+                len(reregistered),
+                ", ".join(reregistered),
+            )
+            first_bundle = timings["bundle"]
+            state, bundle_result, stage3 = bundle_stage(
+                inputs, by_id, state, options.adjustment, timings
+            )
+            timings["bundle"] += first_bundle
+    rejected = rejected_images(stage3, options.min_constraints_kept)
+    state = leave_out_rejected(state, stage3, by_id, rejected)
+    return state, bundle_result, stage3, reregistered
 
 
 def initial_stage(

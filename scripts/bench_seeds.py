@@ -4,9 +4,12 @@ One ``register`` run's full deviation moves by up to ~0.6 px with the stage-2
 RANSAC seed alone (the facade track set it ends with decides it:
 docs/BENCHMARKS.md, issue 5), so a stage-3 variant is judged on many runs:
 every scene with every seed, stages 1-2 cached as in ``bench_resolution.py``
-(keyed by their options, the seed among them), stage 3 run with the
-variant's options (``--set PATH=VALUE``), the full deviation in the
-scene-datum measure (``evaluate``'s default).
+(keyed by their options, the seed among them), then what ``register`` does
+after stage 2 with the variant's options (``--set PATH=VALUE``): the
+bundle, the failed images registered again against the solved block and
+the bundle solved again, the images the last bundle disagrees with left out
+(``--bundle_only``: the bundle alone, as before 2026-12-02 session 7); the
+full deviation in the scene-datum measure (``evaluate``'s default).
 
     python scripts/bench_seeds.py --scene_path /work/scenes/paper_s1 ... \\
         [--seeds 0 1 2] [--set adjustment.outlier_rounds=1] [--output_path rows.json]
@@ -27,6 +30,7 @@ import sys
 import time
 from pathlib import Path
 
+import numpy as np
 from bench_resolution import (
     _evaluate,
     _options,
@@ -37,7 +41,7 @@ from bench_resolution import (
 )
 
 from obliq_colmap import adjustment as adj
-from obliq_colmap.pipeline import leave_out_rejected
+from obliq_colmap import pipeline as pl
 
 
 def run_once(scene: Path, seed: int, args) -> dict:
@@ -48,18 +52,36 @@ def run_once(scene: Path, seed: int, args) -> dict:
     options = _options(scene, run_args)
     inputs, outcomes, _ = _stage12(scene, options, Path(args.cache_path))
     gt, _, _ = _truth_local(scene, inputs)
-    registered = [o for o in outcomes.values() if o.registered]
-    state, result, stage3 = adj.bundle_stage(
-        inputs,
-        outcomes,
-        adj.BlockState.from_outcomes(registered),
-        options.adjustment,
-        {},
-    )
-    # As ``register`` does after its last bundle (no re-registration here).
-    rejected = adj.rejected_images(stage3, options.min_constraints_kept)
-    state = leave_out_rejected(state, stage3, outcomes, rejected)
-    full, across, cameras = (e.summary for e in _evaluate(inputs, state, gt))
+    registered = {i for i, o in outcomes.items() if o.registered}
+    if args.bundle_only:
+        state, result, _ = adj.bundle_stage(
+            inputs,
+            outcomes,
+            adj.BlockState.from_outcomes([outcomes[i] for i in registered]),
+            options.adjustment,
+            {},
+        )
+        again: list[str] = []
+    else:
+        # What ``register`` does after stage 2: the bundle, the failed images
+        # registered again against the block, the disagreeing ones left out.
+        tasks = pl.image_tasks(inputs, options)
+        origin3 = np.r_[inputs.cadastre.origin[:2], 0.0]
+        init_args = (inputs.cadastre_path, options.cadastre, origin3)
+        state, result, _, again = pl.block_stage(
+            inputs,
+            tasks,
+            [outcomes[t.image_id] for t in tasks],
+            options,
+            {},
+            (args.num_workers, init_args),
+        )
+    evaluations = _evaluate(inputs, state, gt)
+    full, across, cameras = (e.summary for e in evaluations)
+    # Written although wrong: in the model, more than 5 px off.
+    wrong = [
+        e.name for e in evaluations[0].images if e.mean_deviation_px > 5.0
+    ]  # NaN (missing) compares False
     return {
         "scene": scene.name,
         "seed": seed,
@@ -71,7 +93,9 @@ def run_once(scene: Path, seed: int, args) -> dict:
         "max_px": full.deviation_max_px,
         "across_median_px": across.deviation_median_px,
         "camera_offset_median_px": cameras.deviation_median_px,
-        "left_out": [outcomes[i].name for i in rejected],
+        "reregistered": again,
+        "written_over_5px": wrong,
+        "left_out": sorted(outcomes[i].name for i in registered - set(state.poses)),
     }
 
 
@@ -90,6 +114,11 @@ def main(argv: list[str] | None = None) -> int:
     parser = scene_parser(__doc__.split("\n\n")[0])
     parser.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])
     parser.add_argument("--output_path", help="write the rows as JSON here")
+    parser.add_argument(
+        "--bundle_only",
+        action="store_true",
+        help="the bundle alone: no re-registration, no image left out",
+    )
     args = parser.parse_args(argv)
     scenes = synthetic_scenes(args)
     if scenes is None:
@@ -107,8 +136,10 @@ def main(argv: list[str] | None = None) -> int:
                 f"{row['scene']:16s} seed {seed}: {row['registered']}/{row['total']}"
                 f" < 2 px, median {row['median_px']:.3f} p95 {row['p95_px']:.3f}"
                 f" max {row['max_px']:.3f} px (camera-height offset"
-                f" {row['camera_offset_median_px']:.3f}), left out"
-                f" {row['left_out'] or 'none'}, {wall:.0f} s",
+                f" {row['camera_offset_median_px']:.3f}); registered again"
+                f" {row['reregistered'] or 'none'}, left out"
+                f" {row['left_out'] or 'none'}, written > 5 px off"
+                f" {row['written_over_5px'] or 'none'}; {wall:.0f} s",
                 flush=True,
             )
     print(summary(rows) + (f"; overrides {args.base_set}" if args.base_set else ""))
