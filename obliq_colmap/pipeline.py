@@ -675,14 +675,15 @@ def run_register(
             ]
             pool.map(_draw_overlay, jobs, "overlays")
     by_id = {o.image_id: o for o in outcomes}
-    state = BlockState.from_outcomes([o for o in outcomes if o.registered])
     bundle_result: BundleResult | None = None
     stage3: Stage3 | None = None
     reregistered: list[str] = []
-    if options.stop_after == "bundle" and state.poses:
+    if options.stop_after == "bundle" and any(o.registered for o in outcomes):
         state, bundle_result, stage3, reregistered = block_stage(
             inputs, tasks, outcomes, options, timings, (workers, init_args)
         )
+    else:
+        state = BlockState.from_outcomes([o for o in outcomes if o.registered])
     registered = [o for o in outcomes if o.registered]
     ground = block_ground_height([o.registration for o in registered], 1)
     z0 = float(np.round(ground)) if ground is not None else 0.0
@@ -728,10 +729,11 @@ def block_stage(
     images registered again against the solved block and, where that
     succeeds, the bundle solved again (:func:`reregister_failed`), unless
     that second bundle disagrees with an image the first accepted: then the
-    first bundle's block is kept and the images registered again are left
-    out (measured: `hard` s2 / seed 0, a wrong re-registration 24 px off
-    pulled three images 17-33 px off); then the images the last bundle
-    disagrees with are left out (:func:`leave_out_rejected`). ``pool_args``: (workers, initializer
+    first bundle's block is kept and the images registered again get their
+    earlier outcome back (a failed one stays out; measured: `hard` s2 /
+    seed 0, a wrong re-registration 24 px off pulled two images 17-21 px
+    off); then the images the last bundle disagrees with are left out
+    (:func:`leave_out_rejected`). ``pool_args``: (workers, initializer
     arguments) of the re-registration's process pool. Outcomes are updated
     in place. Returns the block, the last bundle's result (None when it was
     skipped or failed), its facade stage and the names registered again.
@@ -746,7 +748,7 @@ def block_stage(
     if options.reregister_failed and bundle_result is not None:
         t0 = time.perf_counter()
         workers, init_args = pool_args
-        saved = {o.image_id: copy.copy(o) for o in outcomes}
+        saved = {o.image_id: copy.copy(o) for o in outcomes}  # for an undo
         first = (state, bundle_result, stage3)
         with _Workers(workers, init_args, inputs.cadastre, options.progress) as pool:
             state, reregistered = reregister_failed(
@@ -774,12 +776,14 @@ def block_stage(
                 # pose with enough inliers). Back to the first bundle.
                 names = ", ".join(by_id[i].name for i in spoiled)
                 for i in new:
-                    _restore(by_id[i], saved[i])
-                    by_id[i].message = (
+                    o = by_id[i]
+                    _restore(o, saved[i])
+                    kept = "its first pose kept" if o.registered else "left out"
+                    o.message = (
                         "registered against the solved block, but the bundle"
-                        f" with it disagreed with {names}: left out"
+                        f" with it disagreed with {names}: {kept}"
                     )
-                    logger.warning("%s: %s", by_id[i].name, by_id[i].message)
+                    logger.warning("%s: %s", o.name, o.message)
                 state, bundle_result, stage3 = first
                 reregistered = []
             else:
