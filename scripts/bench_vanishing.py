@@ -139,6 +139,21 @@ def ml_gt(vert_px, K, g):
     return d / np.linalg.norm(d)
 
 
+def orthogonal_gt_vs_gt(split: str) -> list[float]:
+    """Angle (deg) between each GT vertical and the GT's orthogonalised triplet.
+
+    The GT VPs are fitted one by one and are not orthogonal; a Manhattan-frame
+    estimate disagrees with the GT vertical by about this much by construction.
+    """
+    gt = json.loads((DATA / "yorkurbandb" / "yud_gt.json").read_text())
+    out = []
+    for im in gt["images"]:
+        if im["split"] == split:
+            g = np.array(im["vps_camera"][im["vertical_index"]])
+            out.append(min(angle_deg(g, o) for o in im["vps_orthogonal_camera"]))
+    return out
+
+
 def bench_yud(split: str, options: VanishingOptions) -> dict:
     errs, errs_ml, times, status = [], [], [], {}
     for _, img, K, g, vert in yud_images(split):
@@ -157,6 +172,7 @@ def bench_yud(split: str, options: VanishingOptions) -> dict:
         "vs_gt": summary(errs, times),
         "vs_ml_gt": summary(errs_ml),
         "status": status,
+        "gt_self_check_orthogonal_gt_vs_gt": summary(orthogonal_gt_vs_gt(split)),
         "gt_self_check_ml_gt_vs_gt": summary(
             [angle_deg(ml_gt(v, K, g), g) for _, _, K, g, v in yud_images(split)]
         ),
