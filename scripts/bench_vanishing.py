@@ -108,13 +108,16 @@ def summary(errors, times=None) -> dict:
 # --------------------------------------------------------------------------
 
 
+def yud_gt(split: str) -> tuple[np.ndarray, list[dict]]:
+    """YUD's K (3, 3) and the ``yud_gt.json`` entries of one split."""
+    gt = json.loads((DATA / "yorkurbandb" / "yud_gt.json").read_text())
+    return np.array(gt["K"]), [im for im in gt["images"] if im["split"] == split]
+
+
 def yud_images(split: str):
     root = DATA / "yorkurbandb"
-    gt = json.loads((root / "yud_gt.json").read_text())
-    K = np.array(gt["K"])
-    for im in gt["images"]:
-        if im["split"] != split:
-            continue
+    K, entries = yud_gt(split)
+    for im in entries:
         img = cv2.imread(
             str(root / im["name"] / f"{im['name']}.jpg"), cv2.IMREAD_GRAYSCALE
         )
@@ -145,13 +148,13 @@ def orthogonal_gt_vs_gt(split: str) -> list[float]:
     The GT VPs are fitted one by one and are not orthogonal; a Manhattan-frame
     estimate disagrees with the GT vertical by about this much by construction.
     """
-    gt = json.loads((DATA / "yorkurbandb" / "yud_gt.json").read_text())
-    out = []
-    for im in gt["images"]:
-        if im["split"] == split:
-            g = np.array(im["vps_camera"][im["vertical_index"]])
-            out.append(min(angle_deg(g, o) for o in im["vps_orthogonal_camera"]))
-    return out
+    return [
+        min(
+            angle_deg(im["vps_camera"][im["vertical_index"]], o)
+            for o in im["vps_orthogonal_camera"]
+        )
+        for im in yud_gt(split)[1]
+    ]
 
 
 def bench_yud(split: str, options: VanishingOptions) -> dict:
