@@ -128,6 +128,13 @@ class BundleOptions:
     initial_damping: float = 1e-4
     #: BLAS threads inside the solver (threadpoolctl); None leaves it alone.
     blas_threads: int | None = 1
+    #: Compute each image's a-posteriori precision at the optimum
+    #: (:attr:`BundleResult.image_precision_px`): one more linearisation and
+    #: one dense inverse of the reduced camera system.
+    compute_precision: bool = True
+    #: Prior standard deviation (m) of the anchor offsets counted in the
+    #: precision (``BundleProblem.horizontal_offset_normal``).
+    horizontal_offset_sigma_m: float = 10.0
 
     def __post_init__(self) -> None:
         for name, value, allowed in (
@@ -145,6 +152,8 @@ class BundleOptions:
             raise ValueError("vertical_sigma_px and horizontal_sigma_px must be > 0")
         if self.corner_height_prior_m is not None and self.corner_height_prior_m <= 0:
             raise ValueError("corner_height_prior_m must be > 0 or None")
+        if self.horizontal_offset_sigma_m <= 0:
+            raise ValueError("horizontal_offset_sigma_m must be > 0")
 
 
 def _as(a, shape_tail: tuple[int, ...], name: str, dtype=float) -> np.ndarray:
@@ -184,6 +193,13 @@ class BundleProblem:
         Map-edge anchor ``(x, y)`` of each (the edge centre), metres.
     horizontal_line : (H, 3) array
         Homogeneous horizontal image line (pixels) of each.
+    horizontal_offset_normal : (H, 2) array, optional
+        Where each anchor's position across its map edge was itself fitted
+        to these observations (facade tracks re-triangulated as 3D lines):
+        the unit horizontal direction of that offset. The solve keeps the
+        anchors fixed; the precision (:attr:`BundleResult.image_precision_px`)
+        counts one offset unknown per facade height along it (prior sigma
+        ``BundleOptions.horizontal_offset_sigma_m``). None: anchors known.
     """
 
     cameras: dict[int, Camera]
@@ -200,6 +216,7 @@ class BundleProblem:
     horizontal_anchor_xy: np.ndarray
     horizontal_line: np.ndarray
     image_ids: tuple[int, ...] | None = None
+    horizontal_offset_normal: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         if self.image_ids is None:
@@ -231,6 +248,10 @@ class BundleProblem:
             self.horizontal_anchor_xy, (2,), "horizontal_anchor_xy"
         )
         self.horizontal_line = _as(self.horizontal_line, (3,), "horizontal_line")
+        if self.horizontal_offset_normal is not None:
+            self.horizontal_offset_normal = _as(
+                self.horizontal_offset_normal, (2,), "horizontal_offset_normal"
+            )
         nc, ni, nj = len(self.corner_xy), len(self.image_ids), len(self.facade_heights)
         checks = [
             ("corner_heights", len(self.corner_heights) == nc),
@@ -247,6 +268,11 @@ class BundleProblem:
             (
                 "horizontal_line",
                 len(self.horizontal_line) == len(self.horizontal_image),
+            ),
+            (
+                "horizontal_offset_normal",
+                self.horizontal_offset_normal is None
+                or len(self.horizontal_offset_normal) == len(self.horizontal_image),
             ),
         ]
         for name, ok in checks:
@@ -317,6 +343,14 @@ class BundleResult:
     vertical_residuals_px : (M,) final residuals in the problem's order.
     horizontal_residuals_px : (H,) final residuals in the problem's order.
     summary : BundleSummary
+    image_precision_px : dict image_id -> float
+        Predicted RMS deviation (px) of the image's constrained points (map
+        corners and facade-edge anchors at their solved heights) projected by
+        its solved camera, from the a-posteriori covariance of its pose and
+        intrinsics (heights marginalised, datum by the gauge, scaled by the
+        variance factor). NaN where not computed or not determinable.
+    variance_factor : float
+        A-posteriori variance of unit weight, ``r^T W r / redundancy``.
     """
 
     cameras: dict[int, Camera]
@@ -326,6 +360,8 @@ class BundleResult:
     vertical_residuals_px: np.ndarray
     horizontal_residuals_px: np.ndarray
     summary: BundleSummary = field(repr=False)
+    image_precision_px: dict[int, float] = field(default_factory=dict)
+    variance_factor: float = float("nan")
 
 
 # --------------------------------------------------------------------------
@@ -434,7 +470,11 @@ class _Setup:
             [nJ + P.vertical_corner if free else np.full(nv, -1), P.horizontal_height]
         )
         zfix = np.concatenate([P.corner_heights[P.vertical_corner], np.zeros(nh)])
+        offset = np.zeros((nv + nh, 2))
+        if P.horizontal_offset_normal is not None:
+            offset[nv:] = P.horizontal_offset_normal
         models = [P.cameras[c].model for c in self.camera_ids]
+        self.camera_model = models
         model_rank = np.searchsorted(sorted(set(models)), models)
         cam = self.img_cam[img]
         order = np.lexsort((img, cam, kind, model_rank[cam]))
@@ -442,9 +482,14 @@ class _Setup:
         self.nv, self.nh = nv, nh
         self.img, self.kind, self.xy = img[order], kind[order], xy[order]
         self.line, self.hidx, self.zfix = line[order], hidx[order], zfix[order]
+        self.offset_dir = offset[order]  # (N, 2), zero: no offset unknown
         self.cam = self.img_cam[self.img]
         self.n_heights = nJ + (len(P.corner_xy) if free else 0)
         self.has_h = self.hidx >= 0
+        # Heights whose anchor offset was fitted to the observations: each
+        # such offset is one more unknown in the redundancy.
+        with_offset = self.has_h & np.any(self.offset_dir != 0, axis=1)
+        self.n_offsets = len(np.unique(self.hidx[with_offset]))
         # The rows with a height as runs (all rows, or all but the vertical
         # ones when the corners are fixed): slices are cheaper than a mask.
         self.h_runs = [(a, b) for a, b in _runs(self.has_h) if self.has_h[a]]
@@ -879,6 +924,27 @@ def _solve(problem: BundleProblem, opts: BundleOptions) -> BundleResult:
                 break
 
     final_rmse = rmse(r)
+    precision, variance_factor = {}, float("nan")
+    if opts.compute_precision and len(r):
+        r, Jc, Jh = _evaluate(S, st, jac=True)
+        _, w = _loss(opts.loss, opts.loss_scale_px, r * r)
+        w = w * S.weight
+        H_cc = _normal_equations(S, Jc, Jh, r, w)[0]
+        offset_w = 1.0 / opts.horizontal_offset_sigma_m**2
+        cov = _camera_covariance(S, H_cc, Jc, Jh, w, prior_w * prior_mask, offset_w)
+        redundancy = (
+            len(r)
+            + int(prior_mask.sum())
+            + len(S.A)
+            - S.n_red
+            - S.n_heights
+            - S.n_offsets
+        )
+        if redundancy > 0:
+            variance_factor = float(np.sum(w * r * r)) / redundancy
+            dh = (st.heights - heights0)[prior_mask]
+            variance_factor += prior_w * float(dh @ dh) / redundancy
+            precision = _image_precision(S, st, variance_factor * cov)
     r_problem = np.empty_like(r)
     r_problem[S.order] = r
     cameras = {}
@@ -919,6 +985,10 @@ def _solve(problem: BundleProblem, opts: BundleOptions) -> BundleResult:
         vertical_residuals_px=r_problem[: S.nv],
         horizontal_residuals_px=r_problem[S.nv :],
         summary=summary,
+        image_precision_px={
+            iid: precision.get(k, float("nan")) for k, iid in enumerate(P.image_ids)
+        },
+        variance_factor=variance_factor,
     )
 
 
@@ -999,6 +1069,100 @@ def _damped_step(S: _Setup, H_cc, g_c, H_hh, g_h, F, lam, schur: _Schur):
         dc = np.linalg.solve(A_red, rhs)
     dh = -dinv * (g_h + S.coupling.matvec(F, dc)) if S.n_heights else np.zeros(0)
     return dc, dh, D_c, D_h
+
+
+def _camera_covariance(
+    S: _Setup, H_cc, Jc, Jh, w, height_prior: np.ndarray, offset_w: float
+) -> np.ndarray:
+    """(n_red, n_red) cofactor matrix of the camera block at the optimum.
+
+    The point unknowns are eliminated (undamped Schur complement): each
+    height, and with it, where its rows have an offset direction
+    (``S.offset_dir``), the anchor's offset along it (prior weight
+    ``offset_w``): one 2 x 2 block per height. The datum is the gauge: the
+    camera block of the inverse of ``[[A_red, A^T], [A, 0]]`` is the
+    cofactor matrix of the gauge-constrained solution; times the variance
+    factor, its covariance. NaN where it is singular.
+
+    Parameters
+    ----------
+    H_cc : (n_red, n_red) camera block of ``J^T W J``.
+    Jc : (N, L) camera Jacobian; ``Jh`` (N,) height Jacobian; ``w`` (N,)
+        weights; ``height_prior`` (n_heights,) prior weight per height.
+    """
+    n, nh, L = S.n_red, S.n_heights, S.L
+    A_red = H_cc.copy()
+    m = S.has_h
+    if nh and m.any():
+        hid, wm, jh = S.hidx[m], w[m], Jh[m]
+        # d r / d offset = d r / d (x, y) . dir = -(d r / d centre_xy) . dir
+        jd = -np.einsum("ij,ij->i", Jc[m, 3:5], S.offset_dir[m])
+        has_d = np.bincount(hid, np.any(S.offset_dir[m] != 0, axis=1), nh) > 0
+        a = np.bincount(hid, wm * jh * jh, nh) + height_prior
+        b = np.bincount(hid, wm * jh * jd, nh)
+        c = np.bincount(hid, wm * jd * jd, nh) + np.where(has_d, offset_w, 1.0)
+        det = a * c - b * b
+        ok = det > 0  # a height without information couples nothing
+        # Cholesky factor of each block's inverse [[c, -b], [-b, a]] / det,
+        # so that E^T inv E = G G^T with one sparse G: two columns per height.
+        l11 = np.sqrt(np.where(ok, c / np.where(ok, det, 1.0), 0.0))
+        l21 = np.where(ok, -b / np.where(ok, det, 1.0), 0.0) / np.where(ok, l11, 1.0)
+        l22 = np.sqrt(np.where(ok, 1.0 / np.where(ok, c, 1.0), 0.0))
+        vals = np.concatenate(
+            [
+                Jc[m] * (wm * (jh * l11[hid] + jd * l21[hid]))[:, None],
+                Jc[m] * (wm * jd * l22[hid])[:, None],
+            ]
+        ).ravel()
+        rows = np.tile(S.cols[m].ravel(), 2)  # camera columns, padding n
+        cols = np.repeat(np.r_[hid, hid + nh], L)
+        G = sp.csr_matrix((vals, (rows, cols)), (n + 1, 2 * nh))
+        A_red -= (G @ G.T).toarray()[:n, :n]
+    ng = len(S.A)
+    # Jacobi scaling: the columns (radians, metres, pixels, distortion) differ
+    # by orders of magnitude; scaled, the condition number is the geometry's.
+    d = np.sqrt(np.clip(np.diag(A_red), 0.0, None))
+    if not np.all(d > 0):
+        return np.full((n, n), np.nan)  # a direction without any observation
+    kkt = np.zeros((n + ng, n + ng))
+    kkt[:n, :n] = A_red / np.outer(d, d)
+    kkt[:n, n:] = (S.A / d).T
+    kkt[n:, :n] = S.A / d
+    try:
+        inv_kkt = np.linalg.inv(kkt)
+    except np.linalg.LinAlgError:
+        return np.full((n, n), np.nan)
+    return inv_kkt[:n, :n] / np.outer(d, d)
+
+
+def _image_precision(S: _Setup, st: _State, cov: np.ndarray) -> dict[int, float]:
+    """Per active image slot: RMS over its rows' world points of the
+    standard deviation (px, 2D) of their projection, from ``cov`` of its
+    pose (rotation increment, centre) and its camera's refined intrinsics."""
+    out: dict[int, float] = {}
+    h_all = st.heights[np.maximum(S.hidx, 0)] if S.n_heights else S.zfix
+    height = np.where(S.has_h, h_all, S.zfix)
+    for a, b, cols in S.image_runs:
+        k = int(S.img[a])
+        slot = int(S.img_cam[k])
+        basis = S.refined[slot]
+        cols = cols[: 6 + basis.shape[1]]
+        X = np.column_stack([S.xy[a:b], height[a:b]])
+        Xc = (X - st.c[k]) @ st.R[k].T  # (n, 3)
+        model = S.camera_model[slot]
+        _, d_pt, d_par = res.project_with_jacobian(model, st.params[slot], Xc)
+        J = np.concatenate(
+            [
+                -d_pt @ res._skew(Xc),  # R <- Exp(omega) R
+                -d_pt @ st.R[k],  # c <- c + dc
+                d_par @ basis,
+            ],
+            axis=2,
+        )  # (n, 2, 6 + q)
+        C = cov[np.ix_(cols, cols)]
+        var = np.einsum("npi,ij,npj->n", J, C, J)
+        out[k] = float(np.sqrt(np.mean(var))) if np.all(np.isfinite(var)) else np.nan
+    return out
 
 
 def _apply(S: _Setup, st: _State, dc: np.ndarray, dh: np.ndarray) -> _State:
