@@ -213,6 +213,9 @@ class Stage3:
     #: Per image id: the share of its constraints (map corners and facade
     #: observations) that the bundle's outlier rounds kept.
     constraints_kept: dict[int, float] = field(default_factory=dict)
+    #: Per image id: the bundle's a-posteriori precision (px) of its
+    #: constrained points (:attr:`BundleResult.image_precision_px`).
+    bundle_precision: dict[int, float] = field(default_factory=dict)
 
     def report(self, outcomes: dict[int, ImageOutcome]) -> dict[str, Any]:
         t = self.tracks
@@ -232,6 +235,9 @@ class Stage3:
                         _finite(x) for x in self.bundle_rms.get(i, (math.nan,) * 2)
                     ],
                     "constraints_kept": _finite(self.constraints_kept.get(i, math.nan)),
+                    "bundle_precision_px": _finite(
+                        self.bundle_precision.get(i, math.nan)
+                    ),
                 }
                 for k, (i, f) in enumerate(zip(self.ids, self.facades, strict=True))
             },
@@ -489,7 +495,11 @@ def bundle_stage(
             dict(zip(stage3.ids, stage3.tracks.datum_correction, strict=True))
         )
         problem = build_bundle_problem(inputs, outcomes, state, stage3)
-        bundle_options = dataclasses.replace(options.bundle, corner_heights="fixed")
+        bundle_options = dataclasses.replace(
+            options.bundle,
+            corner_heights="fixed",
+            horizontal_offset_sigma_m=options.track_offset_sigma_m,
+        )
         try:
             # A wide loss first: after stage 2 and the datum corrections some
             # images still sit metres too high or low (tens of pixels), where
@@ -539,6 +549,7 @@ def bundle_stage(
             state = state.with_bundle(result, problem.image_camera)
             stage3.bundle_rms = _rms_per_image(problem, result)
             stage3.constraints_kept = _kept_share(initial, problem)
+            stage3.bundle_precision = dict(result.image_precision_px)
     timings["bundle"] = time.perf_counter() - t0
     return state, result, stage3
 
@@ -692,6 +703,9 @@ def with_track_lines(
         poses=result.poses,
         facade_heights=heights,
         horizontal_anchor_xy=anchor,
+        # The offsets were fitted to these observations: the bundle's
+        # precision counts them as unknowns.
+        horizontal_offset_normal=normal[problem.horizontal_height],
     )
 
 
@@ -737,6 +751,11 @@ def without_outliers(
         horizontal_height=p.horizontal_height[kh],
         horizontal_anchor_xy=p.horizontal_anchor_xy[kh],
         horizontal_line=p.horizontal_line[kh],
+        horizontal_offset_normal=(
+            None
+            if p.horizontal_offset_normal is None
+            else p.horizontal_offset_normal[kh]
+        ),
     )
     logger.info(
         "bundle: %d of %d vertical and %d of %d horizontal constraints rejected",

@@ -1509,6 +1509,9 @@ def run_report(
             "iterations": s.num_iterations,
             "termination": s.termination,
             "components": [list(c) for c in s.components],
+            # A-posteriori variance of unit weight (residuals weighted by
+            # their kind's sigma): ~1 where the sigmas fit the residuals.
+            "variance_factor": _finite(bundle.variance_factor),
         }
     return report
 
@@ -1516,7 +1519,16 @@ def run_report(
 def summary_table(report: dict[str, Any]) -> str:
     """The closing table of a run, one line per image."""
     facades = report.get("facades", {}).get("images", {})
-    head = ("image", "vp", "segments", "corners", "rms px", "facade obs", "bundle v/h")
+    head = (
+        "image",
+        "vp",
+        "segments",
+        "corners",
+        "rms px",
+        "facade obs",
+        "bundle v/h",
+        "sd px",
+    )
     rows = [(*head, "status")]
     for name, r in report["images"].items():
         rms = r["residual_rms_px"]
@@ -1526,6 +1538,7 @@ def summary_table(report: dict[str, Any]) -> str:
             status += f": {r['message']}"
         f = facades.get(name, {})
         brms = [x for x in f.get("bundle_rms_px", []) if x is not None]
+        sd = f.get("bundle_precision_px")
         rows.append(
             (
                 name,
@@ -1535,6 +1548,7 @@ def summary_table(report: dict[str, Any]) -> str:
                 f"{rms:.2f}" if rms is not None else "-",
                 str(f["observations"]) if f else "-",
                 "/".join(f"{x:.2f}" for x in brms) if len(brms) == 2 else "-",
+                f"{sd:.2f}" if sd is not None else "-",
                 status,
             )
         )
