@@ -123,9 +123,11 @@ def test_bundle_makes_the_images_agree_in_height(initial_run, bundle_run):
     height is held; tens of px along the verticals); the bundle over facade
     tracks puts them in one, below the 2 px of "registered". Across the
     verticals it keeps stage 2's level."""
-    full = {}
+    full, ev = {}, {}
     for key, (out, _) in (("initial", initial_run), ("bundle", bundle_run)):
-        full[key] = evaluate_model(out, SAMPLE, EvaluateOptions()).summary
+        ev[key] = evaluate_model(out, SAMPLE, EvaluateOptions())
+        full[key] = ev[key].summary
+    ev_bundle = ev["bundle"]
     across = evaluate_model(
         bundle_run[0], SAMPLE, EvaluateOptions(across_vertical=True)
     )
@@ -144,6 +146,17 @@ def test_bundle_makes_the_images_agree_in_height(initial_run, bundle_run):
     # the last round: map corners at the map noise, facade lines < 0.5 px
     assert report["bundle"]["rmse_vertical_px"][1] < 1.5
     assert report["bundle"]["rmse_horizontal_px"][1] < 0.5
+    # The a-posteriori precision: the residuals' kind sigmas are the robust
+    # sigmas of the last round, so the variance factor is ~1 (measured 1.09);
+    # each image's predicted sd (measured 0.81-0.91 px) is of the order of
+    # its measured deviation (0.22-0.68 px), not an order of magnitude off.
+    assert 0.5 < report["bundle"]["variance_factor"] < 2.0
+    sd = np.array(
+        [v["bundle_precision_px"] for v in report["facades"]["images"].values()]
+    )
+    dev = np.array([r.mean_deviation_px for r in ev_bundle.images])
+    assert np.all(sd > 0.1) and np.all(sd < 3.0), sd
+    assert np.median(sd) / 4 < np.median(dev) < 2 * np.median(sd)
 
 
 def test_bundle_output_has_facade_points_seen_by_several_images(bundle_run):
