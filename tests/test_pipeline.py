@@ -181,6 +181,21 @@ def test_bundle_output_has_facade_points_seen_by_several_images(bundle_run):
         assert image.num_points3D > 0
 
 
+def test_cli_keeps_calibrated_focal_lengths(tmp_path):
+    """``--refine_focal_length 0``: the priors' focal lengths (a calibrated
+    camera per head) come out unchanged, also from the per-image stage,
+    whose refined focal would otherwise become the bundle's start."""
+    out = tmp_path / "model"
+    argv = _args(SAMPLE, out, "--stop_after", "initial", "--num_workers", "1")
+    assert main([*argv, "--refine_focal_length", "0"]) == 0
+    priors, model = read_model(SAMPLE / "priors"), read_model(out)
+    assert len(model.images) == len(priors.images)
+    for image in model.images.values():
+        prior = priors.cameras[priors.image_by_name(image.name).camera_id]
+        focal = model.cameras[image.camera_id].params[:1]
+        np.testing.assert_array_equal(focal, prior.params[:1])
+
+
 def test_cli_refits_the_facade_segments_on_request(tmp_path, initial_run):
     """``--refine_facade_segments 1`` runs the refit in the per-image stage
     (off by default)."""
@@ -559,6 +574,10 @@ def test_block_state_after_a_bundle_keeps_its_ground_and_datum():
     [
         (["--head_focal_min_images", "-1"], "head_focal_min_images must be >= 0"),
         (["--num_workers", "0"], "--num_workers must be >= 1"),
+        (
+            ["--head_focal_min_images", "3", "--refine_focal_length", "0"],
+            "--refine_focal_length 0 keeps",
+        ),
     ],
 )
 def test_register_option_out_of_range_is_one_line(tmp_path, capsys, option, message):

@@ -91,7 +91,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "images when at least this many registered with enough inliers (0: off). "
         "Default: 3 with --stop_after initial (paper preset: 97-100 %% of the "
         "images below 2 px across the verticals instead of 89-94 %%), else 0 (the "
-        "bundle estimates the focal lengths itself)",
+        "bundle estimates the focal lengths itself); 0 with --refine_focal_length 0",
     )
     prior = parser.add_argument_group("Priors")
     defaults = RegistrationOptions()
@@ -131,7 +131,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         type=_bool01,
         default=bdefaults.refine_focal_length,
         metavar="{0,1}",
-        help="refine focal lengths (default 1)",
+        help="refine focal lengths, per image in stage 2 and per camera in the "
+        "bundle; 0 keeps the priors' (calibrated) focal lengths (default 1)",
     )
     bundle.add_argument(
         "--refine_principal_point",
@@ -173,7 +174,16 @@ def run(args: argparse.Namespace) -> int:
         _option_error("--num_workers must be >= 1")
     head_focal = args.head_focal_min_images
     if head_focal is None:
-        head_focal = default_head_focal_min_images(args.stop_after)
+        head_focal = (
+            default_head_focal_min_images(args.stop_after)
+            if args.refine_focal_length
+            else 0
+        )
+    elif head_focal > 0 and not args.refine_focal_length:
+        _option_error(
+            "--head_focal_min_images estimates the heads' focal lengths, which "
+            "--refine_focal_length 0 keeps: give one of the two"
+        )
     try:
         options = PipelineOptions(
             stop_after=args.stop_after,
@@ -188,6 +198,9 @@ def run(args: argparse.Namespace) -> int:
                 prior_rotation_sigma_deg=args.prior_rotation_sigma,
                 prior_focal_sigma=args.prior_focal_sigma,
                 ground_height=args.ground_height,
+                # A calibrated focal is held from the start: stage 2's
+                # per-image focal would otherwise become the bundle's start.
+                refine_focal=args.refine_focal_length,
                 refine_distortion=args.refine_extra_params,
             ),
             adjustment=AdjustmentOptions(
