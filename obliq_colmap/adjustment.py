@@ -50,6 +50,7 @@ __all__ = [
     "build_bundle_problem",
     "bundle_stage",
     "facade_stage",
+    "imprecise_images",
     "rejected_images",
     "vertical_constraints",
     "with_track_lines",
@@ -612,6 +613,28 @@ def rejected_images(stage3: Stage3, min_kept: float) -> list[int]:
         for i, k in stage3.constraints_kept.items()
         if math.isfinite(k) and k < min_kept
     )
+
+
+def imprecise_images(
+    stage3: Stage3, max_ratio: float, min_images: int = 4
+) -> list[int]:
+    """The images whose pose the bundle determines far worse than the block's.
+
+    Each image's a-posteriori precision (:attr:`Stage3.bundle_precision`,
+    px) against the median over the block: an image held along its
+    verticals by little more than two-view facade tracks (whose offset and
+    height absorb a shift of either camera) has a predicted sd several times
+    the block's, and there the bundle can leave it metres off with every
+    constraint kept and its RMS unremarkable. A ratio above ``max_ratio``
+    flags it (0: none); the median needs ``min_images`` finite values. The
+    precision is internal: it does not see wrong matches
+    (:func:`rejected_images` does).
+    """
+    sd = {i: v for i, v in stage3.bundle_precision.items() if math.isfinite(v)}
+    if max_ratio <= 0 or len(sd) < min_images:
+        return []
+    limit = max_ratio * float(np.median(list(sd.values())))
+    return sorted(i for i, v in sd.items() if v > limit)
 
 
 def _robust_sigma(r: np.ndarray, default: float) -> float:

@@ -650,6 +650,71 @@ def test_the_bundle_flags_an_image_whose_facade_edges_disagree(
     assert not o.registered and "facade constraints" in o.message
 
 
+def test_an_image_held_by_few_facade_edges_is_left_out_as_imprecise(
+    initial_run, monkeypatch
+):
+    """One image's facade edges cut to its two busiest walls: the bundle
+    keeps all its constraints (the disagreement test cannot see it), but its
+    a-posteriori precision is several times the block's (measured 7.7 px
+    against a median of 1.0 px), so it is left out with a message saying why;
+    no other image is."""
+    import copy
+    import dataclasses
+
+    from obliq_colmap import adjustment as adj
+    from obliq_colmap.pipeline import leave_out_rejected, load_inputs
+
+    _, first = initial_run
+    options = PipelineOptions(num_workers=1, progress=False)
+    inputs = load_inputs(
+        SAMPLE / "images", SAMPLE / "cadastre.geojson", SAMPLE / "priors", options
+    )
+    outcomes = {i: copy.deepcopy(o) for i, o in first.outcomes.items()}
+    target = next(i for i, o in outcomes.items() if o.name == "W_10.jpg")
+    calls = iter(range(len(outcomes)))
+    k = sorted(outcomes).index(target)  # facade_stage's order
+    facade_edges = adj.facade_edges
+
+    def thinned(*args, **kwargs):
+        f = facade_edges(*args, **kwargs)
+        if next(calls) != k:
+            return f
+        walls, counts = np.unique(f.edge, return_counts=True)
+        keep = np.isin(f.edge, walls[np.argsort(-counts)[:2]])
+        fields = dataclasses.fields(f)
+        return dataclasses.replace(
+            f, **{x.name: getattr(f, x.name)[keep] for x in fields}
+        )
+
+    monkeypatch.setattr(adj, "facade_edges", thinned)
+    state = adj.BlockState.from_outcomes(list(outcomes.values()))
+    state, result, stage3 = adj.bundle_stage(
+        inputs, outcomes, state, options.adjustment, {}
+    )
+    assert result is not None
+    assert adj.rejected_images(stage3, options.min_constraints_kept) == []
+    imprecise = adj.imprecise_images(stage3, options.max_precision_ratio)
+    assert imprecise == [target]
+    state = leave_out_rejected(state, stage3, outcomes, [], imprecise)
+    assert target not in state.poses and len(state.poses) == len(outcomes) - 1
+    o = outcomes[target]
+    assert not o.registered and "determines its pose poorly" in o.message
+
+
+def test_imprecise_images_against_the_block_median():
+    from types import SimpleNamespace
+
+    from obliq_colmap.adjustment import imprecise_images
+
+    sd = {1: 0.8, 2: 0.9, 3: 1.0, 4: 1.1, 5: 2.4, 6: 2.7, 7: float("nan")}
+    stage3 = SimpleNamespace(bundle_precision=sd)
+    assert imprecise_images(stage3, 2.5) == [6]  # median 1.05 over the finite
+    assert imprecise_images(stage3, 2.0) == [5, 6]
+    assert imprecise_images(stage3, 0.0) == []  # off
+    few = SimpleNamespace(bundle_precision={1: 0.8, 2: 0.9, 3: 9.0})
+    assert imprecise_images(few, 2.5) == []  # no median from three images
+
+
 @pytest.mark.parametrize("failed", [True, False], ids=["failed", "weak"])
 def test_a_reregistration_that_spoils_the_block_is_undone(
     initial_run, monkeypatch, failed
