@@ -748,10 +748,11 @@ def block_stage(
     earlier outcome back (a failed one stays out; measured: `hard` s2 /
     seed 0, a wrong re-registration 24 px off pulled two images 17-21 px
     off); then the images the last bundle disagrees with or determines too
-    poorly are left out (:func:`leave_out_rejected`). ``pool_args``: (workers, initializer
-    arguments) of the re-registration's process pool. Outcomes are updated
-    in place. Returns the block, the last bundle's result (None when it was
-    skipped or failed), its facade stage and the names registered again.
+    poorly are left out (:func:`leave_out_rejected`). ``pool_args``:
+    (workers, initializer arguments) of the re-registration's process pool.
+    Outcomes are updated in place. Returns the block, the last bundle's
+    result (None when it was skipped or failed), its facade stage and the
+    names registered again.
     """
     by_id = {o.image_id: o for o in outcomes}
     state = BlockState.from_outcomes([o for o in outcomes if o.registered])

@@ -54,7 +54,7 @@ def run_once(scene: Path, seed: int, args) -> dict:
     gt, _, _ = _truth_local(scene, inputs)
     registered = {i for i, o in outcomes.items() if o.registered}
     if args.bundle_only:
-        state, result, _ = adj.bundle_stage(
+        state, result, stage3 = adj.bundle_stage(
             inputs,
             outcomes,
             adj.BlockState.from_outcomes([outcomes[i] for i in registered]),
@@ -68,7 +68,7 @@ def run_once(scene: Path, seed: int, args) -> dict:
         tasks = pl.image_tasks(inputs, options)
         origin3 = np.r_[inputs.cadastre.origin[:2], 0.0]
         init_args = (inputs.cadastre_path, options.cadastre, origin3)
-        state, result, _, again = pl.block_stage(
+        state, result, stage3, again = pl.block_stage(
             inputs,
             tasks,
             [outcomes[t.image_id] for t in tasks],
@@ -77,6 +77,7 @@ def run_once(scene: Path, seed: int, args) -> dict:
             (args.num_workers, init_args),
         )
     evaluations = _evaluate(inputs, state, gt)
+    name_to_id = {outcomes[i].name: i for i in state.poses}
     full, across, cameras = (e.summary for e in evaluations)
     # Written although wrong: in the model, more than 5 px off.
     wrong = [
@@ -96,6 +97,19 @@ def run_once(scene: Path, seed: int, args) -> dict:
         "reregistered": again,
         "written_over_5px": wrong,
         "left_out": sorted(outcomes[i].name for i in registered - set(state.poses)),
+        "variance_factor": None if result is None else result.variance_factor,
+        # Per image in the block: the bundle's predicted precision (px), the
+        # deviation measured against the truth (px) and the share of its
+        # constraints the bundle kept.
+        "precision_vs_deviation": {
+            e.name: [
+                stage3.bundle_precision.get(name_to_id.get(e.name), float("nan")),
+                e.mean_deviation_px,
+                stage3.constraints_kept.get(name_to_id.get(e.name), float("nan")),
+            ]
+            for e in evaluations[0].images
+            if e.name in name_to_id
+        },
     }
 
 
@@ -107,6 +121,31 @@ def summary(rows: list[dict]) -> str:
         f"{len(rows)} runs: median deviation median {statistics.median(med):.3f},"
         f" mean {statistics.mean(med):.3f}, max {max(med):.3f} px; p95 median"
         f" {statistics.median(p95):.3f} px; all images < 2 px in {full} runs"
+        + precision_summary(rows)
+    )
+
+
+def precision_summary(rows: list[dict]) -> str:
+    """The bundle's predicted precision against the measured deviation, over
+    every image written: internal versus external accuracy."""
+    pd = np.array(
+        [v[:2] for r in rows for v in r["precision_vs_deviation"].values()], float
+    ).reshape(-1, 2)
+    pd = pd[np.all(np.isfinite(pd), axis=1)]
+    if not len(pd):
+        return ""
+    prec, dev = pd.T
+    # Rank correlation (no ties in practice): does a worse precision go
+    # with a worse deviation?
+    rank = np.corrcoef(np.argsort(np.argsort(prec)), np.argsort(np.argsort(dev)))
+    over = prec[dev > 5.0]
+    return (
+        f"\nprecision (predicted sd) over {len(pd)} images: median"
+        f" {np.median(prec):.3f} px; deviation / precision median"
+        f" {np.median(dev / prec):.2f}, p95 {np.percentile(dev / prec, 95):.2f};"
+        f" rank correlation {rank[0, 1]:.2f}; the {len(over)} images > 5 px off"
+        f" have precision {np.round(over, 3).tolist()} (percentile of all:"
+        f" {[round(float(np.mean(prec < x)) * 100) for x in over]})"
     )
 
 
