@@ -514,13 +514,16 @@ def bundle_stage(
                         options.initial_loss_scale_px, bundle_options.loss_scale_px
                     ),
                 )
-            result = solve_bundle(problem, first)
+            # The precision (one more linearisation and a dense inverse) is
+            # wanted of the last solve only, which is known before it runs.
+            rounds = options.outlier_rounds
+            result = solve_bundle(problem, _precision_if(first, rounds == 0))
             initial = problem
             # Per horizontal row: the track observation it is (facade rows)
             # or -1 (ground rows); filtered with the rows.
             obs = stage3.row_obs
             scale_obs = _observation_pixel_scale(stage3)
-            for _ in range(options.outlier_rounds):
+            for k in range(rounds):
                 problem, kv, kh = without_outliers(
                     problem,
                     result,
@@ -540,8 +543,9 @@ def bundle_stage(
                     problem, bundle_options = with_variance_components(
                         problem, result, bundle_options, kh, unknowns
                     )
-                result = solve_bundle(problem, bundle_options)
-                if kv.all() and kh.all():
+                last = (kv.all() and kh.all()) or k == rounds - 1
+                result = solve_bundle(problem, _precision_if(bundle_options, last))
+                if last:
                     break
         except ValueError as exc:
             logger.warning("bundle failed (%s): the per-image result is kept", exc)
@@ -553,6 +557,12 @@ def bundle_stage(
             stage3.bundle_precision = dict(result.image_precision_px)
     timings["bundle"] = time.perf_counter() - t0
     return state, result, stage3
+
+
+def _precision_if(options: BundleOptions, wanted: bool) -> BundleOptions:
+    """``options`` with the precision computed only where ``wanted``."""
+    wanted = wanted and options.compute_precision
+    return dataclasses.replace(options, compute_precision=wanted)
 
 
 def _observation_pixel_scale(stage3: Stage3) -> np.ndarray:
