@@ -146,6 +146,29 @@ def precision_summary(rows: list[dict]) -> str:
         f" rank correlation {rank[0, 1]:.2f}; the {len(over)} images > 5 px off"
         f" have precision {np.round(over, 3).tolist()} (percentile of all:"
         f" {[round(float(np.mean(prec < x)) * 100) for x in over]})"
+        + "".join(ratio_flags(rows, r) for r in (2.0, 2.5))
+    )
+
+
+def ratio_flags(rows: list[dict], ratio: float) -> str:
+    """The images whose predicted sd exceeds ``ratio`` x their run's median
+    (``PipelineOptions.max_precision_ratio``), with their deviation, and the
+    images > 5 px off below it: what that leave-out takes and misses. Run
+    with ``--set max_precision_ratio=0.0`` so that the flagged images are
+    still in the block, measured."""
+    flagged, missed = [], []
+    for r in rows:
+        d = r["precision_vs_deviation"]
+        med = np.nanmedian([v[0] for v in d.values()])
+        for name, (sd, dev, *_) in d.items():
+            item = f"{r['scene']}/{r['seed']}/{name} {sd / med:.2f}x {dev:.2f} px"
+            if sd > ratio * med:
+                flagged.append(item)
+            elif dev > 5.0:
+                missed.append(item)
+    return (
+        f"\nsd > {ratio} x the run's median: {len(flagged)} images {flagged};"
+        f" > 5 px off below it: {missed}"
     )
 
 
