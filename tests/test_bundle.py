@@ -830,8 +830,13 @@ def test_image_precision_predicts_the_deviation_from_the_truth():
     np.testing.assert_allclose(np.median(factors), noise**2, rtol=0.05)
 
 
-def test_image_precision_can_be_turned_off(noisy):
-    out = solve_bundle(noisy.problem, BundleOptions(compute_precision=False))
+@pytest.mark.parametrize(
+    "options",
+    [{"compute_precision": False}, {"precision_max_camera_params": 10}],
+    ids=["off", "too-many-cameras"],
+)
+def test_image_precision_can_be_turned_off(noisy, options):
+    out = solve_bundle(noisy.problem, BundleOptions(**options))
     assert all(np.isnan(v) for v in out.image_precision_px.values())
     assert np.isnan(out.variance_factor)
 
