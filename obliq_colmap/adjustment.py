@@ -461,6 +461,11 @@ def build_bundle_problem(
         horizontal_height=t.track,
         horizontal_anchor_xy=t.anchor_xy[t.track],
         horizontal_line=lines,
+        # The INS attitude, an observation where the bundle is given its
+        # sigma (BundleOptions.rotation_prior_sigma_deg).
+        prior_rotations={
+            i: inputs.priors.images[i].cam_from_world.rotation for i in ids
+        },
     )
 
 
@@ -789,6 +794,7 @@ def without_outliers(
             if p.horizontal_offset_normal is None
             else p.horizontal_offset_normal[kh]
         ),
+        prior_rotations=p.prior_rotations,
     )
     logger.info(
         "bundle: %d of %d vertical and %d of %d horizontal constraints rejected",

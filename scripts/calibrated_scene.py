@@ -2,55 +2,80 @@
 
 Copies ``--scene_path`` (``obliq-colmap synth`` output) to ``--output_path``
 with the priors' cameras replaced by the truth's (focal length, principal
-point and distortion of each head: a calibration report), the focal-error
-option of ``scene.json`` set to 0, and everything else (images, map, the
-priors' poses, the truth) linked, not copied. Used for the calibrated-heads
-runs in docs/BENCHMARKS.md (issue 5):
+point and distortion of each head: a calibration report) and the
+focal-error option of ``scene.json`` set to 0; with ``--rotation_sigma_deg
+S`` also each prior rotation replaced by the true one turned by a random
+rotation vector of S degrees per axis (a calibrated INS; the prior centres
+stay as they are, and so does ``scene.json``'s rotation noise, which sets
+stage 2's search). Everything else (images, map, truth) is linked, not
+copied. Used for the calibrated runs in docs/BENCHMARKS.md (issue 5):
 
     python scripts/calibrated_scene.py --scene_path /work/scenes/paper_s1 \\
-        --output_path /work/scenes/paper_s1_cal
+        --output_path /work/scenes/paper_s1_cal [--rotation_sigma_deg 0.01]
     python scripts/bench_seeds.py --scene_path /work/scenes/paper_s1_cal \\
         --set registration.refine_focal=False \\
         --set adjustment.bundle.refine_focal_length=False \\
-        --set adjustment.bundle.refine_principal_point=False
+        --set adjustment.bundle.refine_principal_point=False \\
+        [--set adjustment.bundle.rotation_prior_sigma_deg=0.01]
 
 (``register``: the same priors with ``--refine_focal_length 0
---refine_principal_point 0``.)
+--refine_principal_point 0 [--bundle_rotation_sigma 0.01]``.)
 """
 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import sys
 from pathlib import Path
 
-import pycolmap
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from obliq_colmap.colmap_io import read_model, write_absolute_model
+from obliq_colmap.geometry import Pose
 
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--scene_path", required=True, type=Path)
     parser.add_argument("--output_path", required=True, type=Path)
+    parser.add_argument("--rotation_sigma_deg", type=float)
+    parser.add_argument("--seed", type=int, default=0)
     args = parser.parse_args(argv)
     src, dst = args.scene_path.resolve(), args.output_path
     if not (src / "scene.json").is_file():
         print(f"error: {src}: not a synthetic scene (no scene.json)", file=sys.stderr)
         return 2
+    if (dst / "priors").exists():
+        print(f"error: {dst / 'priors'} exists", file=sys.stderr)
+        return 2
     dst.mkdir(parents=True, exist_ok=True)
     for name in ("images", "gt", "cadastre.geojson", "gt_buildings.json"):
         if (src / name).exists() and not (dst / name).exists():
             (dst / name).symlink_to(src / name)
-    priors = pycolmap.Reconstruction(str(src / "priors"))
-    truth = pycolmap.Reconstruction(str(src / "gt"))
-    for camera_id, camera in priors.cameras.items():
-        camera.params = truth.cameras[camera_id].params
-    (dst / "priors").mkdir(exist_ok=True)
-    priors.write(str(dst / "priors"))
+    priors, truth = read_model(src / "priors"), read_model(src / "gt")
+    cameras = {
+        i: dataclasses.replace(truth.cameras[i], camera_id=i) for i in priors.cameras
+    }
+    images = dict(priors.images)
     meta = json.loads((src / "scene.json").read_text())
     meta["options"]["prior_focal_percent"] = 0.0
+    if args.rotation_sigma_deg is not None:
+        rng = np.random.default_rng(args.seed)
+        for i, image in images.items():
+            true = truth.image_by_name(image.name).cam_from_world.rotation
+            turn = Rotation.from_rotvec(
+                np.radians(rng.normal(0.0, args.rotation_sigma_deg, 3))
+            ).as_matrix()
+            pose = Pose.from_center(turn @ true, image.cam_from_world.center)
+            images[i] = dataclasses.replace(image, cam_from_world=pose)
+    write_absolute_model(
+        dst / "priors", dataclasses.replace(priors, cameras=cameras, images=images)
+    )
     (dst / "scene.json").write_text(json.dumps(meta, indent=1))
-    print(f"wrote {dst}: {len(priors.cameras)} calibrated cameras")
+    print(f"wrote {dst}: {len(cameras)} calibrated cameras")
     return 0
 
 

@@ -118,6 +118,11 @@ class BundleOptions:
     #: Standard deviation, metres, of a weak prior pulling free corner heights
     #: towards their initial values (None: no prior). 1 px of cost per sigma.
     corner_height_prior_m: float | None = 5.0
+    #: Standard deviation, degrees, of each image's rotation about its prior
+    #: (``BundleProblem.prior_rotations``: a calibrated INS, attitude as an
+    #: observation); None: no prior. It holds each image's rotation, which
+    #: its constraints determine worst (docs/BENCHMARKS.md, issue 5).
+    rotation_prior_sigma_deg: float | None = None
     #: Vertical datum: "component_mean_camera_height" (per linked component,
     #: hard constraint) or "none" (rank-deficient; damping only).
     gauge: str = "component_mean_camera_height"
@@ -157,6 +162,11 @@ class BundleOptions:
             raise ValueError("vertical_sigma_px and horizontal_sigma_px must be > 0")
         if self.corner_height_prior_m is not None and self.corner_height_prior_m <= 0:
             raise ValueError("corner_height_prior_m must be > 0 or None")
+        if (
+            self.rotation_prior_sigma_deg is not None
+            and not self.rotation_prior_sigma_deg > 0
+        ):
+            raise ValueError("rotation_prior_sigma_deg must be > 0 or None")
         if self.horizontal_offset_sigma_m <= 0:
             raise ValueError("horizontal_offset_sigma_m must be > 0")
 
@@ -205,6 +215,9 @@ class BundleProblem:
         anchors fixed; the precision (:attr:`BundleResult.image_precision_px`)
         counts one offset unknown per facade height along it (prior sigma
         ``BundleOptions.horizontal_offset_sigma_m``). None: anchors known.
+    prior_rotations : dict image_id -> (3, 3) array, optional
+        Prior ``cam_from_world`` rotation of each image (the INS), used with
+        ``BundleOptions.rotation_prior_sigma_deg``.
     """
 
     cameras: dict[int, Camera]
@@ -222,6 +235,7 @@ class BundleProblem:
     horizontal_line: np.ndarray
     image_ids: tuple[int, ...] | None = None
     horizontal_offset_normal: np.ndarray | None = None
+    prior_rotations: dict[int, np.ndarray] | None = None
 
     def __post_init__(self) -> None:
         if self.image_ids is None:
@@ -233,6 +247,10 @@ class BundleProblem:
         bad = [
             i for i in self.image_ids if self.image_camera.get(i) not in self.cameras
         ]
+        if self.prior_rotations is not None:
+            missing = [i for i in self.image_ids if i not in self.prior_rotations]
+            if missing:
+                raise ValueError(f"image_ids without a prior rotation: {missing[:10]}")
         if bad:
             raise ValueError(f"images without a known camera: {bad[:10]}")
         self.corner_xy = _as(self.corner_xy, (2,), "corner_xy")
@@ -822,12 +840,16 @@ def _solve(problem: BundleProblem, opts: BundleOptions) -> BundleResult:
         heights0.copy(),
     )
 
-    def cost_of(r: np.ndarray, heights: np.ndarray) -> float:
+    attitude = _AttitudePrior.of(P, S, opts)
+
+    def cost_of(r: np.ndarray, st: _State) -> float:
         rho, _ = _loss(opts.loss, opts.loss_scale_px, r * r)
         c = 0.5 * float(np.sum(S.weight * rho))
         if prior_w:
-            dh = (heights - heights0)[prior_mask]
+            dh = (st.heights - heights0)[prior_mask]
             c += 0.5 * prior_w * float(dh @ dh)
+        if attitude is not None:
+            c += attitude.cost(st)
         return c if np.isfinite(c) else np.inf
 
     def rmse(r: np.ndarray) -> tuple[float, float]:
@@ -842,7 +864,7 @@ def _solve(problem: BundleProblem, opts: BundleOptions) -> BundleResult:
             f"{len(bad)} constrained points are behind their camera (or project to "
             f"infinity) at the start, e.g. in image {P.image_ids[S.img[bad[0]]]}"
         )
-    cost = cost_of(r, st.heights)
+    cost = cost_of(r, st)
     initial_cost, initial_rmse = cost, rmse(r)
 
     # Height-only Gauss-Newton steps (cameras fixed): cheap, diagonal.
@@ -858,7 +880,7 @@ def _solve(problem: BundleProblem, opts: BundleOptions) -> BundleResult:
         trial = st.copy()
         trial.heights = st.heights - gh / np.maximum(Hh, 1e-12)
         r_t, _, _ = _evaluate(S, trial, jac=False)
-        c_t = cost_of(r_t, trial.heights)
+        c_t = cost_of(r_t, trial)
         if not c_t < cost:
             break
         st, cost = trial, c_t
@@ -875,6 +897,8 @@ def _solve(problem: BundleProblem, opts: BundleOptions) -> BundleResult:
             _, w = _loss(opts.loss, opts.loss_scale_px, r * r)
             w = w * S.weight
             H_cc, g_c, H_hh, g_h, F = _normal_equations(S, Jc, Jh, r, w)
+            if attitude is not None:
+                attitude.add_to(H_cc, g_c, st)
             H_hh = H_hh + prior_w * prior_mask
             g_h = g_h + prior_w * prior_mask * (st.heights - heights0)
             schur = _Schur(S.coupling, H_hh, g_h, F)
@@ -885,7 +909,7 @@ def _solve(problem: BundleProblem, opts: BundleOptions) -> BundleResult:
         )
         trial = _apply(S, st, dc, dh)
         r_t, _, _ = _evaluate(S, trial, jac=False)
-        c_t = cost_of(r_t, trial.heights)
+        c_t = cost_of(r_t, trial)
         x_norm = np.sqrt(
             np.sum(st.c[S.active_images] ** 2)
             + sum(float(p @ p) for p in st.params)
@@ -941,6 +965,8 @@ def _solve(problem: BundleProblem, opts: BundleOptions) -> BundleResult:
         _, w = _loss(opts.loss, opts.loss_scale_px, r * r)
         w = w * S.weight
         H_cc = _normal_equations(S, Jc, Jh, r, w)[0]
+        if attitude is not None:
+            attitude.add_to(H_cc, np.zeros(S.n_red), st)
         offset_w = 1.0 / opts.horizontal_offset_sigma_m**2
         cov = _camera_covariance(S, H_cc, Jc, Jh, w, prior_w * prior_mask, offset_w)
         redundancy = (
@@ -951,8 +977,12 @@ def _solve(problem: BundleProblem, opts: BundleOptions) -> BundleResult:
             - S.n_heights
             - S.n_offsets
         )
+        if attitude is not None:
+            redundancy += 3 * len(S.active_images)
         if redundancy > 0:
             variance_factor = float(np.sum(w * r * r)) / redundancy
+            if attitude is not None:
+                variance_factor += 2.0 * attitude.cost(st) / redundancy
             dh = (st.heights - heights0)[prior_mask]
             variance_factor += prior_w * float(dh @ dh) / redundancy
             precision = _image_precision(S, st, variance_factor * cov)
@@ -1080,6 +1110,42 @@ def _damped_step(S: _Setup, H_cc, g_c, H_hh, g_h, F, lam, schur: _Schur):
         dc = np.linalg.solve(A_red, rhs)
     dh = -dinv * (g_h + S.coupling.matvec(F, dc)) if S.n_heights else np.zeros(0)
     return dc, dh, D_c, D_h
+
+
+class _AttitudePrior:
+    """Each active image's rotation observed: ``e = Log(R R_prior^T) / sigma``
+    (3 rows, radians over radians), linearised in the solver's increment
+    ``R <- Exp(omega) R`` as ``d e / d omega = I / sigma`` (exact at e = 0;
+    the cost is evaluated exactly, so LM stays correct)."""
+
+    def __init__(self, S: _Setup, prior: np.ndarray, sigma_rad: float) -> None:
+        self.k = S.active_images  # (K',) slots of the images with rows
+        self.cols = S.pose_col[self.k][:, None] + np.arange(3)  # (K', 3)
+        self.prior = prior[self.k]  # (K', 3, 3)
+        self.w = 1.0 / sigma_rad**2
+
+    @classmethod
+    def of(cls, P: BundleProblem, S: _Setup, opts: BundleOptions):
+        if opts.rotation_prior_sigma_deg is None or P.prior_rotations is None:
+            return None
+        prior = np.stack([np.asarray(P.prior_rotations[i], float) for i in P.image_ids])
+        return cls(S, prior, np.deg2rad(opts.rotation_prior_sigma_deg))
+
+    def errors(self, st: _State) -> np.ndarray:
+        """(K', 3) rotation vectors of R R_prior^T, radians."""
+        from scipy.spatial.transform import Rotation
+
+        R = st.R[self.k] @ np.transpose(self.prior, (0, 2, 1))
+        return Rotation.from_matrix(R).as_rotvec()
+
+    def cost(self, st: _State) -> float:
+        e = self.errors(st)
+        return 0.5 * self.w * float(np.sum(e * e))
+
+    def add_to(self, H_cc: np.ndarray, g_c: np.ndarray, st: _State) -> None:
+        """Its terms of ``J^T W J`` and ``J^T W r``, in place."""
+        H_cc[self.cols, self.cols] += self.w
+        np.add.at(g_c, self.cols, self.w * self.errors(st))
 
 
 def _camera_covariance(

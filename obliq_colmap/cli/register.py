@@ -160,6 +160,15 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "lenses: docs/BENCHMARKS.md; default 0)",
     )
     bundle.add_argument(
+        "--bundle_rotation_sigma",
+        type=float,
+        default=bdefaults.rotation_prior_sigma_deg,
+        metavar="DEG",
+        help="use the priors' rotations as observations in the bundle with this "
+        "1-sigma, deg (a calibrated INS: e.g. 0.01); default: not used (the "
+        "rough priors of --prior_rotation_sigma only guide stage 2)",
+    )
+    bundle.add_argument(
         "--loss_scale",
         type=float,
         default=bdefaults.loss_scale_px,
@@ -209,6 +218,7 @@ def run(args: argparse.Namespace) -> int:
                     refine_focal_length=args.refine_focal_length,
                     refine_principal_point=args.refine_principal_point,
                     refine_extra_params=args.refine_extra_params,
+                    rotation_prior_sigma_deg=args.bundle_rotation_sigma,
                     loss_scale_px=args.loss_scale,
                 )
             ),
