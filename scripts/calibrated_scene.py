@@ -43,6 +43,11 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--output_path", required=True, type=Path)
     parser.add_argument("--rotation_sigma_deg", type=float)
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument(
+        "--keep_cameras",
+        action="store_true",
+        help="keep the priors' (uncalibrated) cameras: an INS-grade attitude alone",
+    )
     args = parser.parse_args(argv)
     src, dst = args.scene_path.resolve(), args.output_path
     if not (src / "scene.json").is_file():
@@ -61,7 +66,10 @@ def main(argv: list[str] | None = None) -> int:
     }
     images = dict(priors.images)
     meta = json.loads((src / "scene.json").read_text())
-    meta["options"]["prior_focal_percent"] = 0.0
+    if args.keep_cameras:
+        cameras = priors.cameras
+    else:
+        meta["options"]["prior_focal_percent"] = 0.0
     if args.rotation_sigma_deg is not None:
         rng = np.random.default_rng(args.seed)
         for i, image in images.items():
@@ -75,7 +83,8 @@ def main(argv: list[str] | None = None) -> int:
         dst / "priors", dataclasses.replace(priors, cameras=cameras, images=images)
     )
     (dst / "scene.json").write_text(json.dumps(meta, indent=1))
-    print(f"wrote {dst}: {len(cameras)} calibrated cameras")
+    kind = "prior" if args.keep_cameras else "calibrated"
+    print(f"wrote {dst}: {len(cameras)} {kind} cameras")
     return 0
 
 
