@@ -578,6 +578,7 @@ def test_block_state_after_a_bundle_keeps_its_ground_and_datum():
             ["--head_focal_min_images", "3", "--refine_focal_length", "0"],
             "--refine_focal_length 0 keeps",
         ),
+        (["--bundle_rotation_sigma", "0"], "rotation_prior_sigma_deg must be > 0"),
     ],
 )
 def test_register_option_out_of_range_is_one_line(tmp_path, capsys, option, message):
