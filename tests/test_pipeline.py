@@ -702,6 +702,37 @@ def test_an_image_held_by_few_facade_edges_is_left_out_as_imprecise(
     assert not o.registered and "determines its pose poorly" in o.message
 
 
+def test_the_bundle_holds_the_priors_rotations_when_given_their_sigma(initial_run):
+    """``rotation_prior_sigma_deg`` reaches every round of the bundle: with
+    a sigma far below the priors' real error (1.5 deg) the solved rotations
+    are the priors', through the outlier rounds and the track lines."""
+    import copy
+    import dataclasses
+
+    from obliq_colmap import adjustment as adj
+    from obliq_colmap.pipeline import load_inputs
+
+    _, first = initial_run
+    options = PipelineOptions(num_workers=1, progress=False)
+    inputs = load_inputs(
+        SAMPLE / "images", SAMPLE / "cadastre.geojson", SAMPLE / "priors", options
+    )
+    outcomes = {i: copy.deepcopy(o) for i, o in first.outcomes.items()}
+    held = dataclasses.replace(
+        options.adjustment,
+        bundle=dataclasses.replace(
+            options.adjustment.bundle, rotation_prior_sigma_deg=1e-4
+        ),
+    )
+    state = adj.BlockState.from_outcomes(list(outcomes.values()))
+    state, result, _ = adj.bundle_stage(inputs, outcomes, state, held, {})
+    assert result is not None and result.summary.converged
+    for i, pose in state.poses.items():
+        prior = inputs.priors.images[i].cam_from_world.rotation
+        c = (np.trace(pose.rotation @ prior.T) - 1.0) / 2.0
+        assert np.degrees(np.arccos(min(c, 1.0))) < 0.01
+
+
 def test_imprecise_images_against_the_block_median():
     from types import SimpleNamespace
 
