@@ -725,6 +725,12 @@ def run_register(
         "num_workers": workers,
         "vp_cone_deg": options.cone_deg,
         "camera_model": options.camera_model,
+        "refine_focal_length": options.adjustment.bundle.refine_focal_length,
+        "refine_principal_point": options.adjustment.bundle.refine_principal_point,
+        "refine_extra_params": options.adjustment.bundle.refine_extra_params,
+        "bundle_rotation_sigma_deg": options.adjustment.bundle.rotation_prior_sigma_deg,
+        "min_constraints_kept": options.min_constraints_kept,
+        "max_precision_ratio": options.max_precision_ratio,
     }
     report["num_points3D"] = len(points)
     return RunResult(block, georef, points, by_id, report, bundle_result)

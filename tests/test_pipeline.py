@@ -188,6 +188,9 @@ def test_cli_keeps_calibrated_focal_lengths(tmp_path):
     out = tmp_path / "model"
     argv = _args(SAMPLE, out, "--stop_after", "initial", "--num_workers", "1")
     assert main([*argv, "--refine_focal_length", "0"]) == 0
+    report = json.loads((out / "report.json").read_text())
+    assert report["options"]["refine_focal_length"] is False
+    assert report["options"]["bundle_rotation_sigma_deg"] is None
     priors, model = read_model(SAMPLE / "priors"), read_model(out)
     assert len(model.images) == len(priors.images)
     for image in model.images.values():
