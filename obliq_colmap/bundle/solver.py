@@ -54,6 +54,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import scipy.sparse as sp
 from scipy.sparse.csgraph import connected_components
+from scipy.spatial.transform import Rotation
 
 from ..geometry import Camera, Pose
 from . import residuals as res
@@ -1133,8 +1134,6 @@ class _AttitudePrior:
 
     def errors(self, st: _State) -> np.ndarray:
         """(K', 3) rotation vectors of R R_prior^T, radians."""
-        from scipy.spatial.transform import Rotation
-
         R = st.R[self.k] @ np.transpose(self.prior, (0, 2, 1))
         return Rotation.from_matrix(R).as_rotvec()
 
