@@ -163,8 +163,8 @@ class PipelineOptions:
     #: its verticals) and is left out, named in the report
     #: (:func:`adjustment.imprecise_images`); 0 keeps every image. Chosen on
     #: 18 runs (`paper` s1-s4, `hard` s1-s2: the 4 images above 2.0 all
-    #: failed, 2.4-15 px off; the highest correct image at 1.4) and 12 runs
-    #: with calibrated heads (highest correct 2.2), checked on held-out
+    #: failed, 2.4-15 px off; the highest correct image at 1.9) and 12 runs
+    #: with calibrated heads (correct images up to 2.2), checked on held-out
     #: scenes (docs/BENCHMARKS.md).
     max_precision_ratio: float = 2.5
     #: COLMAP camera model of the result (None: the priors' model).
@@ -1131,6 +1131,7 @@ def leave_out_rejected(
     if not out or stage3 is None:
         return state
     sd = [v for v in stage3.bundle_precision.values() if math.isfinite(v)]
+    median_sd = float(np.median(sd)) if sd else math.nan
     for i in out:
         reasons = []
         if i in rejected:
@@ -1143,7 +1144,7 @@ def leave_out_rejected(
             reasons.append(
                 "the bundle determines its pose poorly (predicted sd"
                 f" {stage3.bundle_precision[i]:.2f} px against the block's median"
-                f" {np.median(sd):.2f} px: too few constraints tie it to the"
+                f" {median_sd:.2f} px: too few constraints tie it to the"
                 " others)"
             )
         o = outcomes[i]

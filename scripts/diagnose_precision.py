@@ -21,7 +21,6 @@ import numpy as np
 from bench_resolution import scene_parser, synthetic_scenes
 from bench_seeds import run_once
 
-from obliq_colmap.bundle import residuals as res
 from obliq_colmap.bundle import solver
 
 _ORIGINAL = solver._image_precision
@@ -44,25 +43,10 @@ def _conditional(J: np.ndarray, C: np.ndarray, known: list[int]) -> float:
 
 def _recording(S, st, cov):
     """``solver._image_precision`` that also records the conditional sds
-    (the same Jacobians: rotation increment, centre, refined intrinsics)."""
+    (on the same Jacobians, :func:`solver._image_jacobians`)."""
     out = _ORIGINAL(S, st, cov)
-    height = np.where(
-        S.has_h, st.heights[np.maximum(S.hidx, 0)] if S.n_heights else 0, S.zfix
-    )
     record = {}
-    for a, b, cols in S.image_runs:
-        k = int(S.img[a])
-        slot = int(S.img_cam[k])
-        basis = S.refined[slot]
-        cols = cols[: 6 + basis.shape[1]]
-        X = np.column_stack([S.xy[a:b], height[a:b]])
-        Xc = (X - st.c[k]) @ st.R[k].T
-        _, d_pt, d_par = res.project_with_jacobian(
-            S.camera_model[slot], st.params[slot], Xc
-        )
-        J = np.concatenate(
-            [-d_pt @ res._skew(Xc), -d_pt @ st.R[k], d_par @ basis], axis=2
-        )
+    for k, J, cols in solver._image_jacobians(S, st):
         C = cov[np.ix_(cols, cols)]
         intrinsics = list(range(6, len(cols)))
         record[S.image_ids[k]] = {

@@ -750,13 +750,7 @@ def test_height_camera_coupling_products_match_a_dense_E():
         (P2, BundleOptions()),
     ):
         S = sv._Setup(P, options)
-        free = options.corner_heights == "free"
-        st = sv._State(
-            np.stack([P.poses[i].rotation for i in P.image_ids]),
-            np.stack([P.poses[i].center for i in P.image_ids]),
-            [P.cameras[c].params.copy() for c in S.camera_ids],
-            np.concatenate([P.facade_heights, P.corner_heights if free else []]),
-        )
+        st = sv._State.start(P, S)
         r, Jc, Jh = sv._evaluate(S, st, jac=True)
         w = np.random.default_rng(0).uniform(0.5, 1.0, len(r))
         F = sv._normal_equations(S, Jc, Jh, r, w)[-1]
@@ -883,12 +877,7 @@ def test_camera_covariance_matches_a_dense_inverse_with_offset_unknowns():
     P = dataclasses.replace(P0, horizontal_offset_normal=normal[P0.horizontal_height])
     opts = BundleOptions(corner_height_prior_m=3.0)
     S = sv._Setup(P, opts)
-    st = sv._State(
-        np.stack([P.poses[i].rotation for i in P.image_ids]),
-        np.stack([P.poses[i].center for i in P.image_ids]),
-        [P.cameras[c].params.copy() for c in S.camera_ids],
-        np.concatenate([P.facade_heights, P.corner_heights]),
-    )
+    st = sv._State.start(P, S)
     r, Jc, Jh = sv._evaluate(S, st, jac=True)
     w = rng.uniform(0.5, 1.0, len(r))
     height_prior = np.r_[np.zeros(J), np.full(len(P.corner_xy), 1 / 3.0**2)]
@@ -945,12 +934,7 @@ def test_attitude_prior_gradient_matches_its_cost():
     P = dataclasses.replace(syn.problem, prior_rotations=truth)
     opts = BundleOptions(rotation_prior_sigma_deg=0.2)
     S = sv._Setup(P, opts)
-    st = sv._State(
-        np.stack([P.poses[i].rotation for i in P.image_ids]),
-        np.stack([P.poses[i].center for i in P.image_ids]),
-        [P.cameras[c].params.copy() for c in S.camera_ids],
-        np.zeros(S.n_heights),
-    )
+    st = sv._State.start(P, S)
     prior = sv._AttitudePrior.of(P, S, opts)
     g = np.zeros(S.n_red)
     H = np.zeros((S.n_red, S.n_red))

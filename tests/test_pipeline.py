@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import copy
 import json
 import shutil
 from pathlib import Path
@@ -16,6 +17,20 @@ from obliq_colmap.evaluate import EvaluateOptions, evaluate_model
 from obliq_colmap.pipeline import PipelineOptions, run_register, write_run
 
 SAMPLE = Path(__file__).resolve().parents[1] / "data_samples" / "oblique_small"
+
+
+def _sample_after_stage2(initial_run):
+    """The sample's options (one worker), inputs and a private copy of its
+    stage-2 outcomes (``initial_run``), for the stage-3 tests."""
+    from obliq_colmap.pipeline import load_inputs
+
+    _, first = initial_run
+    options = PipelineOptions(num_workers=1, progress=False)
+    inputs = load_inputs(
+        SAMPLE / "images", SAMPLE / "cadastre.geojson", SAMPLE / "priors", options
+    )
+    outcomes = {i: copy.deepcopy(o) for i, o in first.outcomes.items()}
+    return options, inputs, outcomes
 
 
 def _args(scene: Path, out: Path, *extra: str) -> list[str]:
@@ -604,23 +619,17 @@ def test_the_bundle_flags_an_image_whose_facade_edges_disagree(
     tracks but no longer fit the others' edges): the bundle rejects them,
     that image alone falls below ``min_constraints_kept``, and it is left
     out with a message saying why."""
-    import copy
     import dataclasses
 
     from obliq_colmap import adjustment as adj
-    from obliq_colmap.pipeline import leave_out_rejected, load_inputs
+    from obliq_colmap.pipeline import leave_out_rejected
 
     _, run = bundle_run
     images = run.report["facades"]["images"]
     assert min(v["constraints_kept"] for v in images.values()) >= 0.9
     assert all(o.registered for o in run.outcomes.values())
 
-    _, first = initial_run
-    options = PipelineOptions(num_workers=1, progress=False)
-    inputs = load_inputs(
-        SAMPLE / "images", SAMPLE / "cadastre.geojson", SAMPLE / "priors", options
-    )
-    outcomes = {i: copy.deepcopy(o) for i, o in first.outcomes.items()}
+    options, inputs, outcomes = _sample_after_stage2(initial_run)
     target = next(i for i, o in outcomes.items() if o.name == "W_10.jpg")
     rng = np.random.default_rng(3)
     facade_stage = adj.facade_stage
@@ -662,18 +671,12 @@ def test_an_image_held_by_few_facade_edges_is_left_out_as_imprecise(
     a-posteriori precision is several times the block's (measured 7.7 px
     against a median of 1.0 px), so it is left out with a message saying why;
     no other image is."""
-    import copy
     import dataclasses
 
     from obliq_colmap import adjustment as adj
-    from obliq_colmap.pipeline import leave_out_rejected, load_inputs
+    from obliq_colmap.pipeline import leave_out_rejected
 
-    _, first = initial_run
-    options = PipelineOptions(num_workers=1, progress=False)
-    inputs = load_inputs(
-        SAMPLE / "images", SAMPLE / "cadastre.geojson", SAMPLE / "priors", options
-    )
-    outcomes = {i: copy.deepcopy(o) for i, o in first.outcomes.items()}
+    options, inputs, outcomes = _sample_after_stage2(initial_run)
     target = next(i for i, o in outcomes.items() if o.name == "W_10.jpg")
     calls = iter(range(len(outcomes)))
     k = sorted(outcomes).index(target)  # facade_stage's order
@@ -709,18 +712,11 @@ def test_the_bundle_holds_the_priors_rotations_when_given_their_sigma(initial_ru
     """``rotation_prior_sigma_deg`` reaches every round of the bundle: with
     a sigma far below the priors' real error (1.5 deg) the solved rotations
     are the priors', through the outlier rounds and the track lines."""
-    import copy
     import dataclasses
 
     from obliq_colmap import adjustment as adj
-    from obliq_colmap.pipeline import load_inputs
 
-    _, first = initial_run
-    options = PipelineOptions(num_workers=1, progress=False)
-    inputs = load_inputs(
-        SAMPLE / "images", SAMPLE / "cadastre.geojson", SAMPLE / "priors", options
-    )
-    outcomes = {i: copy.deepcopy(o) for i, o in first.outcomes.items()}
+    options, inputs, outcomes = _sample_after_stage2(initial_run)
     held = dataclasses.replace(
         options.adjustment,
         bundle=dataclasses.replace(

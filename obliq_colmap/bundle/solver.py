@@ -745,6 +745,18 @@ class _State:
     def __init__(self, R, c, params, heights):
         self.R, self.c, self.params, self.heights = R, c, params, heights
 
+    @classmethod
+    def start(cls, P: BundleProblem, S: _Setup) -> _State:
+        """The problem's start: its poses, cameras and heights (the corner
+        heights too where they are free unknowns)."""
+        free = S.n_heights > len(P.facade_heights)
+        return cls(
+            np.stack([P.poses[i].rotation for i in P.image_ids]),
+            np.stack([P.poses[i].center for i in P.image_ids]),
+            [P.cameras[c].params.copy() for c in S.camera_ids],
+            np.concatenate([P.facade_heights, P.corner_heights if free else []]),
+        )
+
     def copy(self):
         return _State(
             self.R.copy(),
@@ -825,7 +837,8 @@ def _solve(problem: BundleProblem, opts: BundleOptions) -> BundleResult:
     S = _Setup(P, opts)
     free = opts.corner_heights == "free"
     nJ = len(P.facade_heights)
-    heights0 = np.concatenate([P.facade_heights, P.corner_heights if free else []])
+    st = _State.start(P, S)
+    heights0 = st.heights.copy()
     prior_w = (
         1.0 / opts.corner_height_prior_m**2
         if free and opts.corner_height_prior_m is not None
@@ -833,13 +846,6 @@ def _solve(problem: BundleProblem, opts: BundleOptions) -> BundleResult:
     )
     prior_mask = np.zeros(S.n_heights, bool)
     prior_mask[nJ:] = prior_w > 0
-
-    st = _State(
-        np.stack([P.poses[i].rotation for i in P.image_ids]),
-        np.stack([P.poses[i].center for i in P.image_ids]),
-        [P.cameras[c].params.copy() for c in S.camera_ids],
-        heights0.copy(),
-    )
 
     attitude = _AttitudePrior.of(P, S, opts)
 
@@ -1211,18 +1217,18 @@ def _camera_covariance(
     return inv_kkt[:n, :n] / np.outer(d, d)
 
 
-def _image_precision(S: _Setup, st: _State, cov: np.ndarray) -> dict[int, float]:
-    """Per active image slot: RMS over its rows' world points of the
-    standard deviation (px, 2D) of their projection, from ``cov`` of its
-    pose (rotation increment, centre) and its camera's refined intrinsics."""
-    out: dict[int, float] = {}
+def _image_jacobians(S: _Setup, st: _State):
+    """Per active image slot k: ``(k, J, cols)``, J (n, 2, 6 + q) the
+    Jacobian of the projections of its rows' world points (map corners,
+    facade anchors at their heights) by its pose (rotation increment,
+    centre) and its camera's q refined intrinsics, cols their global
+    columns in the camera block."""
     h_all = st.heights[np.maximum(S.hidx, 0)] if S.n_heights else S.zfix
     height = np.where(S.has_h, h_all, S.zfix)
     for a, b, cols in S.image_runs:
         k = int(S.img[a])
         slot = int(S.img_cam[k])
         basis = S.refined[slot]
-        cols = cols[: 6 + basis.shape[1]]
         X = np.column_stack([S.xy[a:b], height[a:b]])
         Xc = (X - st.c[k]) @ st.R[k].T  # (n, 3)
         model = S.camera_model[slot]
@@ -1234,7 +1240,16 @@ def _image_precision(S: _Setup, st: _State, cov: np.ndarray) -> dict[int, float]
                 d_par @ basis,
             ],
             axis=2,
-        )  # (n, 2, 6 + q)
+        )
+        yield k, J, cols[: 6 + basis.shape[1]]
+
+
+def _image_precision(S: _Setup, st: _State, cov: np.ndarray) -> dict[int, float]:
+    """Per active image slot: RMS over its rows' world points of the
+    standard deviation (px, 2D) of their projection, from ``cov`` of its
+    pose and its camera's refined intrinsics (:func:`_image_jacobians`)."""
+    out: dict[int, float] = {}
+    for k, J, cols in _image_jacobians(S, st):
         C = cov[np.ix_(cols, cols)]
         var = np.einsum("npi,ij,npj->n", J, C, J)
         out[k] = float(np.sqrt(np.mean(var))) if np.all(np.isfinite(var)) else np.nan
