@@ -461,11 +461,13 @@ def build_bundle_problem(
         horizontal_height=t.track,
         horizontal_anchor_xy=t.anchor_xy[t.track],
         horizontal_line=lines,
-        # The INS attitude, an observation where the bundle is given its
-        # sigma (BundleOptions.rotation_prior_sigma_deg).
+        # The INS attitude and the GNSS centres, observations where the
+        # bundle is given their sigmas (BundleOptions.rotation_prior_sigma_deg,
+        # position_prior_sigma_m).
         prior_rotations={
             i: inputs.priors.images[i].cam_from_world.rotation for i in ids
         },
+        prior_centers={i: inputs.priors.images[i].cam_from_world.center for i in ids},
     )
 
 
@@ -795,6 +797,7 @@ def without_outliers(
             else p.horizontal_offset_normal[kh]
         ),
         prior_rotations=p.prior_rotations,
+        prior_centers=p.prior_centers,
     )
     logger.info(
         "bundle: %d of %d vertical and %d of %d horizontal constraints rejected",

@@ -729,6 +729,7 @@ def run_register(
         "refine_principal_point": options.adjustment.bundle.refine_principal_point,
         "refine_extra_params": options.adjustment.bundle.refine_extra_params,
         "bundle_rotation_sigma_deg": options.adjustment.bundle.rotation_prior_sigma_deg,
+        "bundle_position_sigma_m": options.adjustment.bundle.position_prior_sigma_m,
         "min_constraints_kept": options.min_constraints_kept,
         "max_precision_ratio": options.max_precision_ratio,
     }

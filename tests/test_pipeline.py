@@ -206,6 +206,7 @@ def test_cli_keeps_calibrated_focal_lengths(tmp_path):
     report = json.loads((out / "report.json").read_text())
     assert report["options"]["refine_focal_length"] is False
     assert report["options"]["bundle_rotation_sigma_deg"] is None
+    assert report["options"]["bundle_position_sigma_m"] is None
     priors, model = read_model(SAMPLE / "priors"), read_model(out)
     assert len(model.images) == len(priors.images)
     for image in model.images.values():
@@ -597,6 +598,7 @@ def test_block_state_after_a_bundle_keeps_its_ground_and_datum():
             "--refine_focal_length 0 keeps",
         ),
         (["--bundle_rotation_sigma", "0"], "rotation_prior_sigma_deg must be > 0"),
+        (["--bundle_position_sigma", "-1"], "position_prior_sigma_m must be > 0"),
     ],
 )
 def test_register_option_out_of_range_is_one_line(tmp_path, capsys, option, message):
@@ -708,28 +710,36 @@ def test_an_image_held_by_few_facade_edges_is_left_out_as_imprecise(
     assert not o.registered and "determines its pose poorly" in o.message
 
 
-def test_the_bundle_holds_the_priors_rotations_when_given_their_sigma(initial_run):
-    """``rotation_prior_sigma_deg`` reaches every round of the bundle: with
-    a sigma far below the priors' real error (1.5 deg) the solved rotations
-    are the priors', through the outlier rounds and the track lines."""
+@pytest.mark.parametrize("prior", ["rotation", "centre"])
+def test_the_bundle_holds_the_priors_poses_when_given_their_sigma(initial_run, prior):
+    """``rotation_prior_sigma_deg`` and ``position_prior_sigma_m`` reach every
+    round of the bundle: with a sigma far below the priors' real error (1.5
+    deg, 5 m) the solved rotations (centres) are the priors', through the
+    outlier rounds and the track lines."""
     import dataclasses
 
     from obliq_colmap import adjustment as adj
 
     options, inputs, outcomes = _sample_after_stage2(initial_run)
+    sigma = (
+        {"rotation_prior_sigma_deg": 1e-4}
+        if prior == "rotation"
+        else {"position_prior_sigma_m": 1e-4}
+    )
     held = dataclasses.replace(
         options.adjustment,
-        bundle=dataclasses.replace(
-            options.adjustment.bundle, rotation_prior_sigma_deg=1e-4
-        ),
+        bundle=dataclasses.replace(options.adjustment.bundle, **sigma),
     )
     state = adj.BlockState.from_outcomes(list(outcomes.values()))
     state, result, _ = adj.bundle_stage(inputs, outcomes, state, held, {})
     assert result is not None and result.summary.converged
     for i, pose in state.poses.items():
-        prior = inputs.priors.images[i].cam_from_world.rotation
-        c = (np.trace(pose.rotation @ prior.T) - 1.0) / 2.0
-        assert np.degrees(np.arccos(min(c, 1.0))) < 0.01
+        given = inputs.priors.images[i].cam_from_world
+        if prior == "rotation":
+            c = (np.trace(pose.rotation @ given.rotation.T) - 1.0) / 2.0
+            assert np.degrees(np.arccos(min(c, 1.0))) < 0.01
+        else:
+            assert np.linalg.norm(pose.center - given.center) < 0.01
 
 
 def test_imprecise_images_against_the_block_median():

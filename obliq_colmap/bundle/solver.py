@@ -124,8 +124,16 @@ class BundleOptions:
     #: observation); None: no prior. It holds each image's rotation, which
     #: its constraints determine worst (docs/BENCHMARKS.md, issue 5).
     rotation_prior_sigma_deg: float | None = None
+    #: Standard deviation, metres, of each image's camera centre about its
+    #: prior (``BundleProblem.prior_centers``: survey-grade GNSS, e.g. PPK
+    #: with the lever arm applied, in the frame and vertical datum of the
+    #: priors); None: no prior. Centres known to ~0.1 m fix the block's tilt
+    #: and each image's centre, which the map's constraints trade against
+    #: its rotation (docs/BENCHMARKS.md, issue 5).
+    position_prior_sigma_m: float | None = None
     #: Vertical datum: "component_mean_camera_height" (per linked component,
-    #: hard constraint) or "none" (rank-deficient; damping only).
+    #: hard constraint) or "none" (rank-deficient; damping only). With
+    #: ``position_prior_sigma_m`` the observed centres hold it instead.
     gauge: str = "component_mean_camera_height"
     #: Gauss-Newton steps on the heights alone (cameras fixed) before the
     #: joint solve; 0 disables.
@@ -168,6 +176,11 @@ class BundleOptions:
             and not self.rotation_prior_sigma_deg > 0
         ):
             raise ValueError("rotation_prior_sigma_deg must be > 0 or None")
+        if (
+            self.position_prior_sigma_m is not None
+            and not self.position_prior_sigma_m > 0
+        ):
+            raise ValueError("position_prior_sigma_m must be > 0 or None")
         if self.horizontal_offset_sigma_m <= 0:
             raise ValueError("horizontal_offset_sigma_m must be > 0")
 
@@ -219,6 +232,9 @@ class BundleProblem:
     prior_rotations : dict image_id -> (3, 3) array, optional
         Prior ``cam_from_world`` rotation of each image (the INS), used with
         ``BundleOptions.rotation_prior_sigma_deg``.
+    prior_centers : dict image_id -> (3,) array, optional
+        Prior camera centre of each image (GNSS), same frame as ``poses``,
+        used with ``BundleOptions.position_prior_sigma_m``.
     """
 
     cameras: dict[int, Camera]
@@ -237,6 +253,7 @@ class BundleProblem:
     image_ids: tuple[int, ...] | None = None
     horizontal_offset_normal: np.ndarray | None = None
     prior_rotations: dict[int, np.ndarray] | None = None
+    prior_centers: dict[int, np.ndarray] | None = None
 
     def __post_init__(self) -> None:
         if self.image_ids is None:
@@ -248,10 +265,15 @@ class BundleProblem:
         bad = [
             i for i in self.image_ids if self.image_camera.get(i) not in self.cameras
         ]
-        if self.prior_rotations is not None:
-            missing = [i for i in self.image_ids if i not in self.prior_rotations]
+        for name, prior in (
+            ("rotation", self.prior_rotations),
+            ("centre", self.prior_centers),
+        ):
+            missing = [
+                i for i in self.image_ids if prior is not None and i not in prior
+            ]
             if missing:
-                raise ValueError(f"image_ids without a prior rotation: {missing[:10]}")
+                raise ValueError(f"image_ids without a prior {name}: {missing[:10]}")
         if bad:
             raise ValueError(f"images without a known camera: {bad[:10]}")
         self.corner_xy = _as(self.corner_xy, (2,), "corner_xy")
@@ -575,7 +597,11 @@ class _Setup:
             for c in range(self.num_components)
         ]
         rows = []
-        if opts.gauge == "component_mean_camera_height":
+        # Observed centres (GNSS) hold every component's vertical datum.
+        centred = (
+            opts.position_prior_sigma_m is not None and P.prior_centers is not None
+        )
+        if opts.gauge == "component_mean_camera_height" and not centred:
             for c in range(self.num_components):
                 members = [
                     k for k in np.flatnonzero(self.labels == c) if self.pose_col[k] >= 0
@@ -847,7 +873,12 @@ def _solve(problem: BundleProblem, opts: BundleOptions) -> BundleResult:
     prior_mask = np.zeros(S.n_heights, bool)
     prior_mask[nJ:] = prior_w > 0
 
-    attitude = _AttitudePrior.of(P, S, opts)
+    # Observed poses (INS attitude, GNSS centres): 3 rows per active image.
+    pose_priors = [
+        p
+        for p in (_AttitudePrior.of(P, S, opts), _CentrePrior.of(P, S, opts))
+        if p is not None
+    ]
 
     def cost_of(r: np.ndarray, st: _State) -> float:
         rho, _ = _loss(opts.loss, opts.loss_scale_px, r * r)
@@ -855,8 +886,7 @@ def _solve(problem: BundleProblem, opts: BundleOptions) -> BundleResult:
         if prior_w:
             dh = (st.heights - heights0)[prior_mask]
             c += 0.5 * prior_w * float(dh @ dh)
-        if attitude is not None:
-            c += attitude.cost(st)
+        c += sum(p.cost(st) for p in pose_priors)
         return c if np.isfinite(c) else np.inf
 
     def rmse(r: np.ndarray) -> tuple[float, float]:
@@ -904,8 +934,8 @@ def _solve(problem: BundleProblem, opts: BundleOptions) -> BundleResult:
             _, w = _loss(opts.loss, opts.loss_scale_px, r * r)
             w = w * S.weight
             H_cc, g_c, H_hh, g_h, F = _normal_equations(S, Jc, Jh, r, w)
-            if attitude is not None:
-                attitude.add_to(H_cc, g_c, st)
+            for p in pose_priors:
+                p.add_to(H_cc, g_c, st)
             H_hh = H_hh + prior_w * prior_mask
             g_h = g_h + prior_w * prior_mask * (st.heights - heights0)
             schur = _Schur(S.coupling, H_hh, g_h, F)
@@ -972,8 +1002,8 @@ def _solve(problem: BundleProblem, opts: BundleOptions) -> BundleResult:
         _, w = _loss(opts.loss, opts.loss_scale_px, r * r)
         w = w * S.weight
         H_cc = _normal_equations(S, Jc, Jh, r, w)[0]
-        if attitude is not None:
-            attitude.add_to(H_cc, np.zeros(S.n_red), st)
+        for p in pose_priors:
+            p.add_to(H_cc, np.zeros(S.n_red), st)
         offset_w = 1.0 / opts.horizontal_offset_sigma_m**2
         cov = _camera_covariance(S, H_cc, Jc, Jh, w, prior_w * prior_mask, offset_w)
         redundancy = (
@@ -984,12 +1014,10 @@ def _solve(problem: BundleProblem, opts: BundleOptions) -> BundleResult:
             - S.n_heights
             - S.n_offsets
         )
-        if attitude is not None:
-            redundancy += 3 * len(S.active_images)
+        redundancy += 3 * len(S.active_images) * len(pose_priors)
         if redundancy > 0:
             variance_factor = float(np.sum(w * r * r)) / redundancy
-            if attitude is not None:
-                variance_factor += 2.0 * attitude.cost(st) / redundancy
+            variance_factor += 2.0 * sum(p.cost(st) for p in pose_priors) / redundancy
             dh = (st.heights - heights0)[prior_mask]
             variance_factor += prior_w * float(dh @ dh) / redundancy
             precision = _image_precision(S, st, variance_factor * cov)
@@ -1151,6 +1179,34 @@ class _AttitudePrior:
         """Its terms of ``J^T W J`` and ``J^T W r``, in place."""
         H_cc[self.cols, self.cols] += self.w
         np.add.at(g_c, self.cols, self.w * self.errors(st))
+
+
+class _CentrePrior:
+    """Each active image's camera centre observed: ``e = (c - c_prior) /
+    sigma`` (3 rows, metres over metres); linear in the solver's increment
+    ``c <- c + dc``."""
+
+    def __init__(self, S: _Setup, prior: np.ndarray, sigma_m: float) -> None:
+        self.k = S.active_images
+        self.cols = S.pose_col[self.k][:, None] + np.arange(3, 6)  # (K', 3)
+        self.prior = prior[self.k]  # (K', 3)
+        self.w = 1.0 / sigma_m**2
+
+    @classmethod
+    def of(cls, P: BundleProblem, S: _Setup, opts: BundleOptions):
+        if opts.position_prior_sigma_m is None or P.prior_centers is None:
+            return None
+        prior = np.stack([np.asarray(P.prior_centers[i], float) for i in P.image_ids])
+        return cls(S, prior, opts.position_prior_sigma_m)
+
+    def cost(self, st: _State) -> float:
+        e = st.c[self.k] - self.prior
+        return 0.5 * self.w * float(np.sum(e * e))
+
+    def add_to(self, H_cc: np.ndarray, g_c: np.ndarray, st: _State) -> None:
+        """Its terms of ``J^T W J`` and ``J^T W r``, in place."""
+        H_cc[self.cols, self.cols] += self.w
+        np.add.at(g_c, self.cols, self.w * (st.c[self.k] - self.prior))
 
 
 def _camera_covariance(

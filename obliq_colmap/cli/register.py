@@ -169,6 +169,16 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "rough priors of --prior_rotation_sigma only guide stage 2)",
     )
     bundle.add_argument(
+        "--bundle_position_sigma",
+        type=float,
+        default=bdefaults.position_prior_sigma_m,
+        metavar="M",
+        help="use the priors' camera centres as observations in the bundle with "
+        "this 1-sigma per axis, m (survey-grade GNSS with the lever arm applied, "
+        "in the map's horizontal frame: e.g. 0.1); default: not used (the rough "
+        "priors of --prior_position_sigma only guide stage 2)",
+    )
+    bundle.add_argument(
         "--loss_scale",
         type=float,
         default=bdefaults.loss_scale_px,
@@ -219,6 +229,7 @@ def run(args: argparse.Namespace) -> int:
                     refine_principal_point=args.refine_principal_point,
                     refine_extra_params=args.refine_extra_params,
                     rotation_prior_sigma_deg=args.bundle_rotation_sigma,
+                    position_prior_sigma_m=args.bundle_position_sigma,
                     loss_scale_px=args.loss_scale,
                 )
             ),
