@@ -7,8 +7,12 @@ focal-error option of ``scene.json`` set to 0; with ``--rotation_sigma_deg
 S`` also each prior rotation replaced by the true one turned by a random
 rotation vector of S degrees per axis (a calibrated INS; the prior centres
 stay as they are, and so does ``scene.json``'s rotation noise, which sets
-stage 2's search). Everything else (images, map, truth) is linked, not
-copied. Used for the calibrated runs in docs/BENCHMARKS.md (issue 5):
+stage 2's search); with ``--position_sigma_m S`` each prior centre replaced
+by the true one plus the scene's vertical datum offset plus normal noise of
+S metres per axis (survey-grade GNSS, PPK; ``scene.json``'s position noise,
+which sets stage 2's search, stays). Everything else (images, map, truth) is
+linked, not copied. Used for the calibrated runs in docs/BENCHMARKS.md
+(issue 5):
 
     python scripts/calibrated_scene.py --scene_path /work/scenes/paper_s1 \\
         --output_path /work/scenes/paper_s1_cal [--rotation_sigma_deg 0.01]
@@ -16,10 +20,12 @@ copied. Used for the calibrated runs in docs/BENCHMARKS.md (issue 5):
         --set registration.refine_focal=False \\
         --set adjustment.bundle.refine_focal_length=False \\
         --set adjustment.bundle.refine_principal_point=False \\
-        [--set adjustment.bundle.rotation_prior_sigma_deg=0.01]
+        [--set adjustment.bundle.rotation_prior_sigma_deg=0.01] \
+        [--set adjustment.bundle.position_prior_sigma_m=0.1]
 
 (``register``: the same priors with ``--refine_focal_length 0
---refine_principal_point 0 [--bundle_rotation_sigma 0.01]``.)
+--refine_principal_point 0 [--bundle_rotation_sigma 0.01]
+[--bundle_position_sigma 0.1]``.)
 """
 
 from __future__ import annotations
@@ -42,6 +48,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--scene_path", required=True, type=Path)
     parser.add_argument("--output_path", required=True, type=Path)
     parser.add_argument("--rotation_sigma_deg", type=float)
+    parser.add_argument("--position_sigma_m", type=float)
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument(
         "--keep_cameras",
@@ -78,6 +85,14 @@ def main(argv: list[str] | None = None) -> int:
                 np.radians(rng.normal(0.0, args.rotation_sigma_deg, 3))
             ).as_matrix()
             pose = Pose.from_center(turn @ true, image.cam_from_world.center)
+            images[i] = dataclasses.replace(image, cam_from_world=pose)
+    if args.position_sigma_m is not None:
+        rng = np.random.default_rng([args.seed, 1])
+        datum = np.array([0.0, 0.0, meta["options"]["prior_vertical_datum_offset_m"]])
+        for i, image in images.items():
+            true = truth.image_by_name(image.name).cam_from_world.center
+            centre = true + datum + rng.normal(0.0, args.position_sigma_m, 3)
+            pose = Pose.from_center(image.cam_from_world.rotation, centre)
             images[i] = dataclasses.replace(image, cam_from_world=pose)
     write_absolute_model(
         dst / "priors", dataclasses.replace(priors, cameras=cameras, images=images)
