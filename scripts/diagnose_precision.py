@@ -4,10 +4,14 @@ For the last bundle of split runs (``bench_seeds.py``'s path and cache), the
 predicted sd (px) of each image's constrained points (as
 ``BundleResult.image_precision_px``) and the same with one block of the
 image's parameters known, i.e. from the conditional covariance given its
-rotation, its camera height, or its head's intrinsics. Where the sd drops
-most, that block is the weak direction. Prints the medians over the images
-of each run (docs/BENCHMARKS.md, issue 5, "The bundle's a-posteriori
-precision per image"):
+rotation, its camera height, or its head's intrinsics; the rotation split
+into the image's vertical direction (tilt and roll: what a vanishing point
+measures) and its heading; and the sd with the vertical direction OBSERVED
+with a standard deviation of ``--vp_sigma_deg`` (each value; e.g. stage 1's
+vanishing point as one more observation). Where the sd drops most, that
+block is the weak direction. Prints the medians over the images of each
+run (docs/BENCHMARKS.md, issue 5, "The bundle's a-posteriori precision per
+image", and "The weak direction is the vertical", 2026-12-03 session 10):
 
     python scripts/diagnose_precision.py --scene_path /work/scenes/paper_s1 \\
         --seeds 0 [--set PATH=VALUE ...]
@@ -28,6 +32,10 @@ _ORIGINAL = solver._image_precision
 _SOLVES: list[dict[int, dict[str, float]]] = []
 
 
+#: Standard deviations (deg) of the vertical direction as an observation.
+_VP_SIGMAS: list[float] = []
+
+
 def _conditional(J: np.ndarray, C: np.ndarray, known: list[int]) -> float:
     """Mean over the points of the 2D variance of their projections (J:
     (n, 2, p)) under covariance C (p, p) with the parameters ``known``."""
@@ -41,6 +49,25 @@ def _conditional(J: np.ndarray, C: np.ndarray, known: list[int]) -> float:
     return float(np.mean(np.einsum("npi,ij,npj->n", J, C, J)))
 
 
+def _observed(J: np.ndarray, C: np.ndarray, A: np.ndarray, sigma: float) -> float:
+    """As :func:`_conditional`, with the combinations ``A`` (m, p) of the
+    parameters observed with standard deviation ``sigma`` (0: known)."""
+    CA = C @ A.T
+    C = C - CA @ np.linalg.solve(A @ CA + sigma**2 * np.eye(len(A)), CA.T)
+    return float(np.mean(np.einsum("npi,ij,npj->n", J, C, J)))
+
+
+def _rotation_rows(R: np.ndarray, p: int) -> tuple[np.ndarray, np.ndarray]:
+    """Rows of the (left, camera-frame) rotation increment that tilt the
+    image's vertical direction (2, p) and that turn about it (1, p)."""
+    down = R @ np.array([0.0, 0.0, -1.0])  # world down in the camera frame
+    t1 = np.cross(down, [1.0, 0.0, 0.0])
+    t1 /= np.linalg.norm(t1)
+    tilt, heading = np.zeros((2, p)), np.zeros((1, p))
+    tilt[0, :3], tilt[1, :3], heading[0, :3] = t1, np.cross(down, t1), down
+    return tilt, heading
+
+
 def _recording(S, st, cov):
     """``solver._image_precision`` that also records the conditional sds
     (on the same Jacobians, :func:`solver._image_jacobians`)."""
@@ -49,12 +76,23 @@ def _recording(S, st, cov):
     for k, J, cols in solver._image_jacobians(S, st):
         C = cov[np.ix_(cols, cols)]
         intrinsics = list(range(6, len(cols)))
+        tilt, heading = _rotation_rows(st.R[k], len(cols))
         record[S.image_ids[k]] = {
             "all": _conditional(J, C, []),
             "given intrinsics": _conditional(J, C, intrinsics),
             "given camera height": _conditional(J, C, [5]),
             "given rotation": _conditional(J, C, [0, 1, 2]),
+            "given vertical direction": _observed(J, C, tilt, 0.0),
+            "given heading": _observed(J, C, heading, 0.0),
             "given height + intrinsics": _conditional(J, C, [5, *intrinsics]),
+            **{
+                f"vertical observed {s:g} deg": _observed(J, C, tilt, np.radians(s))
+                for s in _VP_SIGMAS
+            },
+            # the vertical direction's own sd (deg, RMS of its two angles),
+            # squared like the rest (the printout takes the root)
+            "vertical direction sd (deg)": np.degrees(1.0) ** 2
+            * float(np.trace(tilt @ C @ tilt.T) / 2),
         }
     _SOLVES.append(record)
     return out
@@ -64,7 +102,11 @@ def main(argv: list[str] | None = None) -> int:
     parser = scene_parser(__doc__.split("\n\n")[0])
     parser.add_argument("--seeds", type=int, nargs="+", default=[0])
     parser.add_argument("--bundle_only", action="store_true")
+    parser.add_argument(
+        "--vp_sigma_deg", type=float, nargs="*", default=[0.03, 0.06, 0.1]
+    )
     args = parser.parse_args(argv)
+    _VP_SIGMAS[:] = args.vp_sigma_deg
     scenes = synthetic_scenes(args)
     if scenes is None:
         return 2

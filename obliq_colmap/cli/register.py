@@ -175,8 +175,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         metavar="M",
         help="use the priors' camera centres as observations in the bundle with "
         "this 1-sigma per axis, m (survey-grade GNSS with the lever arm applied, "
-        "in the map's horizontal frame: e.g. 0.1); default: not used (the rough "
-        "priors of --prior_position_sigma only guide stage 2)",
+        "in the map's horizontal frame: e.g. 0.1). Give the real accuracy: a "
+        "sigma far below it bends the block to the priors; default: not used "
+        "(the rough priors of --prior_position_sigma only guide stage 2)",
     )
     bundle.add_argument(
         "--loss_scale",
