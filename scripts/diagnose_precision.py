@@ -8,10 +8,13 @@ rotation, its camera height, or its head's intrinsics; the rotation split
 into the image's vertical direction (tilt and roll: what a vanishing point
 measures) and its heading; and the sd with the vertical direction OBSERVED
 with a standard deviation of ``--vp_sigma_deg`` (each value; e.g. stage 1's
-vanishing point as one more observation). Where the sd drops most, that
-block is the weak direction. Prints the medians over the images of each
-run (docs/BENCHMARKS.md, issue 5, "The bundle's a-posteriori precision per
-image", and "The weak direction is the vertical", 2026-12-03 session 10):
+vanishing point as one more observation). Block-wide: the sd given the whole
+block's tilt (all cameras turned together about the horizontal axes through
+their mean centre, the centres turning with them), and with every camera
+centre observed at ``--centre_sigma_m`` (each value: GNSS). Where the sd
+drops most, that block is the weak direction. Prints the medians over the
+images of each run (docs/BENCHMARKS.md, issue 5, "The bundle's a-posteriori
+precision per image", and "What more information would give", 2026-12-03):
 
     python scripts/diagnose_precision.py --scene_path /work/scenes/paper_s1 \\
         --seeds 0 [--set PATH=VALUE ...]
@@ -34,6 +37,8 @@ _SOLVES: list[dict[int, dict[str, float]]] = []
 
 #: Standard deviations (deg) of the vertical direction as an observation.
 _VP_SIGMAS: list[float] = []
+#: Standard deviations (m) of every camera centre as an observation.
+_CENTRE_SIGMAS: list[float] = []
 
 
 def _conditional(J: np.ndarray, C: np.ndarray, known: list[int]) -> float:
@@ -68,6 +73,29 @@ def _rotation_rows(R: np.ndarray, p: int) -> tuple[np.ndarray, np.ndarray]:
     return tilt, heading
 
 
+def _block_rows(S, st) -> dict[str, tuple[np.ndarray, list[float]]]:
+    """Block-wide combinations of the camera block (rows, n_red) with the
+    sigmas they are observed at: the block's tilt (2 rows: a rotation w
+    about a horizontal world axis through the mean centre turns each
+    camera's R by R w and moves its centre by w x (c - c_mean)), known; and
+    every centre (3 rows per image) at each of ``_CENTRE_SIGMAS``."""
+    ks = S.active_images
+    mean = st.c[ks].mean(axis=0)
+    tilt = np.zeros((2, S.n_red))
+    for row, w in enumerate(np.eye(3)[:2]):
+        for k in ks:
+            col = S.pose_col[k]
+            tilt[row, col : col + 3] = st.R[k] @ w
+            tilt[row, col + 3 : col + 6] = np.cross(w, st.c[k] - mean)
+    centres = np.zeros((3 * len(ks), S.n_red))
+    for i, k in enumerate(ks):
+        centres[3 * i : 3 * i + 3, S.pose_col[k] + 3 : S.pose_col[k] + 6] = np.eye(3)
+    return {
+        "given the block's tilt": (tilt, [0.0]),
+        "all centres observed": (centres, _CENTRE_SIGMAS),
+    }
+
+
 def _recording(S, st, cov):
     """``solver._image_precision`` that also records the conditional sds
     (on the same Jacobians, :func:`solver._image_jacobians`)."""
@@ -94,6 +122,15 @@ def _recording(S, st, cov):
             "vertical direction sd (deg)": np.degrees(1.0) ** 2
             * float(np.trace(tilt @ C @ tilt.T) / 2),
         }
+    for name, (A, sigmas) in _block_rows(S, st).items():
+        for sigma in sigmas:
+            CA = cov @ A.T
+            C_new = cov - CA @ np.linalg.solve(A @ CA + sigma**2 * np.eye(len(A)), CA.T)
+            label = (
+                name if len(sigmas) == 1 and sigma == 0 else f"{name} at {sigma:g} m"
+            )
+            for k, v in _ORIGINAL(S, st, C_new).items():
+                record[S.image_ids[k]][label] = v**2
     _SOLVES.append(record)
     return out
 
@@ -105,8 +142,12 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument(
         "--vp_sigma_deg", type=float, nargs="*", default=[0.03, 0.06, 0.1]
     )
+    parser.add_argument(
+        "--centre_sigma_m", type=float, nargs="*", default=[0.05, 0.1, 0.5, 2.0]
+    )
     args = parser.parse_args(argv)
     _VP_SIGMAS[:] = args.vp_sigma_deg
+    _CENTRE_SIGMAS[:] = args.centre_sigma_m
     scenes = synthetic_scenes(args)
     if scenes is None:
         return 2

@@ -1,0 +1,187 @@
+"""What point tie observations would add to each image's precision (a what-if).
+
+The bundle's constraints (map corners on vertical lines, facade edges with free
+heights) leave each image's vertical direction traded against its centre as
+the weak direction (``diagnose_precision.py``). Image-to-image tie points
+(e.g. SIFT matches of a COLMAP database: ground, roofs, facades) tie the
+neighbouring images' relative orientation. This script takes the last
+bundle of split runs (``bench_seeds.py``'s path and cache) at its optimum and
+adds, to the information of the camera block, that of hypothetical tie
+points: ``--points_per_image`` random 3D points per image footprint between
+the ground and ``--max_height_m`` above it, each observed (``--tie_sigma_px``)
+in every image of the same head (``--cross_head``: of any head) in which it
+projects inside the frame (occlusions ignored: an upper bound for those
+points), each point's three coordinates free (eliminated, Schur complement).
+Prints the median over the images of the predicted sd (px, as
+``BundleResult.image_precision_px``) without and with them:
+
+    python scripts/diagnose_tie_points.py --scene_path /work/scenes/paper_s1 \\
+        --seeds 0 --bundle_only [--points_per_image 50 300] [--cross_head]
+
+docs/BENCHMARKS.md, issue 5, "What more information would give" (2026-12-03).
+"""
+
+from __future__ import annotations
+
+import sys
+
+import numpy as np
+import scipy.sparse as sp
+from bench_resolution import scene_parser, synthetic_scenes
+from bench_seeds import run_once
+
+from obliq_colmap.bundle import residuals as res
+from obliq_colmap.bundle import solver
+
+_ORIGINAL = solver._image_precision
+_CTX: dict = {}
+#: One dict per bundle solved: variant -> per-image variance (px^2).
+_SOLVES: list[dict[str, dict[int, float]]] = []
+
+
+def _points(S, st, n_per_image: int, max_height: float, rng) -> np.ndarray:
+    """(M, 3) random points over the block's constrained area (world)."""
+    h_all = st.heights[np.maximum(S.hidx, 0)] if S.n_heights else S.zfix
+    z = np.where(S.has_h, h_all, S.zfix)
+    ground = float(np.percentile(z, 5))
+    lo, hi = S.xy.min(axis=0), S.xy.max(axis=0)
+    M = n_per_image * len(S.active_images)
+    xy = lo + rng.random((M, 2)) * (hi - lo)
+    return np.column_stack([xy, ground + max_height * rng.random(M)])
+
+
+def _tie_information(S, st, X: np.ndarray, sigma: float, cross: bool) -> np.ndarray:
+    """(n_red, n_red) camera-block information of tie points X (M, 3), their
+    coordinates eliminated."""
+    n, M = S.n_red, len(X)
+    H = np.zeros((n, n))
+    B = np.zeros((M, n + 1, 3))  # per point sum of J_c^T J_X (global columns)
+    U = np.zeros((M, 3, 3))
+    head_of = {}
+    for k in S.active_images:
+        slot = int(S.img_cam[k])
+        basis = S.refined[slot]
+        cols = np.r_[
+            S.pose_col[k] + np.arange(6), S.intr_col[slot] + np.arange(basis.shape[1])
+        ]
+        Xc = (X - st.c[k]) @ st.R[k].T
+        W, Hh = _CTX["sizes"][S.camera_ids[slot]]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            uv, d_pt, d_par = res.project_with_jacobian(
+                S.camera_model[slot], st.params[slot], Xc
+            )
+        seen = (Xc[:, 2] > 0) & np.all((uv >= 0) & (uv <= [W, Hh]), axis=1)
+        head_of[k] = S.camera_ids[slot]
+        _CTX.setdefault("seen", {})[k] = seen
+    # points seen in >= 2 images (of one head unless cross)
+    for k in S.active_images:
+        seen = _CTX["seen"][k].copy()
+        others = [
+            j for j in S.active_images if j != k and (cross or head_of[j] == head_of[k])
+        ]
+        if not others:
+            continue
+        seen &= np.any([_CTX["seen"][j] for j in others], axis=0)
+        if not seen.any():
+            continue
+        slot = int(S.img_cam[k])
+        basis = S.refined[slot]
+        cols = np.r_[
+            S.pose_col[k] + np.arange(6), S.intr_col[slot] + np.arange(basis.shape[1])
+        ]
+        Xc = (X[seen] - st.c[k]) @ st.R[k].T
+        _, d_pt, d_par = res.project_with_jacobian(
+            S.camera_model[slot], st.params[slot], Xc
+        )
+        Jc = (
+            np.concatenate(
+                [-d_pt @ res._skew(Xc), -d_pt @ st.R[k], d_par @ basis], axis=2
+            )
+            / sigma
+        )
+        Jx = (d_pt @ st.R[k]) / sigma
+        H[np.ix_(cols, cols)] += np.einsum("npi,npj->ij", Jc, Jc)
+        B[np.ix_(np.flatnonzero(seen), cols)] += np.einsum("npi,npj->nij", Jc, Jx)
+        U[seen] += np.einsum("npi,npj->nij", Jx, Jx)
+    used = np.linalg.det(U) > 1e-12
+    Uinv = np.linalg.inv(U[used])
+    L = np.linalg.cholesky(Uinv)  # (m, 3, 3)
+    G = np.einsum("mij,mjk->mik", B[used, :n], L)  # (m, n, 3)
+    G = G.transpose(1, 0, 2).reshape(n, -1)
+    _CTX["n_points"] = int(used.sum())
+    return H - sp.csr_matrix(G) @ sp.csr_matrix(G).T
+
+
+def _recording(S, st, cov):
+    out = _ORIGINAL(S, st, cov)
+    rec = {"none": {S.image_ids[k]: v**2 for k, v in out.items()}}
+    rng = np.random.default_rng(0)
+    for n_pts in _CTX["densities"]:
+        X = _points(S, st, n_pts, _CTX["max_height"], rng)
+        info = _tie_information(S, st, X, _CTX["sigma"], _CTX["cross"])
+        info = 0.5 * (np.asarray(info) + np.asarray(info).T)
+        lam, V = np.linalg.eigh(info)
+        Lw = V * np.sqrt(np.clip(lam, 0.0, None))
+        CL = cov @ Lw
+        C_new = cov - CL @ np.linalg.solve(np.eye(len(lam)) + Lw.T @ CL, CL.T)
+        new = _ORIGINAL(S, st, C_new)
+        rec[f"{n_pts} points per image ({_CTX['n_points']} tied)"] = {
+            S.image_ids[k]: v**2 for k, v in new.items()
+        }
+    _SOLVES.append(rec)
+    return out
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = scene_parser(__doc__.split("\n\n")[0])
+    parser.add_argument("--seeds", type=int, nargs="+", default=[0])
+    parser.add_argument("--bundle_only", action="store_true")
+    parser.add_argument("--points_per_image", type=int, nargs="+", default=[50, 300])
+    parser.add_argument("--tie_sigma_px", type=float, default=0.5)
+    parser.add_argument("--max_height_m", type=float, default=15.0)
+    parser.add_argument("--cross_head", action="store_true")
+    args = parser.parse_args(argv)
+    scenes = synthetic_scenes(args)
+    if scenes is None:
+        return 2
+    args.base_set = list(args.set or [])
+    _CTX.update(
+        densities=args.points_per_image,
+        sigma=args.tie_sigma_px,
+        max_height=args.max_height_m,
+        cross=args.cross_head,
+    )
+    solver._image_precision = _recording
+    import argparse
+    from pathlib import Path
+
+    from bench_resolution import _options, _stage12
+
+    for scene in scenes:
+        for seed in args.seeds:
+            run_args = argparse.Namespace(
+                **{**vars(args), "set": [*args.base_set, f"registration.seed={seed}"]}
+            )
+            inputs, _, _ = _stage12(
+                scene, _options(scene, run_args), Path(args.cache_path)
+            )
+            _CTX["sizes"] = {
+                cid: (c.width, c.height) for cid, c in inputs.priors.cameras.items()
+            }
+            _SOLVES.clear()
+            row = run_once(scene, seed, args)
+            last = _SOLVES[-1]
+            parts = ", ".join(
+                f"{name} {np.sqrt(np.median(list(v.values()))):.3f}"
+                for name, v in last.items()
+            )
+            print(
+                f"{scene.name} seed {seed}: median deviation {row['median_px']:.3f} px;"
+                f" predicted sd (median over images, px): {parts}",
+                flush=True,
+            )
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
