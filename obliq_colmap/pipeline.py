@@ -730,6 +730,7 @@ def run_register(
         "refine_extra_params": options.adjustment.bundle.refine_extra_params,
         "bundle_rotation_sigma_deg": options.adjustment.bundle.rotation_prior_sigma_deg,
         "bundle_position_sigma_m": options.adjustment.bundle.position_prior_sigma_m,
+        "bundle_position_offset": options.adjustment.bundle.estimate_prior_offset,
         "min_constraints_kept": options.min_constraints_kept,
         "max_precision_ratio": options.max_precision_ratio,
     }
@@ -1562,6 +1563,13 @@ def run_report(
             # A-posteriori variance of unit weight (residuals weighted by
             # their kind's sigma): ~1 where the sigmas fit the residuals.
             "variance_factor": _finite(bundle.variance_factor),
+            # With --bundle_position_sigma: how far the priors' centres sit
+            # off the map horizontally (priors minus solved, m).
+            "prior_offset_m": (
+                None
+                if bundle.prior_offset_m is None
+                else [round(float(v), 4) for v in bundle.prior_offset_m]
+            ),
         }
     return report
 

@@ -10,7 +10,8 @@ stay as they are, and so does ``scene.json``'s rotation noise, which sets
 stage 2's search); with ``--position_sigma_m S`` each prior centre replaced
 by the true one plus the scene's vertical datum offset plus normal noise of
 S metres per axis (survey-grade GNSS, PPK; ``scene.json``'s position noise,
-which sets stage 2's search, stays). Everything else (images, map, truth) is
+which sets stage 2's search, stays), shifted by ``--position_offset_m DX DY
+DZ`` (a GNSS frame off the map's, a lever arm left out). Everything else (images, map, truth) is
 linked, not copied. Used for the calibrated runs in docs/BENCHMARKS.md
 (issue 5):
 
@@ -49,6 +50,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--output_path", required=True, type=Path)
     parser.add_argument("--rotation_sigma_deg", type=float)
     parser.add_argument("--position_sigma_m", type=float)
+    parser.add_argument(
+        "--position_offset_m", type=float, nargs=3, default=(0.0, 0.0, 0.0)
+    )
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument(
         "--keep_cameras",
@@ -89,6 +93,7 @@ def main(argv: list[str] | None = None) -> int:
     if args.position_sigma_m is not None:
         rng = np.random.default_rng([args.seed, 1])
         datum = np.array([0.0, 0.0, meta["options"]["prior_vertical_datum_offset_m"]])
+        datum = datum + np.asarray(args.position_offset_m)
         for i, image in images.items():
             true = truth.image_by_name(image.name).cam_from_world.center
             centre = true + datum + rng.normal(0.0, args.position_sigma_m, 3)

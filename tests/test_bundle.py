@@ -976,6 +976,27 @@ def test_an_exact_attitude_prior_holds_the_rotations_and_tightens_the_precision(
         BundleOptions(rotation_prior_sigma_deg=0.0)
 
 
+def test_the_priors_offset_from_the_map_is_estimated(noisy):
+    """GNSS centres exact but in a frame 0.5 m east and 0.3 m south of the
+    map's: the offset is found (to the map's own few centimetres), and the
+    solved centres stay at the truth, not at the priors; held at zero, it
+    pulls the block towards the priors."""
+    P0 = noisy.problem
+    truth = {i: noisy.poses[i].center for i in P0.image_ids}
+    off = np.array([0.5, -0.3, 0.0])
+    P = dataclasses.replace(P0, prior_centers={i: c + off for i, c in truth.items()})
+    out = solve_bundle(P, BundleOptions(position_prior_sigma_m=0.01))
+    np.testing.assert_allclose(out.prior_offset_m, off[:2], atol=0.15)
+    held = solve_bundle(
+        P, BundleOptions(position_prior_sigma_m=0.01, estimate_prior_offset=False)
+    )
+    err = {
+        name: np.median([np.linalg.norm(o.poses[i].center - truth[i]) for i in truth])
+        for name, o in (("estimated", out), ("held", held))
+    }
+    assert err["estimated"] < 0.15 < 0.4 < err["held"], err
+
+
 def test_centre_prior_gradient_matches_its_cost():
     """The GNSS prior's J^T W r is the derivative of its cost in the centre."""
     from obliq_colmap.bundle import solver as sv
@@ -1007,17 +1028,30 @@ def test_exact_centre_priors_hold_the_centres_and_tighten_the_precision(noisy):
     """Priors at the true centres (survey-grade GNSS) with a tight sigma: the
     solved centres end at the truth to a few millimetres, far nearer than
     without them, and every image's predicted precision is smaller (its
-    centre is what the map's constraints trade against its rotation)."""
+    centre is what the map's constraints trade against its rotation). With
+    the priors' horizontal offset estimated (the default), the block's
+    horizontal position is the map's again: the centres are held up to one
+    common shift, the map's own error."""
     P0 = noisy.problem
     truth = {i: noisy.poses[i].center for i in P0.image_ids}
     P = dataclasses.replace(P0, prior_centers=truth)
     free = solve_bundle(P, BundleOptions())
-    held = solve_bundle(P, BundleOptions(position_prior_sigma_m=0.001))
+    held = solve_bundle(
+        P, BundleOptions(position_prior_sigma_m=0.001, estimate_prior_offset=False)
+    )
+    shifted = solve_bundle(P, BundleOptions(position_prior_sigma_m=0.001))
     err = {
-        name: [np.linalg.norm(out.poses[i].center - truth[i]) for i in truth]
-        for name, out in (("free", free), ("held", held))
+        name: np.array([out.poses[i].center - truth[i] for i in truth])
+        for name, out in (("free", free), ("held", held), ("shifted", shifted))
     }
-    assert max(err["held"]) < 0.005 < np.median(err["free"]), err
+    size = {k: np.linalg.norm(v, axis=1) for k, v in err.items()}
+    assert held.prior_offset_m is None
+    assert size["held"].max() < 0.005 < np.median(size["free"]), size
+    common = err["shifted"] - err["shifted"].mean(axis=0)
+    assert np.linalg.norm(common, axis=1).max() < 0.005
+    np.testing.assert_allclose(
+        -shifted.prior_offset_m, err["shifted"][0, :2], atol=0.005
+    )
     for i in P.image_ids:
         assert held.image_precision_px[i] < free.image_precision_px[i]
     with pytest.raises(ValueError, match="position_prior_sigma_m"):

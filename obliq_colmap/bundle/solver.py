@@ -131,6 +131,13 @@ class BundleOptions:
     #: and each image's centre, which the map's constraints trade against
     #: its rotation (docs/BENCHMARKS.md, issue 5).
     position_prior_sigma_m: float | None = None
+    #: With ``position_prior_sigma_m``: estimate one horizontal offset of the
+    #: priors' centres against the map (2 unknowns per solve): a GNSS frame
+    #: off the cadastre's, a lever arm left out. Without it such an offset
+    #: bends every image along its weak direction (measured: 0.58 m put the
+    #: `paper` block at 0.81 px instead of 0.25). The vertical has no map
+    #: reference: the priors' heights stay the datum.
+    estimate_prior_offset: bool = True
     #: Vertical datum: "component_mean_camera_height" (per linked component,
     #: hard constraint) or "none" (rank-deficient; damping only). With
     #: ``position_prior_sigma_m`` the observed centres hold it instead.
@@ -397,6 +404,9 @@ class BundleResult:
         variance factor). NaN where not computed or not determinable.
     variance_factor : float
         A-posteriori variance of unit weight, ``r^T W r / redundancy``.
+    prior_offset_m : (2,) array or None
+        The priors' centres' horizontal offset against the map (m, priors
+        minus solved), where estimated (``BundleOptions.estimate_prior_offset``).
     """
 
     cameras: dict[int, Camera]
@@ -408,6 +418,7 @@ class BundleResult:
     summary: BundleSummary = field(repr=False)
     image_precision_px: dict[int, float] = field(default_factory=dict)
     variance_factor: float = float("nan")
+    prior_offset_m: np.ndarray | None = None
 
 
 # --------------------------------------------------------------------------
@@ -566,6 +577,15 @@ class _Setup:
             if basis.shape[1]:
                 self.intr_col[s] = col
                 col += basis.shape[1]
+        # Observed centres (GNSS) hold every component's vertical datum, and
+        # may sit off the map horizontally by one offset (two columns).
+        self.centred = (
+            opts.position_prior_sigma_m is not None and P.prior_centers is not None
+        )
+        self.shift_col = -1
+        if self.centred and opts.estimate_prior_offset:
+            self.shift_col = col
+            col += 2
         self.n_red = col
         self.L = 6 + max((b.shape[1] for b in self.refined), default=0)
         # (N, L) global columns of each residual's camera-side Jacobian; the
@@ -597,11 +617,7 @@ class _Setup:
             for c in range(self.num_components)
         ]
         rows = []
-        # Observed centres (GNSS) hold every component's vertical datum.
-        centred = (
-            opts.position_prior_sigma_m is not None and P.prior_centers is not None
-        )
-        if opts.gauge == "component_mean_camera_height" and not centred:
+        if opts.gauge == "component_mean_camera_height" and not self.centred:
             for c in range(self.num_components):
                 members = [
                     k for k in np.flatnonzero(self.labels == c) if self.pose_col[k] >= 0
@@ -768,8 +784,11 @@ class _Coupling:
 
 
 class _State:
-    def __init__(self, R, c, params, heights):
+    def __init__(self, R, c, params, heights, shift=None):
         self.R, self.c, self.params, self.heights = R, c, params, heights
+        # horizontal offset of the priors' centres against the map (m;
+        # BundleOptions.estimate_prior_offset)
+        self.shift = np.zeros(2) if shift is None else shift
 
     @classmethod
     def start(cls, P: BundleProblem, S: _Setup) -> _State:
@@ -789,6 +808,7 @@ class _State:
             self.c.copy(),
             [p.copy() for p in self.params],
             self.heights.copy(),
+            self.shift.copy(),
         )
 
 
@@ -1053,6 +1073,13 @@ def _solve(problem: BundleProblem, opts: BundleOptions) -> BundleResult:
         num_camera_params=S.n_red,
     )
     logger.info(summary.brief())
+    if S.shift_col >= 0:
+        logger.info(
+            "bundle: the priors' centres sit %.3f m east, %.3f m north of the map's"
+            " frame",
+            -st.shift[0],
+            -st.shift[1],
+        )
     return BundleResult(
         cameras=cameras,
         poses=poses,
@@ -1065,6 +1092,7 @@ def _solve(problem: BundleProblem, opts: BundleOptions) -> BundleResult:
             iid: precision.get(k, float("nan")) for k, iid in enumerate(P.image_ids)
         },
         variance_factor=variance_factor,
+        prior_offset_m=-st.shift.copy() if S.shift_col >= 0 else None,
     )
 
 
@@ -1182,15 +1210,17 @@ class _AttitudePrior:
 
 
 class _CentrePrior:
-    """Each active image's camera centre observed: ``e = (c - c_prior) /
-    sigma`` (3 rows, metres over metres); linear in the solver's increment
-    ``c <- c + dc``."""
+    """Each active image's camera centre observed: ``e = (c - c_prior - s) /
+    sigma`` (3 rows, metres over metres), ``s`` the priors' horizontal
+    offset (held at zero unless ``S.shift_col``); linear in the solver's
+    increments ``c <- c + dc``, ``s <- s + ds``."""
 
     def __init__(self, S: _Setup, prior: np.ndarray, sigma_m: float) -> None:
         self.k = S.active_images
         self.cols = S.pose_col[self.k][:, None] + np.arange(3, 6)  # (K', 3)
         self.prior = prior[self.k]  # (K', 3)
         self.w = 1.0 / sigma_m**2
+        self.shift_col = S.shift_col
 
     @classmethod
     def of(cls, P: BundleProblem, S: _Setup, opts: BundleOptions):
@@ -1199,14 +1229,28 @@ class _CentrePrior:
         prior = np.stack([np.asarray(P.prior_centers[i], float) for i in P.image_ids])
         return cls(S, prior, opts.position_prior_sigma_m)
 
-    def cost(self, st: _State) -> float:
+    def errors(self, st: _State) -> np.ndarray:
+        """(K', 3) centre minus offset prior, metres."""
         e = st.c[self.k] - self.prior
+        e[:, :2] -= st.shift
+        return e
+
+    def cost(self, st: _State) -> float:
+        e = self.errors(st)
         return 0.5 * self.w * float(np.sum(e * e))
 
     def add_to(self, H_cc: np.ndarray, g_c: np.ndarray, st: _State) -> None:
         """Its terms of ``J^T W J`` and ``J^T W r``, in place."""
+        e = self.errors(st)
         H_cc[self.cols, self.cols] += self.w
-        np.add.at(g_c, self.cols, self.w * (st.c[self.k] - self.prior))
+        np.add.at(g_c, self.cols, self.w * e)
+        if self.shift_col >= 0:  # d e / d s = -(I2 over a zero row)
+            s = self.shift_col + np.arange(2)
+            H_cc[s, s] += self.w * len(self.k)
+            for j in range(2):
+                H_cc[self.cols[:, j], s[j]] -= self.w
+                H_cc[s[j], self.cols[:, j]] -= self.w
+            g_c[s] -= self.w * e[:, :2].sum(axis=0)
 
 
 def _camera_covariance(
@@ -1323,4 +1367,6 @@ def _apply(S: _Setup, st: _State, dc: np.ndarray, dh: np.ndarray) -> _State:
         if basis.shape[1]:
             new.params[s] += basis @ dc[S.intr_col[s] + np.arange(basis.shape[1])]
     new.heights = st.heights + dh
+    if S.shift_col >= 0:
+        new.shift = st.shift + dc[S.shift_col : S.shift_col + 2]
     return new

@@ -180,6 +180,16 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "(the rough priors of --prior_position_sigma only guide stage 2)",
     )
     bundle.add_argument(
+        "--bundle_position_offset",
+        type=_bool01,
+        default=int(bdefaults.estimate_prior_offset),
+        metavar="{0,1}",
+        help="with --bundle_position_sigma: estimate one horizontal offset of the "
+        "priors' centres against the map (a GNSS frame off the cadastre's, a lever "
+        "arm left out; report.json's bundle.prior_offset_m); 0 where both frames "
+        "agree to centimetres (default %(default)s)",
+    )
+    bundle.add_argument(
         "--loss_scale",
         type=float,
         default=bdefaults.loss_scale_px,
@@ -231,6 +241,7 @@ def run(args: argparse.Namespace) -> int:
                     refine_extra_params=args.refine_extra_params,
                     rotation_prior_sigma_deg=args.bundle_rotation_sigma,
                     position_prior_sigma_m=args.bundle_position_sigma,
+                    estimate_prior_offset=bool(args.bundle_position_offset),
                     loss_scale_px=args.loss_scale,
                 )
             ),
