@@ -11,9 +11,9 @@ stage 2's search); with ``--position_sigma_m S`` each prior centre replaced
 by the true one plus the scene's vertical datum offset plus normal noise of
 S metres per axis (survey-grade GNSS, PPK; ``scene.json``'s position noise,
 which sets stage 2's search, stays), shifted by ``--position_offset_m DX DY
-DZ`` (a GNSS frame off the map's, a lever arm left out). Everything else (images, map, truth) is
-linked, not copied. Used for the calibrated runs in docs/BENCHMARKS.md
-(issue 5):
+DZ`` (a GNSS frame off the map's, a lever arm left out). Everything else
+(images, map, truth) is linked, not copied. Used for the calibrated runs in
+docs/BENCHMARKS.md (issue 5):
 
     python scripts/calibrated_scene.py --scene_path /work/scenes/paper_s1 \\
         --output_path /work/scenes/paper_s1_cal [--rotation_sigma_deg 0.01]
