@@ -50,63 +50,53 @@ def _points(S, st, n_per_image: int, max_height: float, rng) -> np.ndarray:
     return np.column_stack([xy, ground + max_height * rng.random(M)])
 
 
+def _columns(S, k: int) -> np.ndarray:
+    """Camera-block columns of image slot k: its pose, its head's intrinsics."""
+    slot = int(S.img_cam[k])
+    q = S.refined[slot].shape[1]
+    return np.r_[S.pose_col[k] + np.arange(6), S.intr_col[slot] + np.arange(q)]
+
+
 def _tie_information(S, st, X: np.ndarray, sigma: float, cross: bool) -> np.ndarray:
     """(n_red, n_red) camera-block information of tie points X (M, 3), their
     coordinates eliminated."""
     n, M = S.n_red, len(X)
     H = np.zeros((n, n))
-    B = np.zeros((M, n + 1, 3))  # per point sum of J_c^T J_X (global columns)
-    U = np.zeros((M, 3, 3))
-    head_of = {}
+    B = np.zeros((M, n, 3))  # per point: sum of J_c^T J_X (global columns)
+    U = np.zeros((M, 3, 3))  # per point: sum of J_X^T J_X
+    seen, head = {}, {}
     for k in S.active_images:
         slot = int(S.img_cam[k])
-        basis = S.refined[slot]
-        cols = np.r_[
-            S.pose_col[k] + np.arange(6), S.intr_col[slot] + np.arange(basis.shape[1])
-        ]
         Xc = (X - st.c[k]) @ st.R[k].T
         W, Hh = _CTX["sizes"][S.camera_ids[slot]]
         with np.errstate(divide="ignore", invalid="ignore"):
-            uv, d_pt, d_par = res.project_with_jacobian(
-                S.camera_model[slot], st.params[slot], Xc
-            )
-        seen = (Xc[:, 2] > 0) & np.all((uv >= 0) & (uv <= [W, Hh]), axis=1)
-        head_of[k] = S.camera_ids[slot]
-        _CTX.setdefault("seen", {})[k] = seen
-    # points seen in >= 2 images (of one head unless cross)
+            uv = res.project_with_jacobian(S.camera_model[slot], st.params[slot], Xc)[0]
+        seen[k] = (Xc[:, 2] > 0) & np.all((uv >= 0) & (uv <= [W, Hh]), axis=1)
+        head[k] = S.camera_ids[slot]
     for k in S.active_images:
-        seen = _CTX["seen"][k].copy()
-        others = [
-            j for j in S.active_images if j != k and (cross or head_of[j] == head_of[k])
-        ]
+        # observed where another image (of its head unless cross) sees it too
+        others = [j for j in seen if j != k and (cross or head[j] == head[k])]
         if not others:
             continue
-        seen &= np.any([_CTX["seen"][j] for j in others], axis=0)
-        if not seen.any():
+        obs = seen[k] & np.any([seen[j] for j in others], axis=0)
+        if not obs.any():
             continue
         slot = int(S.img_cam[k])
-        basis = S.refined[slot]
-        cols = np.r_[
-            S.pose_col[k] + np.arange(6), S.intr_col[slot] + np.arange(basis.shape[1])
-        ]
-        Xc = (X[seen] - st.c[k]) @ st.R[k].T
+        cols = _columns(S, k)
+        Xc = (X[obs] - st.c[k]) @ st.R[k].T
         _, d_pt, d_par = res.project_with_jacobian(
             S.camera_model[slot], st.params[slot], Xc
         )
-        Jc = (
-            np.concatenate(
-                [-d_pt @ res._skew(Xc), -d_pt @ st.R[k], d_par @ basis], axis=2
-            )
-            / sigma
-        )
+        pose = [-d_pt @ res._skew(Xc), -d_pt @ st.R[k], d_par @ S.refined[slot]]
+        Jc = np.concatenate(pose, axis=2) / sigma  # as solver._image_jacobians
         Jx = (d_pt @ st.R[k]) / sigma
         H[np.ix_(cols, cols)] += np.einsum("npi,npj->ij", Jc, Jc)
-        B[np.ix_(np.flatnonzero(seen), cols)] += np.einsum("npi,npj->nij", Jc, Jx)
-        U[seen] += np.einsum("npi,npj->nij", Jx, Jx)
+        B[np.ix_(np.flatnonzero(obs), cols)] += np.einsum("npi,npj->nij", Jc, Jx)
+        U[obs] += np.einsum("npi,npj->nij", Jx, Jx)
     used = np.linalg.det(U) > 1e-12
     Uinv = np.linalg.inv(U[used])
     L = np.linalg.cholesky(Uinv)  # (m, 3, 3)
-    G = np.einsum("mij,mjk->mik", B[used, :n], L)  # (m, n, 3)
+    G = np.einsum("mij,mjk->mik", B[used], L)  # (m, n, 3)
     G = G.transpose(1, 0, 2).reshape(n, -1)
     _CTX["n_points"] = int(used.sum())
     return H - sp.csr_matrix(G) @ sp.csr_matrix(G).T
