@@ -24,19 +24,17 @@ difference of the cotangents, a few tenths of a metre: hence the 1 m limit.
 
 from __future__ import annotations
 
-import argparse
 import sys
 from pathlib import Path
 
 import numpy as np
 from bench_resolution import (
-    _options,
     _stage12,
     _truth_local,
     scene_parser,
     synthetic_scenes,
 )
-from bench_seeds import run_once, summary
+from bench_seeds import run_once, seed_options, summary
 
 from obliq_colmap import adjustment as adj
 from obliq_colmap import matching
@@ -111,10 +109,7 @@ def main(argv: list[str] | None = None) -> int:
     rows, totals = [], np.zeros(4, int)
     for scene in scenes:
         for seed in args.seeds:
-            run_args = argparse.Namespace(
-                **{**vars(args), "set": [*args.base_set, f"registration.seed={seed}"]}
-            )
-            options = _options(scene, run_args)
+            options = seed_options(scene, seed, args)
             inputs, outcomes, _ = _stage12(scene, options, Path(args.cache_path))
             _, gtb, by_name = _truth_local(scene, inputs)
             _TRUTH.update(block=gtb, by_name=by_name)

@@ -44,12 +44,17 @@ from obliq_colmap import adjustment as adj
 from obliq_colmap import pipeline as pl
 
 
-def run_once(scene: Path, seed: int, args) -> dict:
-    """One split run (stages 1-2 cached) of ``scene`` with stage-2 ``seed``."""
+def seed_options(scene: Path, seed: int, args) -> pl.PipelineOptions:
+    """The run's options (``args.base_set`` applied) with stage-2 ``seed``."""
     run_args = argparse.Namespace(
         **{**vars(args), "set": [*args.base_set, f"registration.seed={seed}"]}
     )
-    options = _options(scene, run_args)
+    return _options(scene, run_args)
+
+
+def run_once(scene: Path, seed: int, args) -> dict:
+    """One split run (stages 1-2 cached) of ``scene`` with stage-2 ``seed``."""
+    options = seed_options(scene, seed, args)
     inputs, outcomes, _ = _stage12(scene, options, Path(args.cache_path))
     gt, _, _ = _truth_local(scene, inputs)
     registered = {i for i, o in outcomes.items() if o.registered}

@@ -54,11 +54,17 @@ def _conditional(J: np.ndarray, C: np.ndarray, known: list[int]) -> float:
     return float(np.mean(np.einsum("npi,ij,npj->n", J, C, J)))
 
 
+def observed(C: np.ndarray, A: np.ndarray, sigma: float) -> np.ndarray:
+    """Covariance (p, p) after the combinations ``A`` (m, p) of the
+    parameters are observed with standard deviation ``sigma`` (0: known)."""
+    CA = C @ A.T
+    return C - CA @ np.linalg.solve(A @ CA + sigma**2 * np.eye(len(A)), CA.T)
+
+
 def _observed(J: np.ndarray, C: np.ndarray, A: np.ndarray, sigma: float) -> float:
     """As :func:`_conditional`, with the combinations ``A`` (m, p) of the
     parameters observed with standard deviation ``sigma`` (0: known)."""
-    CA = C @ A.T
-    C = C - CA @ np.linalg.solve(A @ CA + sigma**2 * np.eye(len(A)), CA.T)
+    C = observed(C, A, sigma)
     return float(np.mean(np.einsum("npi,ij,npj->n", J, C, J)))
 
 
@@ -124,8 +130,7 @@ def _recording(S, st, cov):
         }
     for name, (A, sigmas) in _block_rows(S, st).items():
         for sigma in sigmas:
-            CA = cov @ A.T
-            C_new = cov - CA @ np.linalg.solve(A @ CA + sigma**2 * np.eye(len(A)), CA.T)
+            C_new = observed(cov, A, sigma)
             label = (
                 name if len(sigmas) == 1 and sigma == 0 else f"{name} at {sigma:g} m"
             )
@@ -133,6 +138,20 @@ def _recording(S, st, cov):
                 record[S.image_ids[k]][label] = v**2
     _SOLVES.append(record)
     return out
+
+
+def print_medians(scene, seed: int, row: dict, record: dict) -> None:
+    """One line: the run's deviation and, per condition, the median over the
+    images of the predicted sd. ``record``: image id -> {condition:
+    variance (px^2)}, every image with the same conditions."""
+    keys = list(next(iter(record.values())))
+    sd = np.sqrt(np.median([[v[k] for k in keys] for v in record.values()], 0))
+    parts = ", ".join(f"{k} {x:.3f}" for k, x in zip(keys, sd, strict=True))
+    print(
+        f"{scene.name} seed {seed}: median deviation {row['median_px']:.3f} px;"
+        f" predicted sd (median over images, px): {parts}",
+        flush=True,
+    )
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -157,16 +176,7 @@ def main(argv: list[str] | None = None) -> int:
         for seed in args.seeds:
             _SOLVES.clear()
             row = run_once(scene, seed, args)
-            last = _SOLVES[-1]
-            keys = list(next(iter(last.values())))
-            sd = np.sqrt(np.median([[v[k] for k in keys] for v in last.values()], 0))
-            parts = ", ".join(f"{k} {x:.3f}" for k, x in zip(keys, sd, strict=True))
-            print(
-                f"{scene.name} seed {seed}: median deviation"
-                f" {row['median_px']:.3f} px; predicted sd (median over images,"
-                f" px): {parts}",
-                flush=True,
-            )
+            print_medians(scene, seed, row, _SOLVES[-1])
     return 0
 
 

@@ -29,14 +29,16 @@ import numpy as np
 import scipy.sparse as sp
 from bench_resolution import scene_parser, synthetic_scenes
 from bench_seeds import run_once
+from diagnose_precision import observed, print_medians
 
 from obliq_colmap.bundle import residuals as res
 from obliq_colmap.bundle import solver
 
 _ORIGINAL = solver._image_precision
+_ORIGINAL_SOLVE = solver._solve
 _CTX: dict = {}
-#: One dict per bundle solved: variant -> per-image variance (px^2).
-_SOLVES: list[dict[str, dict[int, float]]] = []
+#: One dict per bundle solved: image id -> {variant: variance (px^2)}.
+_SOLVES: list[dict[int, dict[str, float]]] = []
 
 
 def _points(S, st, n_per_image: int, max_height: float, rng) -> np.ndarray:
@@ -103,23 +105,31 @@ def _tie_information(S, st, X: np.ndarray, sigma: float, cross: bool) -> np.ndar
 
 
 def _recording(S, st, cov):
+    """``solver._image_precision`` that also records the sd with the tie
+    points of each density added (their information ``L L^T`` observed as
+    ``L^T`` with unit sigma)."""
     out = _ORIGINAL(S, st, cov)
-    rec = {"none": {S.image_ids[k]: v**2 for k, v in out.items()}}
+    record = {S.image_ids[k]: {"none": v**2} for k, v in out.items()}
     rng = np.random.default_rng(0)
     for n_pts in _CTX["densities"]:
         X = _points(S, st, n_pts, _CTX["max_height"], rng)
         info = _tie_information(S, st, X, _CTX["sigma"], _CTX["cross"])
         info = 0.5 * (np.asarray(info) + np.asarray(info).T)
         lam, V = np.linalg.eigh(info)
-        Lw = V * np.sqrt(np.clip(lam, 0.0, None))
-        CL = cov @ Lw
-        C_new = cov - CL @ np.linalg.solve(np.eye(len(lam)) + Lw.T @ CL, CL.T)
-        new = _ORIGINAL(S, st, C_new)
-        rec[f"{n_pts} points per image ({_CTX['n_points']} tied)"] = {
-            S.image_ids[k]: v**2 for k, v in new.items()
-        }
-    _SOLVES.append(rec)
+        L = V * np.sqrt(np.clip(lam, 0.0, None))
+        new = _ORIGINAL(S, st, observed(cov, L.T, 1.0))
+        label = f"{n_pts} points per image ({_CTX['n_points']} tied)"
+        for k, v in new.items():
+            record[S.image_ids[k]][label] = v**2
+    _SOLVES.append(record)
     return out
+
+
+def _solving(problem, opts):
+    """``solver._solve`` that keeps the image sizes (the frames tie points
+    fall in) of the problem's cameras."""
+    _CTX["sizes"] = {c: (cam.width, cam.height) for c, cam in problem.cameras.items()}
+    return _ORIGINAL_SOLVE(problem, opts)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -142,34 +152,12 @@ def main(argv: list[str] | None = None) -> int:
         cross=args.cross_head,
     )
     solver._image_precision = _recording
-    import argparse
-    from pathlib import Path
-
-    from bench_resolution import _options, _stage12
-
+    solver._solve = _solving
     for scene in scenes:
         for seed in args.seeds:
-            run_args = argparse.Namespace(
-                **{**vars(args), "set": [*args.base_set, f"registration.seed={seed}"]}
-            )
-            inputs, _, _ = _stage12(
-                scene, _options(scene, run_args), Path(args.cache_path)
-            )
-            _CTX["sizes"] = {
-                cid: (c.width, c.height) for cid, c in inputs.priors.cameras.items()
-            }
             _SOLVES.clear()
             row = run_once(scene, seed, args)
-            last = _SOLVES[-1]
-            parts = ", ".join(
-                f"{name} {np.sqrt(np.median(list(v.values()))):.3f}"
-                for name, v in last.items()
-            )
-            print(
-                f"{scene.name} seed {seed}: median deviation {row['median_px']:.3f} px;"
-                f" predicted sd (median over images, px): {parts}",
-                flush=True,
-            )
+            print_medians(scene, seed, row, _SOLVES[-1])
     return 0
 
 

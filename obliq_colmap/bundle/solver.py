@@ -1175,7 +1175,22 @@ def _damped_step(S: _Setup, H_cc, g_c, H_hh, g_h, F, lam, schur: _Schur):
     return dc, dh, D_c, D_h
 
 
-class _AttitudePrior:
+class _PosePrior:
+    """An observed pose part: 3 rows ``errors(st) / sigma`` per active image
+    (``k``), weight ``w = 1 / sigma^2``."""
+
+    k: np.ndarray
+    w: float
+
+    def errors(self, st: _State) -> np.ndarray:
+        raise NotImplementedError
+
+    def cost(self, st: _State) -> float:
+        e = self.errors(st)
+        return 0.5 * self.w * float(np.sum(e * e))
+
+
+class _AttitudePrior(_PosePrior):
     """Each active image's rotation observed: ``e = Log(R R_prior^T) / sigma``
     (3 rows, radians over radians), linearised in the solver's increment
     ``R <- Exp(omega) R`` as ``d e / d omega = I / sigma`` (exact at e = 0;
@@ -1199,17 +1214,13 @@ class _AttitudePrior:
         R = st.R[self.k] @ np.transpose(self.prior, (0, 2, 1))
         return Rotation.from_matrix(R).as_rotvec()
 
-    def cost(self, st: _State) -> float:
-        e = self.errors(st)
-        return 0.5 * self.w * float(np.sum(e * e))
-
     def add_to(self, H_cc: np.ndarray, g_c: np.ndarray, st: _State) -> None:
         """Its terms of ``J^T W J`` and ``J^T W r``, in place."""
         H_cc[self.cols, self.cols] += self.w
         np.add.at(g_c, self.cols, self.w * self.errors(st))
 
 
-class _CentrePrior:
+class _CentrePrior(_PosePrior):
     """Each active image's camera centre observed: ``e = (c - c_prior - s) /
     sigma`` (3 rows, metres over metres), ``s`` the priors' horizontal
     offset (held at zero unless ``S.shift_col``); linear in the solver's
@@ -1234,10 +1245,6 @@ class _CentrePrior:
         e = st.c[self.k] - self.prior
         e[:, :2] -= st.shift
         return e
-
-    def cost(self, st: _State) -> float:
-        e = self.errors(st)
-        return 0.5 * self.w * float(np.sum(e * e))
 
     def add_to(self, H_cc: np.ndarray, g_c: np.ndarray, st: _State) -> None:
         """Its terms of ``J^T W J`` and ``J^T W r``, in place."""
