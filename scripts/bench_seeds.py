@@ -42,6 +42,7 @@ from bench_resolution import (
 
 from obliq_colmap import adjustment as adj
 from obliq_colmap import pipeline as pl
+from obliq_colmap.errors import InputError
 
 
 def seed_options(scene: Path, seed: int, args) -> pl.PipelineOptions:
@@ -73,14 +74,17 @@ def run_once(scene: Path, seed: int, args) -> dict:
         tasks = pl.image_tasks(inputs, options)
         origin3 = np.r_[inputs.cadastre.origin[:2], 0.0]
         init_args = (inputs.cadastre_path, options.cadastre, origin3)
-        state, result, stage3, again = pl.block_stage(
-            inputs,
-            tasks,
-            [outcomes[t.image_id] for t in tasks],
-            options,
-            {},
-            (args.num_workers, init_args),
-        )
+        try:
+            state, result, stage3, again = pl.block_stage(
+                inputs,
+                tasks,
+                [outcomes[t.image_id] for t in tasks],
+                options,
+                {},
+                (args.num_workers, init_args),
+            )
+        except InputError as e:  # register refuses the run: nothing written
+            return {"scene": scene.name, "seed": seed, "refused": e.problem}
     evaluations = _evaluate(inputs, state, gt)
     name_to_id = {outcomes[i].name: i for i in state.poses}
     full, across, cameras = (e.summary for e in evaluations)
@@ -192,13 +196,20 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     args.base_set = list(args.set or [])
     logging.getLogger("obliq_colmap").setLevel(logging.WARNING)
-    rows = []
+    rows, refused = [], []
     for seed in args.seeds:
         for scene in scenes:
             t0 = time.perf_counter()
             row = run_once(scene, seed, args)
-            rows.append(row)
             wall = time.perf_counter() - t0
+            if "refused" in row:
+                print(
+                    f"{scene.name:16s} seed {seed}: refused: {row['refused']}",
+                    flush=True,
+                )
+                refused.append(row)
+                continue
+            rows.append(row)
             print(
                 f"{row['scene']:16s} seed {seed}: {row['registered']}/{row['total']}"
                 f" < 2 px, median {row['median_px']:.3f} p95 {row['p95_px']:.3f}"
@@ -209,10 +220,12 @@ def main(argv: list[str] | None = None) -> int:
                 f" {row['written_over_5px'] or 'none'}; {wall:.0f} s",
                 flush=True,
             )
-    print(summary(rows) + (f"; overrides {args.base_set}" if args.base_set else ""))
+    if rows:
+        print(summary(rows) + (f"; overrides {args.base_set}" if args.base_set else ""))
+    print(f"{len(refused)} runs refused (an input error)")
     print(f"load average {os.getloadavg()}, {time.strftime('%Y-%m-%d %H:%M')}")
     if args.output_path:
-        Path(args.output_path).write_text(json.dumps(rows, indent=1))
+        Path(args.output_path).write_text(json.dumps(rows + refused, indent=1))
     return 0
 
 

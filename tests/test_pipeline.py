@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import copy
 import json
+import re
 import shutil
 from pathlib import Path
 
@@ -816,3 +817,49 @@ def test_a_reregistration_that_spoils_the_block_is_undone(
     assert x.registered == (not failed) and (x.image_id in state.poses) != failed
     assert "E_10.jpg" in x.message
     assert ("left out" if failed else "first pose kept") in x.message
+
+
+def test_pose_priors_far_worse_than_their_sigma_are_an_input_error(initial_run):
+    """The sample's prior centres (~5 m off) given as 0.05 m: the bundle
+    follows them and disagrees with most images; solved without them it
+    agrees with the images, so the run stops with one error naming the
+    priors model (nothing is written). Given as 10 m, no error."""
+    import dataclasses
+
+    from obliq_colmap import adjustment as adj
+    from obliq_colmap import pipeline as pl
+    from obliq_colmap.errors import InputError
+
+    options, inputs, outcomes = _sample_after_stage2(initial_run)
+
+    def with_sigma(sigma: float) -> PipelineOptions:
+        bundle = dataclasses.replace(
+            options.adjustment.bundle, position_prior_sigma_m=sigma
+        )
+        return dataclasses.replace(
+            options, adjustment=dataclasses.replace(options.adjustment, bundle=bundle)
+        )
+
+    def verdict(opts: PipelineOptions) -> list[int]:
+        state = adj.BlockState.from_outcomes(list(outcomes.values()))
+        _, result, stage3 = adj.bundle_stage(
+            inputs, outcomes, state, opts.adjustment, {}
+        )
+        assert result is not None
+        return adj.rejected_images(stage3, opts.min_constraints_kept)
+
+    tight = with_sigma(0.05)
+    rejected = verdict(tight)
+    assert len(rejected) > tight.max_prior_rejected_fraction * len(outcomes)
+    with pytest.raises(
+        InputError, match="less accurate than --bundle_position_sigma"
+    ) as e:
+        pl.check_pose_priors(inputs, outcomes, len(outcomes), rejected, tight)
+    assert e.value.path == SAMPLE / "priors"
+    free = re.search(r"without them with (\d+);", e.value.problem)
+    assert free and 2 * int(free.group(1)) <= len(rejected)
+
+    real = with_sigma(10.0)
+    rejected = verdict(real)
+    assert len(rejected) <= real.max_prior_rejected_fraction * len(outcomes)
+    pl.check_pose_priors(inputs, outcomes, len(outcomes), rejected, real)  # no error

@@ -165,8 +165,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         default=bdefaults.rotation_prior_sigma_deg,
         metavar="DEG",
         help="use the priors' rotations as observations in the bundle with this "
-        "1-sigma, deg (a calibrated INS: e.g. 0.01); default: not used (the "
-        "rough priors of --prior_rotation_sigma only guide stage 2)",
+        "1-sigma, deg (a calibrated INS: e.g. 0.01; checked as "
+        "--bundle_position_sigma is); default: not used (the rough priors of "
+        "--prior_rotation_sigma only guide stage 2)",
     )
     bundle.add_argument(
         "--bundle_position_sigma",
@@ -176,8 +177,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="use the priors' camera centres as observations in the bundle with "
         "this 1-sigma per axis, m (survey-grade GNSS with the lever arm applied, "
         "in the map's horizontal frame: e.g. 0.1). Give the real accuracy: a "
-        "sigma far below it bends the block to the priors; default: not used "
-        "(the rough priors of --prior_position_sigma only guide stage 2)",
+        "sigma far below it bends the block to the priors (when the bundle then "
+        "disagrees with most images and not without them, the run stops with "
+        "an error); default: not used (the rough priors of "
+        "--prior_position_sigma only guide stage 2)",
     )
     bundle.add_argument(
         "--bundle_position_offset",
