@@ -820,7 +820,7 @@ def test_a_reregistration_that_spoils_the_block_is_undone(
 
 
 def test_pose_priors_far_worse_than_their_sigma_are_an_input_error(initial_run):
-    """The sample's prior centres (~5 m off) given as 0.05 m: the bundle
+    """The sample's prior centres (a median 10 m off) given as 0.05 m: the bundle
     follows them and disagrees with most images; solved without them it
     agrees with the images, so the run stops with one error naming the
     priors model (nothing is written). Given as 10 m, no error."""
