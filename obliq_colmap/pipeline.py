@@ -174,7 +174,7 @@ class PipelineOptions:
     #: as many images, the priors are less accurate than their sigma says:
     #: an input error naming the priors (nothing written). Measured: the
     #: `paper` preset's 8 m centres given as 0.1 m leave 21-30 of 36 images
-    #: out and put the rest 10-18 px off (docs/BENCHMARKS.md, issue 5); with
+    #: out, run medians 9.5-18 px (docs/BENCHMARKS.md, issue 5); with
     #: their real sigma at most 1 of 36. 0: no check.
     max_prior_rejected_fraction: float = 0.25
     #: COLMAP camera model of the result (None: the priors' model).
