@@ -172,12 +172,18 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     args.base_set = list(args.set or [])
     solver._image_precision = _recording
+    run_all(scenes, args, _SOLVES)
+    return 0
+
+
+def run_all(scenes, args, solves: list) -> None:
+    """Every scene x seed run, printed with the last solve ``solves`` holds
+    (the recording hook appends one per precision computed)."""
     for scene in scenes:
         for seed in args.seeds:
-            _SOLVES.clear()
+            solves.clear()
             row = run_once(scene, seed, args)
-            print_medians(scene, seed, row, _SOLVES[-1])
-    return 0
+            print_medians(scene, seed, row, solves[-1])
 
 
 if __name__ == "__main__":

@@ -28,8 +28,7 @@ import sys
 import numpy as np
 import scipy.sparse as sp
 from bench_resolution import scene_parser, synthetic_scenes
-from bench_seeds import run_once
-from diagnose_precision import observed, print_medians
+from diagnose_precision import observed, run_all
 
 from obliq_colmap.bundle import residuals as res
 from obliq_colmap.bundle import solver
@@ -153,11 +152,7 @@ def main(argv: list[str] | None = None) -> int:
     )
     solver._image_precision = _recording
     solver._solve = _solving
-    for scene in scenes:
-        for seed in args.seeds:
-            _SOLVES.clear()
-            row = run_once(scene, seed, args)
-            print_medians(scene, seed, row, _SOLVES[-1])
+    run_all(scenes, args, _SOLVES)
     return 0
 
 
