@@ -50,7 +50,10 @@ __all__ = [
     "build_bundle_problem",
     "bundle_stage",
     "facade_stage",
+    "edge_end_offsets",
+    "end_offset_ratios",
     "imprecise_images",
+    "misplaced_images",
     "rejected_images",
     "vertical_constraints",
     "with_track_lines",
@@ -217,6 +220,10 @@ class Stage3:
     #: Per image id: the bundle's a-posteriori precision (px) of its
     #: constrained points (:attr:`BundleResult.image_precision_px`).
     bundle_precision: dict[int, float] = field(default_factory=dict)
+    #: Per image id: how far along its verticals (px, signed, + up) the ends
+    #: of its corners' vertical edges sit from where the other images put
+    #: them (:func:`edge_end_offsets`).
+    end_offset_px: dict[int, float] = field(default_factory=dict)
 
     def report(self, outcomes: dict[int, ImageOutcome]) -> dict[str, Any]:
         t = self.tracks
@@ -239,6 +246,7 @@ class Stage3:
                     "bundle_precision_px": _finite(
                         self.bundle_precision.get(i, math.nan)
                     ),
+                    "edge_end_offset_px": _finite(self.end_offset_px.get(i, math.nan)),
                 }
                 for k, (i, f) in enumerate(zip(self.ids, self.facades, strict=True))
             },
@@ -562,6 +570,7 @@ def bundle_stage(
             stage3.bundle_rms = _rms_per_image(problem, result)
             stage3.constraints_kept = _kept_share(initial, problem)
             stage3.bundle_precision = dict(result.image_precision_px)
+            stage3.end_offset_px = edge_end_offsets(inputs, outcomes, state, stage3.ids)
     timings["bundle"] = time.perf_counter() - t0
     return state, result, stage3
 
@@ -652,6 +661,83 @@ def imprecise_images(
         return []
     limit = max_ratio * float(np.median(list(sd.values())))
     return sorted(i for i, v in sd.items() if v > limit)
+
+
+def edge_end_offsets(
+    inputs: Inputs,
+    outcomes: dict[int, ImageOutcome],
+    state: BlockState,
+    image_ids: Sequence[int],
+    min_corners: int = 5,
+) -> dict[int, float]:
+    """Per image: how far its corners' vertical edges end, along its
+    verticals, from where the other images' edges end (px, + up).
+
+    Each inlier segment of stage 2 ends near the foot and the top of its
+    corner's edge. Cast through the image's solved camera onto the corner's
+    vertical, both ends get heights; per corner and end, the other images'
+    median height is the block's. The image's offset is the median over its
+    ends of (own height - block's height) in pixels along its vertical. A
+    single end is often cut by a car, a tree or a roof rim, but an image
+    whose camera the bundle left off along its verticals (its facade edges
+    matched a floor off, say) moves all its ends together, which its
+    corner-to-line and facade rows cannot show. None (absent) for an image
+    sharing fewer than ``min_corners`` corners with the others.
+    """
+    v = vertical_constraints(inputs, outcomes, state, image_ids)
+    if not len(v["xy"]):
+        return {}
+    # Two rows per segment (its ends); order each pair foot, top.
+    h = np.sort(v["height"].reshape(-1, 2), axis=1)
+    img, corner, xy = v["image"][::2], v["corner"][::2], v["xy"][::2]
+    corners, col = np.unique(corner, return_inverse=True)
+    table = np.full((2, len(image_ids), len(corners)), np.nan)  # end x image x corner
+    table[:, img, col] = h.T
+    out = {}
+    for k, i in enumerate(image_ids):
+        sel = img == k
+        if sel.sum() < min_corners:
+            continue
+        others = np.delete(table[:, :, col[sel]], k, axis=1)  # (2, I-1, n)
+        # Both ends of a segment are always there together: a corner another
+        # image saw has both.
+        seen = np.isfinite(others[0]).any(axis=0)
+        if seen.sum() < min_corners:
+            continue
+        block = np.nanmedian(others[:, :, seen], axis=1)  # (2, s)
+        # Pixels per metre along the vertical at each corner, solved camera.
+        cam, pose = state.cameras[i], state.poses[i]
+        X = np.column_stack([xy[sel][seen], h[sel][seen].mean(axis=1)])
+        up = cam.img_from_cam(pose.transform(X + [0.0, 0.0, 0.5]))
+        down = cam.img_from_cam(pose.transform(X - [0.0, 0.0, 0.5]))
+        d = (h[sel][seen].T - block) * np.linalg.norm(up - down, axis=1)  # (2, s)
+        out[i] = float(np.median(d))
+    return out
+
+
+def end_offset_ratios(
+    stage3: Stage3, min_images: int = 4, floor_px: float = 0.2
+) -> dict[int, float]:
+    """Per image id: its :attr:`Stage3.end_offset_px` from the block's median,
+    in the block's robust spread of it (1.4826 MAD over the images, at least
+    ``floor_px``: the ends are found to about a pixel, and below that spread
+    a ratio would flag sub-pixel offsets). Empty with fewer than
+    ``min_images`` offsets."""
+    off = {i: v for i, v in stage3.end_offset_px.items() if math.isfinite(v)}
+    if len(off) < min_images:
+        return {}
+    values = np.array(list(off.values()))
+    centre = float(np.median(values))
+    spread = max(1.4826 * float(np.median(np.abs(values - centre))), floor_px)
+    return {i: abs(v - centre) / spread for i, v in off.items()}
+
+
+def misplaced_images(stage3: Stage3, max_ratio: float) -> list[int]:
+    """The images whose vertical edges end far from where the block's do:
+    :func:`end_offset_ratios` above ``max_ratio`` (0: none)."""
+    if max_ratio <= 0:
+        return []
+    return sorted(i for i, r in end_offset_ratios(stage3).items() if r > max_ratio)
 
 
 def _robust_sigma(r: np.ndarray, default: float) -> float:

@@ -24,6 +24,7 @@ from __future__ import annotations
 import argparse
 import json
 import logging
+import math
 import os
 import statistics
 import sys
@@ -86,6 +87,7 @@ def run_once(scene: Path, seed: int, args) -> dict:
         except InputError as e:  # register refuses the run: nothing written
             return {"scene": scene.name, "seed": seed, "refused": e.problem}
     evaluations = _evaluate(inputs, state, gt)
+    ends = adj.end_offset_ratios(stage3)
     name_to_id = {outcomes[i].name: i for i in state.poses}
     full, across, cameras = (e.summary for e in evaluations)
     # Written although wrong: in the model, more than 5 px off.
@@ -108,13 +110,15 @@ def run_once(scene: Path, seed: int, args) -> dict:
         "left_out": sorted(outcomes[i].name for i in registered - set(state.poses)),
         "variance_factor": None if result is None else result.variance_factor,
         # Per image in the block: the bundle's predicted precision (px), the
-        # deviation measured against the truth (px) and the share of its
-        # constraints the bundle kept.
+        # deviation measured against the truth (px), the share of its
+        # constraints the bundle kept and its edges' end offset in the
+        # block's spread (adjustment.end_offset_ratios).
         "precision_vs_deviation": {
             e.name: [
                 stage3.bundle_precision.get(name_to_id.get(e.name), float("nan")),
                 e.mean_deviation_px,
                 stage3.constraints_kept.get(name_to_id.get(e.name), float("nan")),
+                ends.get(name_to_id.get(e.name), float("nan")),
             ]
             for e in evaluations[0].images
             if e.name in name_to_id
@@ -156,6 +160,7 @@ def precision_summary(rows: list[dict]) -> str:
         f" have precision {np.round(over, 3).tolist()} (percentile of all:"
         f" {[round(float(np.mean(prec < x)) * 100) for x in over]})"
         + "".join(ratio_flags(rows, r) for r in (2.0, 2.5))
+        + end_flags(rows)
     )
 
 
@@ -178,6 +183,29 @@ def ratio_flags(rows: list[dict], ratio: float) -> str:
     return (
         f"\nsd > {ratio} x the run's median: {len(flagged)} images {flagged};"
         f" > 5 px off below it: {missed}"
+    )
+
+
+def end_flags(
+    rows: list[dict], ratio: float = pl.PipelineOptions.max_end_offset_ratio
+) -> str:
+    """The images by their edges' end offset (in the block's spread,
+    ``PipelineOptions.max_end_offset_ratio``): the highest of those <= 5 px
+    off, and every image > 5 px off with its ratio. Run with ``--set
+    max_end_offset_ratio=0.0`` to see the flagged images measured."""
+    ok, wrong = [], []
+    for r in rows:
+        for name, (_, dev, _, q) in r["precision_vs_deviation"].items():
+            item = (q, f"{r['scene']}/{r['seed']}/{name} {q:.1f} ({dev:.2f} px)")
+            if dev > 5.0:
+                wrong.append(item[1])
+            elif math.isfinite(q):
+                ok.append(item)
+    ok.sort(reverse=True)
+    return (
+        f"\nend offset: above {ratio} spreads {sum(q > ratio for q, _ in ok)} of"
+        f" {len(ok)} images <= 5 px off, highest {[x for _, x in ok[:3]]};"
+        f" the images > 5 px off: {wrong}"
     )
 
 

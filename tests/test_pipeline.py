@@ -711,6 +711,77 @@ def test_an_image_held_by_few_facade_edges_is_left_out_as_imprecise(
     assert not o.registered and "determines its pose poorly" in o.message
 
 
+def test_an_image_the_bundle_leaves_at_a_wrong_height_is_left_out(
+    initial_run, monkeypatch
+):
+    """All of one image's facade edges moved 7 px up its verticals (about
+    1.5 m at the sample's 0.15 m GSD and 45 deg: what facade pairs matched
+    a floor off do to an image, measured on `hard` 1.4-2.2 m): the bundle
+    follows them (it lowers the camera), keeps every constraint and an
+    ordinary precision, so neither the disagreement nor the precision
+    verdict sees it. The ends of its corners' vertical edges do: they sit
+    ~6 px below the other images' (the others within 1.2 px), and it alone
+    is left out, saying why."""
+    import dataclasses
+
+    from obliq_colmap import adjustment as adj
+    from obliq_colmap.pipeline import leave_out_rejected
+
+    options, inputs, outcomes = _sample_after_stage2(initial_run)
+    target = next(i for i, o in outcomes.items() if o.name == "W_10.jpg")
+    facade_stage = adj.facade_stage
+
+    def raised(*args, **kwargs):
+        stage3 = facade_stage(*args, **kwargs)
+        k = stage3.ids.index(target)
+        f = stage3.facades[k]
+        ends = f.endpoints.copy()
+        ends[:, :, 1] -= 7.0
+        stage3.facades[k] = dataclasses.replace(f, endpoints=ends)
+        return stage3
+
+    monkeypatch.setattr(adj, "facade_stage", raised)
+    state = adj.BlockState.from_outcomes(list(outcomes.values()))
+    state, result, stage3 = adj.bundle_stage(
+        inputs, outcomes, state, options.adjustment, {}
+    )
+    assert result is not None
+    assert adj.rejected_images(stage3, options.min_constraints_kept) == []
+    assert adj.imprecise_images(stage3, options.max_precision_ratio) == []
+    offsets = stage3.end_offset_px
+    # Edges higher in the image: the camera went down, its ends with it.
+    assert -8.0 < offsets[target] < -4.5
+    assert max(abs(v) for i, v in offsets.items() if i != target) < 1.5
+    misplaced = adj.misplaced_images(stage3, options.max_end_offset_ratio)
+    assert misplaced == [target]
+    state = leave_out_rejected(state, stage3, outcomes, [], [], misplaced)
+    assert target not in state.poses and len(state.poses) == len(outcomes) - 1
+    o = outcomes[target]
+    assert not o.registered and "wrong height" in o.message
+
+
+def test_end_offset_ratios_against_the_block_spread():
+    from types import SimpleNamespace
+
+    from obliq_colmap.adjustment import end_offset_ratios, misplaced_images
+
+    off = {1: -0.6, 2: -0.2, 3: 0.0, 4: 0.2, 5: 0.6, 6: 7.0, 7: float("nan")}
+    stage3 = SimpleNamespace(end_offset_px=off)
+    ratios = end_offset_ratios(stage3)
+    spread = 1.4826 * 0.4  # median 0.1 over the finite; MAD 0.4
+    assert ratios[6] == pytest.approx(6.9 / spread)
+    assert 7 not in ratios
+    assert misplaced_images(stage3, 8.0) == [6]
+    assert misplaced_images(stage3, 12.0) == []
+    assert misplaced_images(stage3, 0.0) == []  # off
+    # A near-perfect block: the spread's floor (0.2 px) keeps sub-pixel
+    # offsets from counting as many spreads.
+    tight = SimpleNamespace(end_offset_px={i: 0.01 * i for i in range(5)} | {9: 1.2})
+    assert misplaced_images(tight, 8.0) == []
+    few = SimpleNamespace(end_offset_px={1: 0.0, 2: 0.1, 3: 9.0})
+    assert misplaced_images(few, 8.0) == []  # no spread from three images
+
+
 @pytest.mark.parametrize("prior", ["rotation", "centre"])
 def test_the_bundle_holds_the_priors_poses_when_given_their_sigma(initial_run, prior):
     """``rotation_prior_sigma_deg`` and ``position_prior_sigma_m`` reach every
