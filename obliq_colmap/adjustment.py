@@ -220,10 +220,10 @@ class Stage3:
     #: Per image id: the bundle's a-posteriori precision (px) of its
     #: constrained points (:attr:`BundleResult.image_precision_px`).
     bundle_precision: dict[int, float] = field(default_factory=dict)
-    #: Per image id: how far along its verticals (px, signed, + up) the ends
-    #: of its corners' vertical edges sit from where the other images put
-    #: them (:func:`edge_end_offsets`).
-    end_offset_px: dict[int, float] = field(default_factory=dict)
+    #: Per image id: how far along its verticals (px, signed, + up) the feet
+    #: and the tops of its corners' vertical edges sit from where the other
+    #: images put them, (2,) (:func:`edge_end_offsets`).
+    end_offset_px: dict[int, np.ndarray] = field(default_factory=dict)
 
     def report(self, outcomes: dict[int, ImageOutcome]) -> dict[str, Any]:
         t = self.tracks
@@ -246,7 +246,9 @@ class Stage3:
                     "bundle_precision_px": _finite(
                         self.bundle_precision.get(i, math.nan)
                     ),
-                    "edge_end_offset_px": _finite(self.end_offset_px.get(i, math.nan)),
+                    "edge_end_offset_px": [
+                        _finite(x) for x in self.end_offset_px.get(i, (math.nan,) * 2)
+                    ],
                 }
                 for k, (i, f) in enumerate(zip(self.ids, self.facades, strict=True))
             },
@@ -669,20 +671,22 @@ def edge_end_offsets(
     state: BlockState,
     image_ids: Sequence[int],
     min_corners: int = 5,
-) -> dict[int, float]:
+) -> dict[int, np.ndarray]:
     """Per image: how far its corners' vertical edges end, along its
-    verticals, from where the other images' edges end (px, + up).
+    verticals, from where the other images' edges end: (2,) px, + up, the
+    feet and the tops.
 
     Each inlier segment of stage 2 ends near the foot and the top of its
     corner's edge. Cast through the image's solved camera onto the corner's
     vertical, both ends get heights; per corner and end, the other images'
-    median height is the block's. The image's offset is the median over its
-    ends of (own height - block's height) in pixels along its vertical. A
-    single end is often cut by a car, a tree or a roof rim, but an image
-    whose camera the bundle left off along its verticals (its facade edges
-    matched a floor off, say) moves all its ends together, which its
-    corner-to-line and facade rows cannot show. None (absent) for an image
-    sharing fewer than ``min_corners`` corners with the others.
+    median height is the block's. Per end, the image's offset is the median
+    over its corners of (own height - block's height) in pixels along its
+    vertical. Either end alone can be off for reasons of its own (feet cut
+    by cars and trees, tops by roof rims seen from another side), but an
+    image whose camera the bundle left off along its verticals (its facade
+    edges matched a floor off, say) moves both together, which its
+    corner-to-line and facade rows cannot show. Absent for an image sharing
+    fewer than ``min_corners`` corners with the others.
     """
     v = vertical_constraints(inputs, outcomes, state, image_ids)
     if not len(v["xy"]):
@@ -711,30 +715,37 @@ def edge_end_offsets(
         up = cam.img_from_cam(pose.transform(X + [0.0, 0.0, 0.5]))
         down = cam.img_from_cam(pose.transform(X - [0.0, 0.0, 0.5]))
         d = (h[sel][seen].T - block) * np.linalg.norm(up - down, axis=1)  # (2, s)
-        out[i] = float(np.median(d))
+        out[i] = np.median(d, axis=1)
     return out
 
 
 def end_offset_ratios(
     stage3: Stage3, min_images: int = 4, floor_px: float = 0.2
 ) -> dict[int, float]:
-    """Per image id: its :attr:`Stage3.end_offset_px` from the block's median,
-    in the block's robust spread of it (1.4826 MAD over the images, at least
-    ``floor_px``: the ends are found to about a pixel, and below that spread
-    a ratio would flag sub-pixel offsets). Empty with fewer than
-    ``min_images`` offsets."""
-    off = {i: v for i, v in stage3.end_offset_px.items() if math.isfinite(v)}
-    if len(off) < min_images:
+    """Per image id: how many of the block's spreads both ends of its
+    vertical edges sit off, in the same direction (0 where they disagree).
+
+    Per end (feet, tops), each image's :attr:`Stage3.end_offset_px` from the
+    block's median over the images, in the block's robust spread (1.4826
+    MAD, at least ``floor_px``: the ends are found to about a pixel, and
+    below that a ratio would count sub-pixel offsets); the smaller of the
+    two. Empty with fewer than ``min_images`` images with offsets.
+    """
+    ids = [i for i, v in stage3.end_offset_px.items() if np.all(np.isfinite(v))]
+    if len(ids) < min_images:
         return {}
-    values = np.array(list(off.values()))
-    centre = float(np.median(values))
-    spread = max(1.4826 * float(np.median(np.abs(values - centre))), floor_px)
-    return {i: abs(v - centre) / spread for i, v in off.items()}
+    off = np.array([stage3.end_offset_px[i] for i in ids])  # (I, 2)
+    centre = np.median(off, axis=0)
+    spread = np.maximum(1.4826 * np.median(np.abs(off - centre), axis=0), floor_px)
+    z = (off - centre) / spread
+    both = np.where(z[:, 0] * z[:, 1] > 0, np.abs(z).min(axis=1), 0.0)
+    return dict(zip(ids, both.tolist(), strict=True))
 
 
 def misplaced_images(stage3: Stage3, max_ratio: float) -> list[int]:
-    """The images whose vertical edges end far from where the block's do:
-    :func:`end_offset_ratios` above ``max_ratio`` (0: none)."""
+    """The images whose vertical edges end, feet and tops alike, far from
+    where the block's do: :func:`end_offset_ratios` above ``max_ratio`` (0:
+    none)."""
     if max_ratio <= 0:
         return []
     return sorted(i for i, r in end_offset_ratios(stage3).items() if r > max_ratio)
