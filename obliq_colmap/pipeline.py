@@ -175,7 +175,7 @@ class PipelineOptions:
     #: image. It sees what the two verdicts above cannot: an image whose
     #: facade edges were matched a floor off keeps its constraints and an
     #: ordinary precision. Chosen on 18 runs (`paper` s1-s4, `hard` s1-s2:
-    #: correct images up to 3.8, the one image > 5 px off at 11.8), checked
+    #: correct images up to 3.8, the one image > 5 px off at 16.3), checked
     #: on held-out scenes and on blocks with GNSS centres (docs/BENCHMARKS.md,
     #: issue 5).
     max_end_offset_ratio: float = 6.0

@@ -34,6 +34,35 @@ def _sample_after_stage2(initial_run):
     return options, inputs, outcomes
 
 
+def _bundle_with_moved_edges(initial_run, monkeypatch, name, move):
+    """The sample's bundle (after stage 2) with the facade edges of image
+    ``name`` changed by ``move`` ((F, 2, 2) endpoints -> new endpoints) after
+    matching, so they stay in their tracks. Returns the options, the
+    outcomes, the image's id and the solved block's state and stage3."""
+    import dataclasses
+
+    from obliq_colmap import adjustment as adj
+
+    options, inputs, outcomes = _sample_after_stage2(initial_run)
+    target = next(i for i, o in outcomes.items() if o.name == name)
+    facade_stage = adj.facade_stage
+
+    def moved(*args, **kwargs):
+        stage3 = facade_stage(*args, **kwargs)
+        k = stage3.ids.index(target)
+        f = stage3.facades[k]
+        stage3.facades[k] = dataclasses.replace(f, endpoints=move(f.endpoints.copy()))
+        return stage3
+
+    monkeypatch.setattr(adj, "facade_stage", moved)
+    state = adj.BlockState.from_outcomes(list(outcomes.values()))
+    state, result, stage3 = adj.bundle_stage(
+        inputs, outcomes, state, options.adjustment, {}
+    )
+    assert result is not None
+    return options, outcomes, target, state, stage3
+
+
 def _args(scene: Path, out: Path, *extra: str) -> list[str]:
     return [
         "register",
@@ -622,8 +651,6 @@ def test_the_bundle_flags_an_image_whose_facade_edges_disagree(
     tracks but no longer fit the others' edges): the bundle rejects them,
     that image alone falls below ``min_constraints_kept``, and it is left
     out with a message saying why."""
-    import dataclasses
-
     from obliq_colmap import adjustment as adj
     from obliq_colmap.pipeline import leave_out_rejected
 
@@ -632,28 +659,17 @@ def test_the_bundle_flags_an_image_whose_facade_edges_disagree(
     assert min(v["constraints_kept"] for v in images.values()) >= 0.9
     assert all(o.registered for o in run.outcomes.values())
 
-    options, inputs, outcomes = _sample_after_stage2(initial_run)
-    target = next(i for i, o in outcomes.items() if o.name == "W_10.jpg")
     rng = np.random.default_rng(3)
-    facade_stage = adj.facade_stage
 
-    def displaced(*args, **kwargs):
-        stage3 = facade_stage(*args, **kwargs)
-        k = stage3.ids.index(target)
-        f = stage3.facades[k]
-        moved = rng.random(len(f)) < 0.7
-        shift = np.where(rng.random(len(f)) < 0.5, -6.0, 6.0)[:, None]
-        ends = f.endpoints.copy()
+    def displace(ends):
+        moved = rng.random(len(ends)) < 0.7
+        shift = np.where(rng.random(len(ends)) < 0.5, -6.0, 6.0)[:, None]
         ends[moved, :, 1] += shift[moved]
-        stage3.facades[k] = dataclasses.replace(f, endpoints=ends)
-        return stage3
+        return ends
 
-    monkeypatch.setattr(adj, "facade_stage", displaced)
-    state = adj.BlockState.from_outcomes(list(outcomes.values()))
-    state, result, stage3 = adj.bundle_stage(
-        inputs, outcomes, state, options.adjustment, {}
+    options, outcomes, target, state, stage3 = _bundle_with_moved_edges(
+        initial_run, monkeypatch, "W_10.jpg", displace
     )
-    assert result is not None
     rejected = adj.rejected_images(stage3, options.min_constraints_kept)
     assert rejected == [target]
     others = [v for i, v in stage3.constraints_kept.items() if i != target]
@@ -722,30 +738,16 @@ def test_an_image_the_bundle_leaves_at_a_wrong_height_is_left_out(
     verdict sees it. The ends of its corners' vertical edges do: feet and
     tops sit ~6 px below the other images' (the others' within 2.5 px), and
     it alone is left out, saying why."""
-    import dataclasses
-
     from obliq_colmap import adjustment as adj
     from obliq_colmap.pipeline import leave_out_rejected
 
-    options, inputs, outcomes = _sample_after_stage2(initial_run)
-    target = next(i for i, o in outcomes.items() if o.name == "W_10.jpg")
-    facade_stage = adj.facade_stage
-
-    def raised(*args, **kwargs):
-        stage3 = facade_stage(*args, **kwargs)
-        k = stage3.ids.index(target)
-        f = stage3.facades[k]
-        ends = f.endpoints.copy()
+    def raise_edges(ends):
         ends[:, :, 1] -= 7.0
-        stage3.facades[k] = dataclasses.replace(f, endpoints=ends)
-        return stage3
+        return ends
 
-    monkeypatch.setattr(adj, "facade_stage", raised)
-    state = adj.BlockState.from_outcomes(list(outcomes.values()))
-    state, result, stage3 = adj.bundle_stage(
-        inputs, outcomes, state, options.adjustment, {}
+    options, outcomes, target, state, stage3 = _bundle_with_moved_edges(
+        initial_run, monkeypatch, "W_10.jpg", raise_edges
     )
-    assert result is not None
     assert adj.rejected_images(stage3, options.min_constraints_kept) == []
     assert adj.imprecise_images(stage3, options.max_precision_ratio) == []
     offsets = stage3.end_offset_px
