@@ -43,9 +43,7 @@ from __future__ import annotations
 import json
 import logging
 import math
-import os
 import re
-import tempfile
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
@@ -58,6 +56,7 @@ from shapely.geometry import MultiPolygon, Polygon, mapping, shape
 from shapely.geometry.polygon import orient
 
 from obliq_colmap.errors import InputError
+from obliq_colmap.files import write_json_atomic
 from obliq_colmap.geometry import Camera, Pose
 
 logger = logging.getLogger(__name__)
@@ -1322,13 +1321,5 @@ def write_geojson(
     if crs is not None:
         doc["crs"] = {"type": "name", "properties": {"name": crs}}
     doc["features"] = features
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "w", encoding="utf-8") as f:
-            json.dump(doc, f, separators=(",", ":"))
-            f.write("\n")
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
+    write_json_atomic(path, doc, separators=(",", ":"))
     return path

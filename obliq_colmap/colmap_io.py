@@ -13,15 +13,13 @@ from __future__ import annotations
 
 import json
 import logging
-import os
-import shutil
-import tempfile
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
 from obliq_colmap.errors import InputError
+from obliq_colmap.files import AtomicFolder
 from obliq_colmap.geometry import SUPPORTED_MODELS, Camera, Pose
 
 logger = logging.getLogger(__name__)
@@ -264,53 +262,6 @@ def to_reconstruction(block: Block, points3D: list[Point3D] | None = None):
             track.add_element(image_id, idx)
         rec.add_point3D(np.asarray(point.xyz, float), track)
     return rec
-
-
-def check_output_path(output_path: Path) -> None:
-    """Raise InputError unless ``output_path`` is absent or an empty folder."""
-    output_path = Path(output_path)
-    if output_path.exists():
-        if not output_path.is_dir():
-            raise InputError(output_path, "output path exists and is not a folder")
-        if any(output_path.iterdir()):
-            raise InputError(
-                output_path,
-                "output folder exists and is not empty; refusing to overwrite",
-            )
-    if not output_path.parent.exists():
-        raise InputError(
-            output_path.parent, "parent folder of --output_path does not exist"
-        )
-
-
-class AtomicFolder:
-    """Write a folder under a temporary sibling name, rename it into place on success.
-
-    Use as a context manager; the yielded path is the temporary folder. On an
-    exception the temporary folder is removed and ``path`` is left untouched.
-    ``path`` may already exist if it is empty.
-    """
-
-    def __init__(self, path: str | Path) -> None:
-        self.path = Path(path).absolute()
-        check_output_path(self.path)
-        self.tmp: Path | None = None
-
-    def __enter__(self) -> Path:
-        self.tmp = Path(
-            tempfile.mkdtemp(prefix=f".{self.path.name}.tmp-", dir=self.path.parent)
-        )
-        return self.tmp
-
-    def __exit__(self, exc_type, exc, tb) -> None:
-        assert self.tmp is not None
-        if exc_type is not None:
-            shutil.rmtree(self.tmp, ignore_errors=True)
-            return
-        check_output_path(self.path)  # nobody wrote there meanwhile
-        os.chmod(self.tmp, 0o755)
-        # rename(2) replaces an empty directory atomically.
-        os.replace(self.tmp, self.path)
 
 
 def write_model_files(

@@ -30,13 +30,10 @@ import functools
 import json
 import logging
 import math
-import os
 import time
 from collections import Counter
-from collections.abc import Callable, Sequence
-from concurrent.futures import ProcessPoolExecutor
+from collections.abc import Sequence
 from dataclasses import dataclass, field
-from multiprocessing import get_context
 from pathlib import Path
 from typing import Any
 
@@ -76,6 +73,7 @@ from obliq_colmap.geometry import (
     rotation_from_axis_angle,
 )
 from obliq_colmap.lines import RefineOptions, Segments, refine_segments
+from obliq_colmap.parallel import WorkerPool, available_cores
 from obliq_colmap.registration import (
     RegistrationOptions,
     RegistrationResult,
@@ -108,14 +106,6 @@ def default_head_focal_min_images(stop_after: str) -> int:
     (the bundle estimates the focal lengths itself and measured no better
     from the pooled start: docs/BENCHMARKS.md, stage 2)."""
     return 3 if stop_after == "initial" else 0
-
-
-def available_cores() -> int:
-    """CPU cores this process may use (affinity-aware)."""
-    try:
-        return len(os.sched_getaffinity(0))
-    except AttributeError:  # not Linux
-        return os.cpu_count() or 1
 
 
 @dataclass(kw_only=True)
@@ -383,11 +373,6 @@ _STATE: dict[str, Any] = {}
 def _init_worker(
     cadastre_path: Path, options: CadastreOptions, origin: np.ndarray
 ) -> None:
-    import cv2
-    from threadpoolctl import threadpool_limits
-
-    cv2.setNumThreads(1)  # one process per core; no oversubscription
-    _STATE["blas"] = threadpool_limits(1)
     _STATE["cadastre"] = load_cadastre(cadastre_path, options, origin)
 
 
@@ -522,58 +507,18 @@ def _replace(options, **changes):
     return dataclasses.replace(options, **changes)
 
 
-# --------------------------------------------------------------------------
-# Parallel map with a progress bar
-# --------------------------------------------------------------------------
-
-
-class _Workers:
-    """A process pool (or the calling process for one worker) with the cadastre."""
-
-    def __init__(
-        self, num_workers: int, init_args: tuple, cadastre: Cadastre, progress: bool
-    ) -> None:
-        self.num_workers = num_workers
-        self.progress = progress
-        self.pool: ProcessPoolExecutor | None = None
-        if num_workers > 1:
-            # spawn: workers must not inherit the parent's threads (BLAS, OpenCV)
-            self.pool = ProcessPoolExecutor(
-                num_workers,
-                mp_context=get_context("spawn"),
-                initializer=_init_worker,
-                initargs=init_args,
-            )
-        else:
-            _STATE["cadastre"] = cadastre
-
-    def map(self, fn: Callable, items: Sequence, desc: str) -> list:
-        from tqdm import tqdm
-
-        bar = tqdm(total=len(items), desc=desc, unit="img", disable=not self.progress)
-        try:
-            if self.pool is None:
-                out = []
-                for item in items:
-                    out.append(fn(item))
-                    bar.update()
-                return out
-            futures = [self.pool.submit(fn, item) for item in items]
-            for f in futures:
-                f.add_done_callback(lambda _: bar.update())
-            return [f.result() for f in futures]
-        finally:
-            bar.close()
-
-    def close(self) -> None:
-        if self.pool is not None:
-            self.pool.shutdown(cancel_futures=True)
-
-    def __enter__(self) -> _Workers:
-        return self
-
-    def __exit__(self, *exc) -> None:
-        self.close()
+def _workers(
+    num_workers: int, init_args: tuple, cadastre: Cadastre, progress: bool
+) -> WorkerPool:
+    """The pool of the per-image stages; each worker loads the cadastre once
+    (one worker: the calling process uses the one already loaded)."""
+    return WorkerPool(
+        num_workers,
+        _init_worker,
+        init_args,
+        local_initializer=lambda: _STATE.__setitem__("cadastre", cadastre),
+        progress=progress,
+    )
 
 
 # --------------------------------------------------------------------------
@@ -704,7 +649,7 @@ def run_register(
     origin3 = np.array([cad.origin[0], cad.origin[1], 0.0])
     init_args = (inputs.cadastre_path, options.cadastre, origin3)
     workers = min(options.workers, len(tasks))
-    with _Workers(workers, init_args, cad, options.progress) as pool:
+    with _workers(workers, init_args, cad, options.progress) as pool:
         outcomes, _, rescued = initial_stage(pool, tasks, options, timings)
         for o in outcomes:
             if o.status == "unreadable" or not o.registered:
@@ -806,7 +751,7 @@ def block_stage(
         workers, init_args = pool_args
         saved = {o.image_id: copy.copy(o) for o in outcomes}  # for an undo
         first = (state, bundle_result, stage3)
-        with _Workers(workers, init_args, inputs.cadastre, options.progress) as pool:
+        with _workers(workers, init_args, inputs.cadastre, options.progress) as pool:
             state, reregistered = reregister_failed(
                 pool, tasks, outcomes, state, options
             )
@@ -943,7 +888,7 @@ def _verdicts(
 
 
 def initial_stage(
-    pool: _Workers,
+    pool: WorkerPool,
     tasks: list[_ImageTask],
     options: PipelineOptions,
     timings: dict[str, float],
@@ -1012,7 +957,7 @@ def rescue_heights(
 
 
 def _rescue(
-    pool: _Workers,
+    pool: WorkerPool,
     tasks: list[_ImageTask],
     outcomes: list[ImageOutcome],
     options: PipelineOptions,
@@ -1140,7 +1085,7 @@ def _head_task(
 
 
 def reregister_failed(
-    pool: _Workers,
+    pool: WorkerPool,
     tasks: list[_ImageTask],
     outcomes: list[ImageOutcome],
     state: BlockState,
@@ -1352,7 +1297,7 @@ def head_cameras(
 
 
 def _head_pass(
-    pool: _Workers,
+    pool: WorkerPool,
     tasks: list[_ImageTask],
     outcomes: list[ImageOutcome],
     options: PipelineOptions,
@@ -1409,7 +1354,7 @@ def _refine_job(
 
 
 def _head_profile(
-    pool: _Workers, jobs: list[tuple], base: Camera, log_scales: np.ndarray
+    pool: WorkerPool, jobs: list[tuple], base: Camera, log_scales: np.ndarray
 ) -> np.ndarray:
     """(G,) sum over a head's images of their consensus with ``base``'s
     focal scaled by ``exp`` of each of (G,) ``log_scales``; ``jobs``:
@@ -1419,7 +1364,7 @@ def _head_profile(
 
 
 def _head_focal_pass(
-    pool: _Workers,
+    pool: WorkerPool,
     tasks: list[_ImageTask],
     outcomes: list[ImageOutcome],
     options: PipelineOptions,

@@ -10,6 +10,7 @@ import pytest
 
 from obliq_colmap import colmap_io as io
 from obliq_colmap.errors import InputError
+from obliq_colmap.files import AtomicFolder
 from obliq_colmap.geometry import Camera, Pose, rotation_from_axis_angle
 
 ORIGIN = np.array([512300.0, 5612400.0, 130.0])
@@ -113,7 +114,7 @@ def test_refuses_non_empty_output(tmp_path):
 
 def test_failed_write_leaves_nothing(tmp_path):
     out = tmp_path / "model"
-    with pytest.raises(RuntimeError), io.AtomicFolder(out) as tmp:
+    with pytest.raises(RuntimeError), AtomicFolder(out) as tmp:
         (tmp / "cameras.bin").write_bytes(b"partial")
         raise RuntimeError("crash in the middle")
     assert not out.exists()

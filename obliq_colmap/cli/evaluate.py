@@ -13,9 +13,6 @@ baseline under the key ``"baseline"``).
 from __future__ import annotations
 
 import argparse
-import json
-import os
-import tempfile
 from pathlib import Path
 
 from obliq_colmap.errors import InputError
@@ -25,6 +22,7 @@ from obliq_colmap.evaluate import (
     evaluate_baseline,
     evaluate_model,
 )
+from obliq_colmap.files import write_json_atomic
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -78,15 +76,7 @@ def _write_json(path: Path, data: dict) -> None:
         raise InputError(path.parent, "parent folder of --output_path does not exist")
     if path.is_dir():
         raise InputError(path, "--output_path is a folder; expected a JSON file name")
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", dir=path.parent)
-    try:
-        with os.fdopen(fd, "w") as f:
-            json.dump(data, f, indent=2, allow_nan=False)
-            f.write("\n")
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
+    write_json_atomic(path, data, indent=2, allow_nan=False)
 
 
 def run(args: argparse.Namespace) -> int:

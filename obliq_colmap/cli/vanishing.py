@@ -18,15 +18,13 @@ first-pass segments through the VP and ``n_segments`` the second pass's.
 from __future__ import annotations
 
 import argparse
-import json
 import logging
-import os
-import tempfile
 import time
-from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 
 from obliq_colmap.errors import InputError
+from obliq_colmap.files import write_json_atomic
+from obliq_colmap.parallel import WorkerPool
 
 logger = logging.getLogger(__name__)
 
@@ -246,11 +244,8 @@ def run(args: argparse.Namespace) -> int:
         )
     logger.info("vanishing: %d images, prior %s", len(jobs), kind)
     t0 = time.perf_counter()
-    if args.num_workers > 1 and len(jobs) > 1:
-        with ProcessPoolExecutor(args.num_workers) as pool:
-            outputs = list(pool.map(_process, jobs))
-    else:
-        outputs = [_process(job) for job in jobs]
+    with WorkerPool(min(args.num_workers, len(jobs)), progress=False) as pool:
+        outputs = pool.map(_process, jobs, "vanishing")
 
     images = {}
     for out in outputs:
@@ -279,9 +274,5 @@ def run(args: argparse.Namespace) -> int:
         len(outputs) - len(images) + len(skipped),
         time.perf_counter() - t0,
     )
-    # Atomic write: a temporary sibling renamed into place.
-    fd, tmp = tempfile.mkstemp(dir=output_path.parent, suffix=".json.tmp")
-    with os.fdopen(fd, "w") as fh:
-        json.dump({"images": images}, fh, indent=1)
-    os.replace(tmp, output_path)
+    write_json_atomic(output_path, {"images": images}, indent=1)
     return 0

@@ -19,7 +19,6 @@ import json
 import logging
 import os
 import time
-from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -27,9 +26,11 @@ import cv2
 import numpy as np
 from shapely.geometry import MultiPolygon
 
-from obliq_colmap.colmap_io import AtomicFolder, Block, read_model, to_reconstruction
+from obliq_colmap.colmap_io import Block, read_model, to_reconstruction
 from obliq_colmap.errors import InputError
+from obliq_colmap.files import AtomicFolder
 from obliq_colmap.geometry import Camera, Pose
+from obliq_colmap.parallel import WorkerPool
 from obliq_colmap.synthetic import city as C
 from obliq_colmap.synthetic.cameras import (
     STREAM_CADASTRE,
@@ -150,12 +151,7 @@ def buildings_table(city: C.City) -> list[dict]:
 _WORKER: dict = {}
 
 
-def _init_worker(city, corners, options, seed, image_dir, limit_threads=True) -> None:
-    if limit_threads:  # one core per rendering process
-        from threadpoolctl import threadpool_limits
-
-        cv2.setNumThreads(1)
-        threadpool_limits(1)
+def _init_worker(city, corners, options, seed, image_dir) -> None:
     _WORKER.update(
         city=city, corners=corners, options=options, seed=seed, image_dir=image_dir
     )
@@ -234,34 +230,15 @@ def generate_scene(
     with folder as tmp:
         image_dir = tmp / "images"
         image_dir.mkdir()
-        results = []
-        progress = None
-        if show_progress:
-            from tqdm import tqdm
-
-            progress = tqdm(total=len(tasks), desc="render", unit="image")
         initargs = (city, corners, options, seed, str(image_dir))
-        if workers == 1:
-            _init_worker(*initargs, limit_threads=False)
-            for task in tasks:
-                results.append(_render_task(task))
-                if progress is not None:
-                    progress.update()
-        else:
-            import multiprocessing as mp
-
-            with ProcessPoolExecutor(
-                workers,
-                mp_context=mp.get_context("spawn"),
-                initializer=_init_worker,
-                initargs=initargs,
-            ) as pool:
-                for r in pool.map(_render_task, tasks):
-                    results.append(r)
-                    if progress is not None:
-                        progress.update()
-        if progress is not None:
-            progress.close()
+        with WorkerPool(
+            workers,
+            _init_worker,
+            initargs,
+            progress=show_progress,
+            unit="image",
+        ) as pool:
+            results = pool.map(_render_task, tasks, "render")
         for name in ("gt", "priors"):
             (tmp / name).mkdir()
         to_reconstruction(gt_local.shifted(-origin)).write_binary(str(tmp / "gt"))
