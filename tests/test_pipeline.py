@@ -391,7 +391,7 @@ def test_a_failed_image_is_registered_again_against_the_solved_block(initial_run
     )
     from obliq_colmap.pipeline import (
         _head_offsets,
-        _Workers,
+        _workers,
         image_tasks,
         load_inputs,
         reregister_failed,
@@ -446,7 +446,7 @@ def test_a_failed_image_is_registered_again_against_the_solved_block(initial_run
     assert rotvec[1] != 0.0 and abs(np.degrees(rotvec[1] + boresight[1])) < 3.5
     assert dxy[0] != 0.0 and abs(dxy[0] + shift[0]) < 17.5
 
-    with _Workers(1, (), inputs.cadastre, progress=False) as pool:
+    with _workers(1, (), inputs.cadastre, progress=False) as pool:
         state, names = reregister_failed(pool, tasks, outcomes, state, options)
     assert names == ["N_01.jpg"] and outcomes[k].reregistered
     assert outcomes[k].registered
