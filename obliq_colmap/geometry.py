@@ -59,14 +59,27 @@ def rotation_z(alpha: float | np.ndarray) -> np.ndarray:
     return R
 
 
+def rotation_exp(omega: np.ndarray) -> np.ndarray:
+    """Rodrigues' formula, vectorised: (..., 3) rotation vectors (axis * angle,
+    radians) to (..., 3, 3) rotations."""
+    omega = np.asarray(omega, float)
+    theta = np.linalg.norm(omega, axis=-1)[..., None, None]
+    K = skew(omega)
+    small = theta < 1e-8
+    t = np.where(small, 1.0, theta)
+    # Series near zero: sin(t) / t and (1 - cos(t)) / t^2 lose all digits there.
+    a = np.where(small, 1.0 - theta**2 / 6.0, np.sin(t) / t)
+    b = np.where(small, 0.5 - theta**2 / 24.0, (1.0 - np.cos(t)) / t**2)
+    return np.eye(3) + a * K + b * (K @ K)
+
+
 def rotation_from_axis_angle(rotvec: np.ndarray) -> np.ndarray:
     """Rodrigues' formula: (3,) axis * angle (radians) to a (3, 3) rotation."""
     rotvec = np.asarray(rotvec, dtype=float)
     theta = float(np.linalg.norm(rotvec))
     if theta < 1e-15:
         return np.eye(3)
-    k = rotvec / theta
-    Kx = skew(k)
+    Kx = skew(rotvec / theta)
     return np.eye(3) + np.sin(theta) * Kx + (1.0 - np.cos(theta)) * (Kx @ Kx)
 
 
@@ -79,9 +92,13 @@ def axis_angle_from_rotation(R: np.ndarray) -> np.ndarray:
 
 
 def skew(v: np.ndarray) -> np.ndarray:
-    """(3,) vector to its (3, 3) cross-product matrix."""
-    x, y, z = np.asarray(v, dtype=float)
-    return np.array([[0.0, -z, y], [z, 0.0, -x], [-y, x, 0.0]])
+    """(..., 3) vectors to their (..., 3, 3) cross-product matrices."""
+    v = np.asarray(v, dtype=float)
+    S = np.zeros(v.shape[:-1] + (3, 3))
+    S[..., 0, 1], S[..., 0, 2] = -v[..., 2], v[..., 1]
+    S[..., 1, 0], S[..., 1, 2] = v[..., 2], -v[..., 0]
+    S[..., 2, 0], S[..., 2, 1] = -v[..., 1], v[..., 0]
+    return S
 
 
 def rotation_aligning(a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -400,6 +417,13 @@ class Camera:
         px = np.asarray(pixels, float).reshape(-1, 2)
         uv = (px - self.K[:2, 2]) / np.diag(self.K)[:2]
         return self.img_from_cam(np.column_stack([uv, np.ones(len(uv))]))
+
+    def with_focal_scaled(self, scale: float) -> Camera:
+        """The camera with its focal length(s) multiplied by ``scale``."""
+        params = np.array(self.params, float)
+        nf = 2 if self.model in ("PINHOLE", "OPENCV") else 1
+        params[:nf] *= scale
+        return Camera(self.model, self.width, self.height, params, self.camera_id)
 
     def with_model(self, model: str) -> Camera:
         """The same camera expressed in another COLMAP model.

@@ -451,7 +451,7 @@ def fit_lines(S: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return np.stack([a, b, c], axis=1), np.maximum(lam, 0.0)
 
 
-def _extents(
+def segment_extents(
     xy: np.ndarray, group: np.ndarray, lines: np.ndarray, n_groups: int
 ) -> np.ndarray:
     """(G, 2, 2) endpoints: the feet of each group's extreme points on its line."""
@@ -512,12 +512,12 @@ def split_at_gaps(
 # --------------------------------------------------------------------------
 
 
-def _bilinear(img: np.ndarray, xy: np.ndarray) -> np.ndarray:
+def bilinear(img: np.ndarray, xy: np.ndarray) -> np.ndarray:
     """Bilinear samples of (H, W) ``img`` at (K, 2) COLMAP pixel positions."""
-    return _bilinear_many((img,), xy)[0]
+    return bilinear_many((img,), xy)[0]
 
 
-def _bilinear_many(imgs, xy: np.ndarray) -> list[np.ndarray]:
+def bilinear_many(imgs, xy: np.ndarray) -> list[np.ndarray]:
     """Bilinear samples (K,) of each (H, W) image of ``imgs`` at (K, 2) positions.
 
     The images share one shape; indices and weights are computed once.
@@ -555,7 +555,7 @@ def polarity_and_strength(
     f = (np.arange(n_samples) + 0.5) / n_samples
     pts = p0[:, None, :] + f[None, :, None] * (p1 - p0)[:, None, :]  # (N, S, 2)
     flat = pts.reshape(-1, 2)
-    g = np.stack(_bilinear_many((gx, gy), flat), axis=1)
+    g = np.stack(bilinear_many((gx, gy), flat), axis=1)
     cross = np.sum(g.reshape(len(d), n_samples, 2) * left[:, None, :], axis=2).mean(1)
     sign = np.where(cross >= 0, 1.0, -1.0)
     return left * sign[:, None], np.abs(cross)
@@ -793,7 +793,7 @@ def merge_collinear(
     w = np.repeat(L, 2)
     S = scatter_matrices(pts, gpts, G, weights=w)
     fitted, _ = fit_lines(S)
-    ends = _extents(pts, gpts, fitted, G)
+    ends = segment_extents(pts, gpts, fitted, G)
     # Normal: the length-weighted mean of the pieces, projected on the fit.
     nsum = np.zeros((G, 2))
     np.add.at(nsum, group, segments.normal * L[:, None])
@@ -885,7 +885,7 @@ def _detect_canny(
         S = scatter_matrices(xy, grp, G)
         lines, cost = fit_lines(S)
         count = S[:, 2, 2]
-        ends = _extents(xy, grp, lines, G)
+        ends = segment_extents(xy, grp, lines, G)
         length = np.linalg.norm(ends[:, 1] - ends[:, 0], axis=1)
         rms = np.sqrt(cost / np.maximum(count, 1))
         ok = (

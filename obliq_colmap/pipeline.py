@@ -77,7 +77,6 @@ from obliq_colmap.parallel import WorkerPool, available_cores
 from obliq_colmap.registration import (
     RegistrationOptions,
     RegistrationResult,
-    _scaled_camera,
     block_ground_height,
     chance_test,
     consensus_peak,
@@ -1420,13 +1419,13 @@ def _head_focal_pass(
         params = np.median(np.array([j[0].camera.params for j in js]), axis=0)
         cam = Camera(cam.model, cam.width, cam.height, params, cid)
         prior = next(t.camera for t in tasks if t.camera.camera_id == cid)
-        base[cid] = _scaled_camera(cam, _mean_focal(prior) / _mean_focal(cam))
+        base[cid] = cam.with_focal_scaled(_mean_focal(prior) / _mean_focal(cam))
     sigma = max(reg.prior_focal_sigma, 0.01)
     heads = {}
     for cid, js in jobs.items():
         profile = functools.partial(_head_profile, pool, js, base[cid])
         peak = consensus_peak(profile, sigma)
-        heads[cid] = _scaled_camera(base[cid], math.exp(peak))
+        heads[cid] = base[cid].with_focal_scaled(math.exp(peak))
     logger.info(
         "the heads' focal lengths from all their images: %s",
         {cid: round(_mean_focal(c), 1) for cid, c in heads.items()},

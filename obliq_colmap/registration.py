@@ -1673,7 +1673,7 @@ class _Lens:
 
     def camera_at(self, log_focal: float, dk: float) -> Camera:
         """The camera with its focal scaled by ``exp(log_focal)`` and ``k1 + dk``."""
-        cam = _scaled_camera(self.camera, math.exp(log_focal))
+        cam = self.camera.with_focal_scaled(math.exp(log_focal))
         if self.k_index is not None:
             cam.params[self.k_index] += dk
         return cam
@@ -2437,7 +2437,7 @@ def _search(
     )
     rms = float(np.sqrt(np.mean(resid**2))) if resid.size else math.nan
     timings["total"] = time.perf_counter() - t_start
-    result_camera = _scaled_camera(camera, view.focal / f0)
+    result_camera = camera.with_focal_scaled(view.focal / f0)
     if lens is not None and k_index is not None:
         result_camera.params[k_index] = lens.camera.params[k_index]
     return RegistrationResult(
@@ -2645,14 +2645,6 @@ def block_ground_height(
         if r.success and r.num_inliers >= min_inliers and math.isfinite(r.ground_height)
     ]
     return float(np.median(heights)) if heights else None
-
-
-def _scaled_camera(camera: Camera, scale: float) -> Camera:
-    """The camera with its focal length(s) multiplied by ``scale``."""
-    params = np.array(camera.params, float)
-    nf = 2 if camera.model in ("PINHOLE", "OPENCV") else 1
-    params[:nf] *= scale
-    return Camera(camera.model, camera.width, camera.height, params, camera.camera_id)
 
 
 def _median_depth(view: _View, corner_rel: np.ndarray) -> float:
@@ -2910,7 +2902,7 @@ def focal_profile(
         [
             _reassociate(
                 result,
-                _scaled_camera(camera, float(k)),
+                camera.with_focal_scaled(float(k)),
                 segments_px,
                 segments_camera,
                 cadastre,

@@ -74,13 +74,14 @@ from obliq_colmap.lines import (
     EdgePoints,
     LineOptions,
     Segments,
-    _bilinear_many,
     as_gray_u8,
+    bilinear_many,
     connected_pairs,
     detect_segments,
     edge_points,
     gradients,
     scatter_matrices,
+    segment_extents,
     split_at_gaps,
 )
 
@@ -1040,7 +1041,7 @@ def _extend_ends(ends, normal, strength, gx, gy, camera, max_px, step=0.5):
     flat = pts.reshape(-1, 2)
     if camera is not None and camera.has_distortion:
         flat = camera.distort_pixels(flat)
-    bx, by = _bilinear_many((gx, gy), flat)
+    bx, by = bilinear_many((gx, gy), flat)
     D = (
         bx.reshape(G, 2, K) * normal[:, 0, None, None]
         + by.reshape(G, 2, K) * normal[:, 1, None, None]
@@ -1059,9 +1060,7 @@ def _extend_ends(ends, normal, strength, gx, gy, camera, max_px, step=0.5):
 
 
 def _extents_on(xy, group, lines, G):
-    from obliq_colmap.lines import _extents
-
-    return _extents(xy, group, lines, G)
+    return segment_extents(xy, group, lines, G)
 
 
 #: merge candidates per chain: its neighbours in the order of the pencil angle.

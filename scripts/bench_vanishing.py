@@ -431,7 +431,7 @@ def _union_coverage(lo, hi, close, L):
 
 def edge_contrast(img: np.ndarray, segs: np.ndarray, offset_px: float = 2.0):
     """(M,) median |I(+offset) - I(-offset)| across segments (9 samples each)."""
-    from obliq_colmap.lines import _bilinear
+    from obliq_colmap.lines import bilinear
 
     d = segs[:, 1] - segs[:, 0]
     L = np.maximum(np.linalg.norm(d, axis=1, keepdims=True), 1e-9)
@@ -439,8 +439,8 @@ def edge_contrast(img: np.ndarray, segs: np.ndarray, offset_px: float = 2.0):
     f = np.linspace(0.1, 0.9, 9)
     P = segs[:, None, 0] + f[None, :, None] * d[:, None]
     gray = img.astype(float)
-    a = _bilinear(gray, (P + offset_px * n[:, None]).reshape(-1, 2)).reshape(-1, 9)
-    b = _bilinear(gray, (P - offset_px * n[:, None]).reshape(-1, 2)).reshape(-1, 9)
+    a = bilinear(gray, (P + offset_px * n[:, None]).reshape(-1, 2)).reshape(-1, 9)
+    b = bilinear(gray, (P - offset_px * n[:, None]).reshape(-1, 2)).reshape(-1, 9)
     return np.median(np.abs(a - b), axis=1)
 
 
@@ -450,13 +450,13 @@ def step_contrast(gray, P, t_edge, n_edge, offset=2.0):
     Mean of 3 samples along it (-1, 0, +1 px); t_edge, n_edge (K, 2) unit
     tangent and normal at each point; gray (H, W) float image.
     """
-    from obliq_colmap.lines import _bilinear
+    from obliq_colmap.lines import bilinear
 
     acc = np.zeros(len(P))
     for a in (-1.0, 0.0, 1.0):
         Q = P + a * t_edge
         acc += np.abs(
-            _bilinear(gray, Q + offset * n_edge) - _bilinear(gray, Q - offset * n_edge)
+            bilinear(gray, Q + offset * n_edge) - bilinear(gray, Q - offset * n_edge)
         )
     return acc / 3
 

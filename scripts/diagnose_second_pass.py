@@ -60,7 +60,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 from threadpoolctl import threadpool_limits
 
-from obliq_colmap.lines import _bilinear, edge_points, gradients
+from obliq_colmap.lines import bilinear, edge_points, gradients
 from obliq_colmap.synthetic import load_scene, true_vertical_edges
 from obliq_colmap.synthetic.city import MATERIAL_NAMES
 from obliq_colmap.synthetic.render import render_depth
@@ -172,8 +172,8 @@ def peak_derivative(gx, gy, field_vp, P, n_edge):
     offs = np.linspace(-1.5, 1.5, 13)
     Q = P[:, None] + offs[None, :, None] * n_edge[:, None]
     flat = Q.reshape(-1, 2)
-    bx = _bilinear(gx, flat).reshape(Q.shape[:2])
-    by = _bilinear(gy, flat).reshape(Q.shape[:2])
+    bx = bilinear(gx, flat).reshape(Q.shape[:2])
+    by = bilinear(gy, flat).reshape(Q.shape[:2])
     nx, ny = field_vp(flat[:, 0], flat[:, 1], None, None)
     nx, ny = nx.reshape(Q.shape[:2]), ny.reshape(Q.shape[:2])
     D = np.abs(bx * nx + by * ny)

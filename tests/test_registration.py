@@ -26,7 +26,6 @@ from obliq_colmap.geometry import (
 )
 from obliq_colmap.registration import (
     RegistrationOptions,
-    _scaled_camera,
     consensus_peak,
     draw_registration_overlay,
     focal_profile,
@@ -937,7 +936,7 @@ def test_head_focal_from_the_consensus_of_its_images(tmp_path):
     images = []
     for heading in (10.0, 35.0, 60.0):
         blk = make_block(0, num_outliers=60, tmp_path=tmp_path, heading_deg=heading)
-        camera = _scaled_camera(blk.camera, 1.03)  # the priors' focal
+        camera = blk.camera.with_focal_scaled(1.03)  # the priors' focal
         seg = blk.segments + rng.normal(0.0, 0.3, blk.segments.shape)
         prior = perturbed_prior(blk.pose, 2)
         result = register_image(
@@ -962,7 +961,7 @@ def test_head_focal_from_the_consensus_of_its_images(tmp_path):
     # measured: 1.03 * exp(peak) = 1.0004; every image alone: 1.03
     assert abs(1.03 * math.exp(log_scale) - 1.0) < 0.003
     blk, camera, seg, result = images[0]
-    head = _scaled_camera(camera, math.exp(log_scale))
+    head = camera.with_focal_scaled(math.exp(log_scale))
     again = refine_with_camera(result, head, seg, camera, blk.cadastre, options)
     assert again.success and again.camera is head
     errors = [

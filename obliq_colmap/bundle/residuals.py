@@ -64,7 +64,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..geometry import SUPPORTED_MODELS, Camera, Pose
+from ..geometry import SUPPORTED_MODELS, Camera, Pose, rotation_exp
 
 __all__ = [
     "FULL_PARAM_NAMES",
@@ -428,27 +428,6 @@ def project_with_vertical(
 # --------------------------------------------------------------------------
 # Rotations
 # --------------------------------------------------------------------------
-
-
-def _skew(v: np.ndarray) -> np.ndarray:
-    """(N, 3) vectors to (N, 3, 3) cross-product matrices."""
-    S = np.zeros(v.shape[:-1] + (3, 3))
-    S[..., 0, 1], S[..., 0, 2] = -v[..., 2], v[..., 1]
-    S[..., 1, 0], S[..., 1, 2] = v[..., 2], -v[..., 0]
-    S[..., 2, 0], S[..., 2, 1] = -v[..., 1], v[..., 0]
-    return S
-
-
-def rotation_exp(omega: np.ndarray) -> np.ndarray:
-    """Rodrigues' formula, vectorised: (K, 3) rotation vectors to (K, 3, 3)."""
-    omega = np.asarray(omega, float)
-    theta = np.linalg.norm(omega, axis=-1)[..., None, None]
-    K = _skew(omega)
-    small = theta < 1e-8
-    t = np.where(small, 1.0, theta)
-    a = np.where(small, 1.0 - theta**2 / 6.0, np.sin(t) / t)
-    b = np.where(small, 0.5 - theta**2 / 24.0, (1.0 - np.cos(t)) / t**2)
-    return np.eye(3) + a * K + b * (K @ K)
 
 
 # --------------------------------------------------------------------------

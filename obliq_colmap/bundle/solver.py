@@ -56,7 +56,7 @@ import scipy.sparse as sp
 from scipy.sparse.csgraph import connected_components
 from scipy.spatial.transform import Rotation
 
-from ..geometry import Camera, Pose
+from ..geometry import Camera, Pose, rotation_exp, skew
 from . import residuals as res
 
 __all__ = [
@@ -1342,7 +1342,7 @@ def _image_jacobians(S: _Setup, st: _State):
         _, d_pt, d_par = res.project_with_jacobian(model, st.params[slot], Xc)
         J = np.concatenate(
             [
-                -d_pt @ res._skew(Xc),  # R <- Exp(omega) R
+                -d_pt @ skew(Xc),  # R <- Exp(omega) R
                 -d_pt @ st.R[k],  # c <- c + dc
                 d_par @ basis,
             ],
@@ -1368,7 +1368,7 @@ def _apply(S: _Setup, st: _State, dc: np.ndarray, dh: np.ndarray) -> _State:
     new = st.copy()
     k = S.active_images
     blocks = dc[S.pose_col[k][:, None] + np.arange(6)]  # (K_active, 6)
-    new.R[k] = res.rotation_exp(blocks[:, :3]) @ st.R[k]
+    new.R[k] = rotation_exp(blocks[:, :3]) @ st.R[k]
     new.c[k] = st.c[k] + blocks[:, 3:]
     for s, basis in enumerate(S.refined):
         if basis.shape[1]:
