@@ -18,17 +18,15 @@ from obliq_colmap.vanishing.options import VanishingOptions, VanishingResult, VP
 from obliq_colmap.vanishing.pencil import (
     canonical_sign,
     direction_std_deg,
-    endpoint_scatter,
     nominal_K,
     normaliser,
-    pencil_costs_each,
     vertical_direction,
 )
 from obliq_colmap.vanishing.ransac import (
     PriorTest,
     candidate_segments,
     ransac_vp,
-    significance,
+    significance_test,
 )
 from obliq_colmap.vanishing.refine import refine_on_chains, refine_with_competitors
 from obliq_colmap.vanishing.second_pass import SecondPass, run_second_pass
@@ -106,43 +104,9 @@ def estimate_vertical_vp(
         return result
 
     t0 = time.perf_counter()
-    # Background model: every segment has a uniform orientation (deviation
-    # from the line to the VP uniform in [0, pi/2]); k counts those consistent
-    # with the VP, whichever VP they were assigned to. The prior only limits
-    # where hypotheses may lie (fewer tests); using the candidates' narrow
-    # orientation band as the chance range would make a strong pencil of 400
-    # verticals look like chance under a tight INS cone. The test is made in
-    # three length classes (at least 1, 2 and 4 times min_length_px), the
-    # best one counting, with the number of tests multiplied by 3: a pencil of
-    # many short segments and one of a few long ones in a textured image
-    # (where hundreds of short segments make any VP look like chance) are
-    # both recognised. Number of tests: the hypotheses RANSAC may examine
-    # (fixed a priori by max_trials), not all pairs of segments.
-    n_tests = 3 * min(len(idx) * (len(idx) - 1) / 2, options.max_trials)
-    # The classes are nested: one scatter for the first, masks for the others.
-    sel = segments.lengths >= options.min_length_px * factor
-    L1 = segments.lengths[sel]
-    S_sig = endpoint_scatter(segments.endpoints[sel] @ T[:2, :2].T + T[:2, 2])
-    p_chance = np.minimum(
-        1.0, np.arcsin(np.minimum(1.0, thr_px / (0.5 * L1))) / (np.pi / 2)
+    significance_of = significance_test(
+        segments, len(idx), T, factor, thr_px, thr_n, options
     )
-    classes = [
-        m
-        for m in (mult * options.min_length_px * factor <= L1 for mult in (1, 2, 4))
-        if m.any()
-    ]
-
-    def significance_of(V):
-        """(P,) significance of each of (P, 3) VPs (normalised)."""
-        V = np.asarray(V, float).reshape(-1, 3)
-        best = np.full(len(V), -np.inf)
-        if not classes:
-            return best
-        consistent = np.sqrt(pencil_costs_each(S_sig, V) / 2.0) <= thr_n  # (P, G)
-        for m in classes:
-            k = np.count_nonzero(consistent[:, m], axis=1)
-            best = np.maximum(best, significance(k, p_chance[m], n_tests))
-        return best
 
     v, cov, inl, comps = refine_with_competitors(
         ends_n,

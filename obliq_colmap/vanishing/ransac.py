@@ -11,7 +11,9 @@ from obliq_colmap.vanishing.options import VanishingOptions, VPPrior
 from obliq_colmap.vanishing.pencil import (
     canonical_sign,
     cross,
+    endpoint_scatter,
     midpoint_distance,
+    pencil_costs_each,
     tangent_basis,
 )
 
@@ -189,3 +191,60 @@ def significance(k: np.ndarray, p_chance: np.ndarray, n_tests: float) -> np.ndar
     with np.errstate(divide="ignore"):
         log_tail = np.log10(pdtrc(np.maximum(kk, 1) - 1, max(mu, 1e-12)))
     return np.where(kk <= 0, -log_tests, -(log_tests + log_tail))
+
+
+def significance_test(
+    segments: Segments,
+    n_candidates: int,
+    T: np.ndarray,
+    factor: float,
+    thr_px: float,
+    thr_n: float,
+    options: VanishingOptions,
+):
+    """The significance of VPs among ``segments`` (:func:`significance`).
+
+    ``n_candidates`` segments took part in RANSAC; ``factor`` is the
+    detection image's downscaling, ``thr_px`` / ``thr_n`` the inlier
+    threshold in pixels / normalised units. Returns ``significance_of(V)``:
+    (P,) significance of each of (P, 3) VPs (normalised).
+    """
+    # Background model: every segment has a uniform orientation (deviation
+    # from the line to the VP uniform in [0, pi/2]); k counts those consistent
+    # with the VP, whichever VP they were assigned to. The prior only limits
+    # where hypotheses may lie (fewer tests); using the candidates' narrow
+    # orientation band as the chance range would make a strong pencil of 400
+    # verticals look like chance under a tight INS cone. The test is made in
+    # three length classes (at least 1, 2 and 4 times min_length_px), the
+    # best one counting, with the number of tests multiplied by 3: a pencil of
+    # many short segments and one of a few long ones in a textured image
+    # (where hundreds of short segments make any VP look like chance) are
+    # both recognised. Number of tests: the hypotheses RANSAC may examine
+    # (fixed a priori by max_trials), not all pairs of segments.
+    n_tests = 3 * min(n_candidates * (n_candidates - 1) / 2, options.max_trials)
+    # The classes are nested: one scatter for the first, masks for the others.
+    sel = segments.lengths >= options.min_length_px * factor
+    L1 = segments.lengths[sel]
+    S_sig = endpoint_scatter(segments.endpoints[sel] @ T[:2, :2].T + T[:2, 2])
+    p_chance = np.minimum(
+        1.0, np.arcsin(np.minimum(1.0, thr_px / (0.5 * L1))) / (np.pi / 2)
+    )
+    classes = [
+        m
+        for m in (mult * options.min_length_px * factor <= L1 for mult in (1, 2, 4))
+        if m.any()
+    ]
+
+    def significance_of(V):
+        """(P,) significance of each of (P, 3) VPs (normalised)."""
+        V = np.asarray(V, float).reshape(-1, 3)
+        best = np.full(len(V), -np.inf)
+        if not classes:
+            return best
+        consistent = np.sqrt(pencil_costs_each(S_sig, V) / 2.0) <= thr_n  # (P, G)
+        for m in classes:
+            k = np.count_nonzero(consistent[:, m], axis=1)
+            best = np.maximum(best, significance(k, p_chance[m], n_tests))
+        return best
+
+    return significance_of
