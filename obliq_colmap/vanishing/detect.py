@@ -42,7 +42,7 @@ def estimate_vertical_vp(
     prior: VPPrior | None = None,
     rng: np.random.Generator | int | None = None,
 ) -> VanishingResult:
-    """Vertical VP from segments (steps 2 and 3 of the module docstring).
+    """Vertical VP from segments (steps 2 and 3 of the package docstring).
 
     Parameters
     ----------

@@ -152,33 +152,19 @@ class VanishingOptions:
     confidence: float = 0.999
     #: random seed (or pass a numpy Generator to the function).
     seed: int = 0
-    #: The first pass (steps 2-4) runs once per factor: with an INS prior
-    #: each start searches the prior's cone times its factor; the other
-    #: priors have no cone, and each start draws its own RANSAC samples
-    #: (one start, before 2026-12-03, left 4 of 252 synthetic `paper` images
-    #: 8.6-17 deg off with status "ok": docs/bench_vanishing.md, eighth
-    #: round). Some images hold two pencils of
-    #: near-equal first-pass score: the verticals of part of the image
-    #: together with long street edges meet degrees off the true VP, and
-    #: which one RANSAC returns depends on its draws (`paper` seed 4, S_11: 4
-    #: of 12 seeds 2-5 deg off) or on the cone (`hard` seed 1, S_11 and S_20:
-    #: 8-11 deg off in the 12 deg cone, right in a 6 deg one; `paper` seed 3,
-    #: E_12: its INS 7 deg off, outside the 6 deg cone); stage 2 failed on
-    #: all of them. When the starts disagree, each distinct VP gets its
-    #: second pass and the one whose second-pass segments are longest in
-    #: total wins: a wrong VP leaves the verticals elsewhere in the image
-    #: unaligned (S_11: 5,000-6,400 px against 7,300-9,600 px). Without a
-    #: second pass the first start counts. Cost: one first pass per start
-    #: (~7 ms) and a second pass per distinct VP (~0.1 s at 2004 px).
+    #: The first pass (steps 2-4) runs once per factor: with an INS prior in
+    #: the prior's cone times the factor, otherwise with its own RANSAC draws.
+    #: Two pencils of near-equal first-pass score (verticals of part of the
+    #: image with long street edges) make one start land degrees off; when the
+    #: starts disagree, the VP whose second-pass segments are longest in total
+    #: wins (without a second pass, the first start's).
     start_cones: tuple[float, ...] = (1.0, 0.5, 2.0)
     #: Two starts' VPs closer than this (deg, directions through the
     #: intrinsics or the nominal camera) are one VP ...
     starts_same_deg: float = 0.5
     #: ... and this without a cone, where the starts differ only in their
-    #: draws: a restart is there to find another pencil (the wrong ones it
-    #: replaced lay 8.6-17 deg off), not to re-decide within one, where real
-    #: aerial images scatter by a degree (Rennes `00_5021` at 4008 px:
-    #: 0.8-0.9 deg; each extra second pass there costs ~0.4 s).
+    #: draws: a restart is there to find another pencil, not to re-decide
+    #: within one (real aerial images scatter by about a degree).
     restarts_same_deg: float = 2.0
     #: ML refinement: re-selection rounds of the inliers.
     refine_rounds: int = 3
