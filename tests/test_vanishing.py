@@ -670,7 +670,8 @@ def test_a_wider_start_finds_the_vp_outside_a_wrong_ins_cone():
 
 
 def test_starts_one_vp_within_the_tolerance_and_plain_restarts_without_a_cone():
-    from obliq_colmap.vanishing import VanishingResult, _distinct, _start_priors
+    from obliq_colmap.vanishing import VanishingResult
+    from obliq_colmap.vanishing.detect import _distinct, _start_priors
 
     def at(deg):
         d = rotation_from_axis_angle([np.radians(deg), 0.0, 0.0]) @ [0.0, 0.6, 0.8]
@@ -700,7 +701,7 @@ def test_without_a_cone_a_restart_replaces_a_first_start_on_the_wrong_pencil(
     of `paper` seed 2 S_01, seed 5 W_11 / N_21, seed 7 W_20, 8.6-17 deg off:
     docs/bench_vanishing.md), and the restarts' VP, whose second pass is
     longer, is returned."""
-    from obliq_colmap import vanishing as vmod
+    from obliq_colmap.vanishing import detect as vmod
 
     tilt = rotation_from_axis_angle([np.radians(-60.0), 0.0, 0.0])
     d_true = tilt @ np.array([0.0, 0.0, 1.0])

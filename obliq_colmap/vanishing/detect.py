@@ -1,0 +1,354 @@
+"""The stage's entry points: the first pass on segments
+(:func:`estimate_vertical_vp`) and the whole detection on an image with its
+starts and second passes (:func:`detect_vertical_vp`)."""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+import math
+import time
+from collections.abc import Sequence
+
+import numpy as np
+
+from obliq_colmap.geometry import Camera
+from obliq_colmap.lines import Segments, as_gray_u8, detect_segments, gradients
+from obliq_colmap.vanishing.options import VanishingOptions, VanishingResult, VPPrior
+from obliq_colmap.vanishing.pencil import (
+    canonical_sign,
+    direction_std_deg,
+    nominal_K,
+    normaliser,
+    vertical_direction,
+)
+from obliq_colmap.vanishing.ransac import (
+    PriorTest,
+    candidate_segments,
+    ransac_vp,
+    significance_test,
+)
+from obliq_colmap.vanishing.refine import refine_on_chains, refine_with_competitors
+from obliq_colmap.vanishing.second_pass import SecondPass, run_second_pass
+
+logger = logging.getLogger(__name__)
+
+
+def estimate_vertical_vp(
+    segments: Segments,
+    image_size: tuple[int, int],
+    options: VanishingOptions | None = None,
+    camera: Camera | None = None,
+    prior: VPPrior | None = None,
+    rng: np.random.Generator | int | None = None,
+) -> VanishingResult:
+    """Vertical VP from segments (steps 2 and 3 of the package docstring).
+
+    Parameters
+    ----------
+    segments : Segments, undistorted COLMAP pixels of the full image.
+    image_size : (width, height) in pixels.
+    options, camera, prior : as :func:`detect_vertical_vp`.
+    rng : Generator, seed or None (then ``options.seed``).
+
+    Returns
+    -------
+    VanishingResult (without second-pass segments).
+    """
+    options = options or VanishingOptions()
+    prior = prior or VPPrior.none()
+    if prior.kind == "ins" and camera is None:
+        raise ValueError("the 'ins' prior needs intrinsics (a camera)")
+    rng = np.random.default_rng(options.seed if rng is None else rng)
+    W, H = image_size
+    T, s = normaliser(W, H)
+    K = camera.K if camera is not None else None
+    Knom = K if K is not None else nominal_K(W, H)
+    limit = options.lines.max_image_size_px
+    factor = max(1.0, max(W, H) / limit) if limit else 1.0
+    thr_px = options.inlier_threshold_px * factor
+    thr_n = thr_px / s
+    t0 = time.perf_counter()
+
+    use = segments.lengths >= options.min_length_px * factor
+    cand, half_range = candidate_segments(segments, prior, K, options)
+    use &= cand
+    idx = np.flatnonzero(use)
+    result = VanishingResult(
+        status="no_vp", segments=segments, inliers=np.zeros(len(segments), bool)
+    )
+    if len(idx) < options.min_inliers:
+        result.message = (
+            f"no vertical structure: {len(idx)} candidate segments "
+            f"(need {options.min_inliers})"
+        )
+        return result
+    ends_n = segments.endpoints[idx] @ T[:2, :2].T + T[:2, 2]  # (S, 2, 2)
+    mid_n = ends_n.mean(axis=1)
+    half_n = 0.5 * (ends_n[:, 1] - ends_n[:, 0])
+    lines_n = np.cross(
+        np.concatenate([ends_n[:, 0], np.ones((len(idx), 1))], 1),
+        np.concatenate([ends_n[:, 1], np.ones((len(idx), 1))], 1),
+    )
+    lines_n /= np.linalg.norm(lines_n, axis=1, keepdims=True)
+    length = segments.lengths[idx]
+    prior_ok = PriorTest(prior, W, H, T, K)
+    weight = length**options.score_length_power
+    v, inl, n_hyp = ransac_vp(
+        lines_n, mid_n, half_n, weight, thr_n, prior_ok, options, rng
+    )
+    result.n_hypotheses = n_hyp
+    result.time_s["ransac"] = time.perf_counter() - t0
+    if v is None:
+        result.message = "no pair of segments meets where the prior allows a VP"
+        return result
+
+    t0 = time.perf_counter()
+    significance_of = significance_test(
+        segments, len(idx), T, factor, thr_px, thr_n, options
+    )
+
+    v, cov, inl, comps = refine_with_competitors(
+        ends_n,
+        lines_n,
+        mid_n,
+        half_n,
+        weight,
+        v,
+        inl,
+        thr_n,
+        T @ Knom,
+        prior_ok,
+        significance_of,
+        options,
+        rng,
+        intrinsics_known=K is not None,
+    )
+    if comps:
+        c = np.array(comps) @ np.linalg.inv(T).T
+        result.competing_vps = canonical_sign(
+            c / np.linalg.norm(c, axis=1, keepdims=True)
+        )
+    result.time_s["refine"] = time.perf_counter() - t0
+    if not prior_ok(v[None])[0]:
+        # The structure converges where the prior says the VP cannot be (e.g.
+        # nearly parallel verticals whose refinement crosses infinity to the
+        # other side): by the prior's definition there is no vertical VP.
+        vpx = canonical_sign(np.linalg.inv(T) @ v)
+        result.message = (
+            "the vertical structure converges outside the prior's region "
+            f"(homogeneous VP {np.round(vpx / np.linalg.norm(vpx), 5).tolist()})"
+        )
+        return result
+    sig = float(significance_of(v)[0])
+    result.inliers[idx[inl]] = True
+    _set_vp(result, v, cov, T, K, Knom, prior)
+    result.significance = sig
+    _set_status(result, options)
+    return result
+
+
+def _set_vp(result, v_n, cov_n, T, K, Knom, prior) -> None:
+    """Store the VP (pixels, canonical sign), its covariance and direction.
+
+    ``Knom`` (intrinsics or a nominal camera) gives the direction's angular
+    uncertainty; None keeps the result's current one.
+    """
+    Tinv = np.linalg.inv(T)
+    v = Tinv @ v_n
+    nv = np.linalg.norm(v)
+    J = (np.eye(3) - np.outer(v, v) / nv**2) / nv @ Tinv
+    v = v / nv
+    cov = J @ cov_n @ J.T
+    flip = canonical_sign(v)
+    result.vp = flip
+    result.covariance = cov
+    if Knom is not None:
+        result.direction_std_deg = direction_std_deg(flip, cov, Knom)
+    if K is not None:
+        result.vertical_direction = vertical_direction(
+            flip, K, prior.down_cam if prior.kind == "ins" else None
+        )
+
+
+def _set_status(result: VanishingResult, options: VanishingOptions) -> None:
+    k, sig, std = result.n_inliers, result.significance, result.direction_std_deg
+    if k < options.min_inliers or sig <= 0:
+        result.status = "no_vp"
+        result.message = (
+            f"no vertical structure: best VP has {k} consistent segments, "
+            f"not more than chance (significance {sig:.1f})"
+        )
+        result.vp = result.covariance = result.vertical_direction = None
+        return
+    reasons = []
+    if k < options.ok_min_inliers:
+        reasons.append(f"{k} inlier segments < {options.ok_min_inliers}")
+    if sig < options.ok_min_significance:
+        reasons.append(f"significance {sig:.1f} < {options.ok_min_significance}")
+    if not std <= options.ok_max_std_deg:
+        reasons.append(f"direction std {std:.2f} deg > {options.ok_max_std_deg}")
+    result.status = "low_confidence" if reasons else "ok"
+    result.message = (
+        "; ".join(reasons)
+        if reasons
+        else (f"{k} inlier segments, direction std {std:.3f} deg")
+    )
+
+
+def _start_priors(prior: VPPrior, factors: Sequence[float]) -> list[VPPrior]:
+    """One prior per first-pass start: the INS cone times each factor (at
+    most 80 deg); the other kinds have no cone: the prior itself as often
+    (each start draws its own RANSAC samples)."""
+    if prior.kind != "ins":
+        return [prior] * len(factors)
+    return [
+        dataclasses.replace(prior, cone_deg=min(80.0, prior.cone_deg * f))
+        for f in factors
+    ]
+
+
+def _same_vp(a: np.ndarray, b: np.ndarray, K: np.ndarray, same_deg: float) -> bool:
+    """Whether homogeneous VPs a, b (3,) are one: their directions through K
+    within ``same_deg`` (sign-free)."""
+    da, db = np.linalg.solve(K, a), np.linalg.solve(K, b)
+    cos = abs(float(da @ db)) / (np.linalg.norm(da) * np.linalg.norm(db))
+    return cos >= math.cos(math.radians(same_deg))
+
+
+def _distinct(
+    results: list[VanishingResult], K: np.ndarray, same_deg: float
+) -> list[VanishingResult]:
+    """The results with a VP that is not :func:`_same_vp` as any earlier
+    one, in order; the first result alone when none has a VP."""
+    kept: list[VanishingResult] = []
+    for r in results:
+        if r.vp is not None and not any(
+            _same_vp(r.vp, k.vp, K, same_deg) for k in kept
+        ):
+            kept.append(r)
+    return kept or results[:1]
+
+
+def _with_second_pass(
+    result: VanishingResult,
+    img: np.ndarray,
+    grads: tuple[np.ndarray, np.ndarray],
+    options: VanishingOptions,
+    camera: Camera | None,
+    prior: VPPrior,
+) -> float:
+    """Run the second pass for ``result`` in place (its vertical segments,
+    and the VP refined on them); returns their total length, px (0 without
+    a VP)."""
+    if result.vp is None:
+        return 0.0
+    H, W = img.shape
+    t0 = time.perf_counter()
+    T, s_px = normaliser(W, H)
+    sp = run_second_pass(img, result.vp, options.second_pass, camera, T, grads)
+    result.time_s["second_pass"] = time.perf_counter() - t0
+    if options.refine_with_second_pass and len(sp.scatter) >= 3:
+        t0 = time.perf_counter()
+        v_n = T @ result.vp
+        v_n = v_n / np.linalg.norm(v_n)
+        comps = result.competing_vps @ T.T
+        comps /= np.linalg.norm(comps, axis=1, keepdims=True)
+        v_n, keep = refine_on_chains(sp, v_n, comps, options, s_px)
+        sp = SecondPass(sp.segments.subset(keep), sp.scatter[keep])
+        # The edge points of a chain are correlated (smoothing, optics), so
+        # their formal covariance is ~10x too optimistic; the first pass's
+        # (calibrated on independent segments) is kept as a conservative
+        # figure for the refined VP.
+        cov_px = result.covariance
+        K = camera.K if camera is not None else None
+        _set_vp(result, v_n, np.zeros((3, 3)), T, K, None, prior)
+        result.covariance = cov_px
+        result.time_s["refine_second"] = time.perf_counter() - t0
+    result.vertical_segments = sp.through(result.vp, T)
+    e = result.vertical_segments.endpoints
+    return float(np.linalg.norm(e[:, 1] - e[:, 0], axis=1).sum()) if len(e) else 0.0
+
+
+def detect_vertical_vp(
+    image_gray: np.ndarray,
+    options: VanishingOptions | None = None,
+    camera: Camera | None = None,
+    prior: VPPrior | None = None,
+    rng: np.random.Generator | int | None = None,
+) -> VanishingResult:
+    """The vertical vanishing point of one image, and the vertical segments.
+
+    A pure function of its arguments (safe to run in a process pool).
+
+    Parameters
+    ----------
+    image_gray : (H, W) uint8 array (or (H, W, 3) BGR).
+    options : VanishingOptions or None for the defaults.
+    camera : Camera or None
+        Intrinsics: with them the vertical direction is returned, the INS prior
+        is possible, and lens distortion is removed from the segments first.
+    prior : VPPrior or None (``VPPrior.none()``).
+    rng : numpy Generator, seed, or None (``options.seed``).
+
+    Returns
+    -------
+    VanishingResult
+        ``status`` "no_vp" (with a message) instead of an exception when the
+        image has no usable vertical structure.
+    """
+    options = options or VanishingOptions()
+    prior = prior or VPPrior.none()
+    img = as_gray_u8(image_gray)
+    H, W = img.shape
+    if camera is not None and (camera.width, camera.height) != (W, H):
+        raise ValueError(
+            f"camera is {camera.width}x{camera.height} but the image is {W}x{H}"
+        )
+    t_start = time.perf_counter()
+    t0 = time.perf_counter()
+    segs = detect_segments(img, options.lines).undistorted(camera)
+    t_lines = time.perf_counter() - t0
+    rng = np.random.default_rng(options.seed if rng is None else rng)
+    K = camera.K if camera is not None else nominal_K(W, H)
+    same_deg = (
+        options.starts_same_deg if prior.kind == "ins" else options.restarts_same_deg
+    )
+    # Every start is a whole first pass: stopping a restart whose RANSAC
+    # lands near a known VP lost `paper` seed 5 N_21 (11.8 deg off), whose
+    # refinement swaps to the vertical pencil from a competitor's winner.
+    results = _distinct(
+        [
+            estimate_vertical_vp(segs, (W, H), options, camera, p, rng)
+            for p in _start_priors(prior, options.start_cones)
+        ],
+        K,
+        same_deg,
+    )
+    if options.second_pass is None or results[0].vp is None:
+        result = results[0]
+    else:
+        t0 = time.perf_counter()
+        grads = gradients(img, options.second_pass.sigma_px)
+        # One VP: its second pass as always; several: the one whose second
+        # pass finds the most vertical edge length (``start_cones``).
+        lengths = [
+            _with_second_pass(r, img, grads, options, camera, prior) for r in results
+        ]
+        # Among VPs that the second pass brought together, the first start's
+        # (the prior's own cone): the longest second pass picks the pencil,
+        # not the most accurate VP within it.
+        best = results[int(np.argmax(lengths))]
+        result = next(r for r in results if _same_vp(best.vp, r.vp, K, same_deg))
+        result.time_s["second_pass_all"] = time.perf_counter() - t0
+        if len(results) > 1:
+            logger.debug(
+                "%d distinct VPs from %d starts; second-pass lengths %s px",
+                len(results),
+                len(options.start_cones),
+                np.round(lengths).tolist(),
+            )
+    result.time_s["lines"] = t_lines
+    result.time_s["total"] = time.perf_counter() - t_start
+    logger.debug("%s: %s", result.status, result.message)
+    return result
