@@ -30,11 +30,9 @@ class BundleOptions:
     loss: str = "huber"
     #: Scale of the robust loss, pixels (residuals below it count fully).
     loss_scale_px: float = 2.0
-    #: A priori standard deviations (px) of the two residual kinds: each
-    #: residual's cost is weighted by 1 / sigma^2 (the robust loss keeps its
-    #: scale in pixels). Variance components, e.g. re-estimated from a first
-    #: solve's residuals: map corners carry the map's vertex noise (~1 px),
-    #: facade edges only the image noise (~0.3 px).
+    #: A priori standard deviations (px) of the two residual kinds, cost weight
+    #: 1 / sigma^2 (the robust loss keeps its scale in pixels): map corners carry
+    #: the map's vertex noise (~1 px), facade edges only the image noise (~0.3 px).
     vertical_sigma_px: float = 1.0
     horizontal_sigma_px: float = 1.0
     #: Maximum number of Levenberg-Marquardt iterations (accepted or not).
@@ -45,11 +43,9 @@ class BundleOptions:
     parameter_tolerance: float = 1e-8
     #: Refine the focal length(s) of every camera.
     refine_focal_length: bool = True
-    #: Refine fx and fy of two-focal models (PINHOLE, OPENCV) independently;
-    #: False moves them together (aspect ratio kept, as the paper's). The map
-    #: has no heights, so a vertical stretch of the whole scene is nearly a
-    #: gauge freedom that fx != fy would absorb (measured: fx and fy drifted
-    #: 8 % apart on the sample with 2 images per camera).
+    #: Refine fx and fy of two-focal models (PINHOLE, OPENCV) independently; False
+    #: keeps the aspect ratio (as the paper): without map heights a vertical
+    #: stretch of the scene is nearly a gauge freedom that fx != fy would absorb.
     refine_aspect_ratio: bool = False
     #: Refine the principal point of every camera.
     refine_principal_point: bool = True
@@ -61,24 +57,20 @@ class BundleOptions:
     #: Standard deviation, metres, of a weak prior pulling free corner heights
     #: towards their initial values (None: no prior). 1 px of cost per sigma.
     corner_height_prior_m: float | None = 5.0
-    #: Standard deviation, degrees, of each image's rotation about its prior
-    #: (``BundleProblem.prior_rotations``: a calibrated INS, attitude as an
-    #: observation); None: no prior. It holds each image's rotation, which
-    #: its constraints determine worst (docs/BENCHMARKS.md, issue 5).
+    #: Standard deviation (deg) of each image's rotation about its prior
+    #: (``BundleProblem.prior_rotations``, a calibrated INS); None: no prior. It
+    #: holds the rotation, which an image's map constraints determine worst.
     rotation_prior_sigma_deg: float | None = None
-    #: Standard deviation, metres, of each image's camera centre about its
-    #: prior (``BundleProblem.prior_centers``: survey-grade GNSS, e.g. PPK
-    #: with the lever arm applied, in the frame and vertical datum of the
-    #: priors); None: no prior. Centres known to ~0.1 m fix the block's tilt
-    #: and each image's centre, which the map's constraints trade against
-    #: its rotation (docs/BENCHMARKS.md, issue 5).
+    #: Standard deviation (m) of each image's camera centre about its prior
+    #: (``BundleProblem.prior_centers``: survey-grade GNSS with the lever arm
+    #: applied, in the priors' frame and datum); None: no prior. Centres known
+    #: to ~0.1 m fix the block's tilt and each centre, which the map's
+    #: constraints trade against the rotation.
     position_prior_sigma_m: float | None = None
-    #: With ``position_prior_sigma_m``: estimate one horizontal offset of the
-    #: priors' centres against the map (2 unknowns per solve): a GNSS frame
-    #: off the cadastre's, a lever arm left out. Without it such an offset
-    #: bends every image along its weak direction (measured: 0.58 m put the
-    #: `paper` block at 0.81 px instead of 0.25). The vertical has no map
-    #: reference: the priors' heights stay the datum.
+    #: With ``position_prior_sigma_m``: estimate one horizontal offset (2
+    #: unknowns) of the priors' centres against the map (a GNSS frame off the
+    #: cadastre's, a lever arm left out), which would otherwise bend every image
+    #: along its weak direction. The priors' heights stay the vertical datum.
     estimate_prior_offset: bool = True
     #: Vertical datum: "component_mean_camera_height" (per linked component,
     #: hard constraint) or "none" (rank-deficient; damping only). With
@@ -95,10 +87,9 @@ class BundleOptions:
     #: (:attr:`BundleResult.image_precision_px`): one more linearisation and
     #: one dense inverse of the reduced camera system.
     compute_precision: bool = True
-    #: The precision inverts the dense reduced camera system: O(n^3) in its
-    #: n parameters (6 per image + the intrinsics); the inverse alone takes
-    #: 0.004 / 0.33 / 2.2 / 18 s at n = 250 / 1,500 / 3,000 / 6,000 on one
-    #: core here. Above this n it is skipped (NaN, and a log line).
+    #: The precision inverts the dense reduced camera system, O(n^3) in its n
+    #: parameters (6 per image + the intrinsics): above this n it is skipped
+    #: (NaN, and a log line).
     precision_max_camera_params: int = 3000
     #: Prior standard deviation (m) of the anchor offsets counted in the
     #: precision (``BundleProblem.horizontal_offset_normal``).
