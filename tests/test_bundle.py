@@ -17,7 +17,11 @@ from obliq_colmap.bundle import (
 from obliq_colmap.bundle import (
     residuals as res,
 )
-from obliq_colmap.bundle.synthetic_problem import concatenate, make_synthetic_problem
+from obliq_colmap.bundle.covariance import camera_covariance
+from obliq_colmap.bundle.priors import AttitudePrior, CentrePrior
+from obliq_colmap.bundle.schur import normal_equations
+from obliq_colmap.bundle.setup import Setup, State, evaluate
+from obliq_colmap.synthetic.bundle_problem import concatenate, make_synthetic_problem
 
 MODELS = {
     "SIMPLE_PINHOLE": [1000.0, 500.0, 400.0],
@@ -730,8 +734,6 @@ def test_horizontal_residuals_by_image_match_the_per_image_calls():
 def test_height_camera_coupling_products_match_a_dense_E():
     """The solver's products with E (heights x camera columns), formed from
     per-row blocks, against E assembled densely from its definition."""
-    from obliq_colmap.bundle import solver as sv
-
     models = ("SIMPLE_RADIAL", "PINHOLE", "OPENCV", "SIMPLE_PINHOLE")
     P1 = make_synthetic_problem(
         seed=7, buildings=(2, 2), stations=(2, 2), models=models
@@ -749,11 +751,11 @@ def test_height_camera_coupling_products_match_a_dense_E():
         (P1, BundleOptions(corner_heights="fixed")),  # rows without a height
         (P2, BundleOptions()),
     ):
-        S = sv._Setup(P, options)
-        st = sv._State.start(P, S)
-        r, Jc, Jh = sv._evaluate(S, st, jac=True)
+        S = Setup(P, options)
+        st = State.start(P, S)
+        r, Jc, Jh = evaluate(S, st, jac=True)
         w = np.random.default_rng(0).uniform(0.5, 1.0, len(r))
-        F = sv._normal_equations(S, Jc, Jh, r, w)[-1]
+        F = normal_equations(S, Jc, Jh, r, w)[-1]
         E = np.zeros((S.n_heights, S.n_red + 1))
         m = S.has_h
         np.add.at(E, (S.hidx[m][:, None], S.cols[m]), (w * Jh)[m, None] * Jc[m])
@@ -839,8 +841,6 @@ def test_fitted_anchor_offsets_count_as_unknowns_in_the_variance_factor(noisy):
     """The solve is the same with or without offset directions (anchors stay
     fixed); the variance factor's redundancy loses one per facade height
     whose anchor offset was fitted (a two-view track has none left)."""
-    from obliq_colmap.bundle import solver as sv
-
     P0 = noisy.problem
     opts = BundleOptions(loss="none", corner_heights="fixed")
     normal = np.tile([1.0, 0.0], (len(P0.horizontal_image), 1))
@@ -849,11 +849,11 @@ def test_fitted_anchor_offsets_count_as_unknowns_in_the_variance_factor(noisy):
     np.testing.assert_array_equal(
         free.horizontal_residuals_px, fitted.horizontal_residuals_px
     )
-    S = sv._Setup(P0, opts)
+    S = Setup(P0, opts)
     redundancy = len(P0.vertical_image) + len(P0.horizontal_image) + len(S.A)
     redundancy -= S.n_red + S.n_heights
     n_offsets = len(np.unique(P0.horizontal_height))
-    assert sv._Setup(P, opts).n_offsets == n_offsets
+    assert Setup(P, opts).n_offsets == n_offsets
     np.testing.assert_allclose(
         fitted.variance_factor * (redundancy - n_offsets),
         free.variance_factor * redundancy,
@@ -866,8 +866,6 @@ def test_camera_covariance_matches_a_dense_inverse_with_offset_unknowns():
     offsets eliminated per height (2 x 2 blocks), against the inverse of the
     full normal matrix with the gauge; the offset Jacobian here by finite
     differences of the anchors, not from the centre's."""
-    from obliq_colmap.bundle import solver as sv
-
     syn = make_synthetic_problem(seed=3, buildings=(4, 4), stations=(2, 2))
     P0 = syn.problem
     rng = np.random.default_rng(2)
@@ -876,14 +874,14 @@ def test_camera_covariance_matches_a_dense_inverse_with_offset_unknowns():
     normal = np.column_stack([np.cos(ang), np.sin(ang)])
     P = dataclasses.replace(P0, horizontal_offset_normal=normal[P0.horizontal_height])
     opts = BundleOptions(corner_height_prior_m=3.0)
-    S = sv._Setup(P, opts)
-    st = sv._State.start(P, S)
-    r, Jc, Jh = sv._evaluate(S, st, jac=True)
+    S = Setup(P, opts)
+    st = State.start(P, S)
+    r, Jc, Jh = evaluate(S, st, jac=True)
     w = rng.uniform(0.5, 1.0, len(r))
     height_prior = np.r_[np.zeros(J), np.full(len(P.corner_xy), 1 / 3.0**2)]
     offset_w = 1 / 2.0**2
-    ours = sv._camera_covariance(
-        S, sv._normal_equations(S, Jc, Jh, r, w)[0], Jc, Jh, w, height_prior, offset_w
+    ours = camera_covariance(
+        S, normal_equations(S, Jc, Jh, r, w)[0], Jc, Jh, w, height_prior, offset_w
     )
 
     eps = 1e-5
@@ -891,7 +889,7 @@ def test_camera_covariance_matches_a_dense_inverse_with_offset_unknowns():
         P,
         horizontal_anchor_xy=P.horizontal_anchor_xy + eps * P.horizontal_offset_normal,
     )
-    r2 = sv._evaluate(sv._Setup(shifted, opts), st, jac=False)[0]
+    r2 = evaluate(Setup(shifted, opts), st, jac=False)[0]
     jd = (r2 - r) / eps
     n, nh = S.n_red, S.n_heights
     A = np.zeros((len(r), n + 1 + nh + J))
@@ -909,9 +907,9 @@ def test_camera_covariance_matches_a_dense_inverse_with_offset_unknowns():
     np.testing.assert_allclose(ours, dense, rtol=1e-4, atol=1e-6 * np.abs(dense).max())
     # Without offsets (anchors known) the covariance is smaller: the
     # offsets are nuisance unknowns.
-    S0 = sv._Setup(P0, opts)
-    fixed = sv._camera_covariance(
-        S0, sv._normal_equations(S0, Jc, Jh, r, w)[0], Jc, Jh, w, height_prior, offset_w
+    S0 = Setup(P0, opts)
+    fixed = camera_covariance(
+        S0, normal_equations(S0, Jc, Jh, r, w)[0], Jc, Jh, w, height_prior, offset_w
     )
     assert np.all(np.linalg.eigvalsh(dense - fixed) > -1e-9 * np.abs(dense).max())
     assert np.trace(dense) > np.trace(fixed)
@@ -929,8 +927,6 @@ def test_pose_prior_gradient_matches_its_cost(kind):
     (INS attitude); c <- c + dc and the priors' offset s <- s + ds (GNSS)."""
     from scipy.spatial.transform import Rotation
 
-    from obliq_colmap.bundle import solver as sv
-
     syn = make_synthetic_problem(seed=4, buildings=(3, 3), stations=(2, 1))
     ids = syn.problem.image_ids
     if kind == "rotation":
@@ -943,18 +939,16 @@ def test_pose_prior_gradient_matches_its_cost(kind):
             syn.problem, prior_centers={i: syn.poses[i].center + 0.3 for i in ids}
         )
         opts = BundleOptions(position_prior_sigma_m=0.2)
-    S = sv._Setup(P, opts)
-    st = sv._State.start(P, S)
+    S = Setup(P, opts)
+    st = State.start(P, S)
     st.shift = np.array([0.1, -0.2])
-    prior = (sv._AttitudePrior if kind == "rotation" else sv._CentrePrior).of(
-        P, S, opts
-    )
+    prior = (AttitudePrior if kind == "rotation" else CentrePrior).of(P, S, opts)
     g = np.zeros(S.n_red)
     H = np.zeros((S.n_red, S.n_red))
     prior.add_to(H, g, st)
     k, eps = int(S.active_images[1]), 1e-6
 
-    def moved(col: int, step: float) -> sv._State:
+    def moved(col: int, step: float) -> State:
         out = st.copy()
         if kind == "rotation":
             omega = np.zeros(3)

@@ -17,8 +17,9 @@ Noise shifts a line by a Gaussian amount: perpendicular for vertical lines,
 along the projected vertical for horizontal ones, so that both residual kinds
 get exactly ``noise_px`` of noise. Outliers shift lines by 10-50 px.
 
-This is independent of the rendering scene generator in
-:mod:`obliq_colmap.synthetic`; occlusion is ignored.
+This is independent of the rendering scene generator of this package
+(:mod:`obliq_colmap.synthetic.city` and its renderer): no images, only the
+bundle's constraints; occlusion is ignored.
 """
 
 from __future__ import annotations
@@ -27,9 +28,14 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from ..geometry import Camera, Pose, lines_through, rotation_from_axis_angle
-from . import residuals as res
-from .solver import BundleProblem
+from obliq_colmap.bundle import BundleProblem
+from obliq_colmap.bundle import residuals as res
+from obliq_colmap.geometry import (
+    Camera,
+    Pose,
+    lines_through,
+    rotation_from_axis_angle,
+)
 
 __all__ = ["SyntheticBundle", "concatenate", "make_synthetic_problem"]
 

@@ -1,0 +1,121 @@
+"""A-posteriori precision: the camera block's cofactor matrix and each image's
+predicted deviation in pixels.
+
+:func:`camera_covariance` eliminates the heights (and fitted anchor offsets)
+and inverts the gauge-constrained reduced system; :func:`image_jacobians`
+and :func:`image_precision` propagate it to the projections of each image's
+constrained points. The solver calls them through this module
+(``covariance.image_precision``), so a diagnosis can wrap them.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import scipy.sparse as sp
+
+from ..geometry import skew
+from . import residuals as res
+from .setup import Setup, State
+
+
+def camera_covariance(
+    S: Setup, H_cc, Jc, Jh, w, height_prior: np.ndarray, offset_w: float
+) -> np.ndarray:
+    """(n_red, n_red) cofactor matrix of the camera block at the optimum.
+
+    The point unknowns are eliminated (undamped Schur complement): each
+    height, and with it, where its rows have an offset direction
+    (``S.offset_dir``), the anchor's offset along it (prior weight
+    ``offset_w``): one 2 x 2 block per height. The datum is the gauge: the
+    camera block of the inverse of ``[[A_red, A^T], [A, 0]]`` is the
+    cofactor matrix of the gauge-constrained solution; times the variance
+    factor, its covariance. NaN where it is singular.
+
+    Parameters
+    ----------
+    H_cc : (n_red, n_red) camera block of ``J^T W J``.
+    Jc : (N, L) camera Jacobian; ``Jh`` (N,) height Jacobian; ``w`` (N,)
+        weights; ``height_prior`` (n_heights,) prior weight per height.
+    """
+    n, nh, L = S.n_red, S.n_heights, S.L
+    A_red = H_cc.copy()
+    m = S.has_h
+    if nh and m.any():
+        hid, wm, jh = S.hidx[m], w[m], Jh[m]
+        # d r / d offset = d r / d (x, y) . dir = -(d r / d centre_xy) . dir
+        jd = -np.einsum("ij,ij->i", Jc[m, 3:5], S.offset_dir[m])
+        has_d = np.bincount(hid, np.any(S.offset_dir[m] != 0, axis=1), nh) > 0
+        a = np.bincount(hid, wm * jh * jh, nh) + height_prior
+        b = np.bincount(hid, wm * jh * jd, nh)
+        c = np.bincount(hid, wm * jd * jd, nh) + np.where(has_d, offset_w, 1.0)
+        det = a * c - b * b
+        ok = det > 0  # a height without information couples nothing
+        # Cholesky factor of each block's inverse [[c, -b], [-b, a]] / det,
+        # so that E^T inv E = G G^T with one sparse G: two columns per height.
+        l11 = np.sqrt(np.where(ok, c / np.where(ok, det, 1.0), 0.0))
+        l21 = np.where(ok, -b / np.where(ok, det, 1.0), 0.0) / np.where(ok, l11, 1.0)
+        l22 = np.sqrt(np.where(ok, 1.0 / np.where(ok, c, 1.0), 0.0))
+        vals = np.concatenate(
+            [
+                Jc[m] * (wm * (jh * l11[hid] + jd * l21[hid]))[:, None],
+                Jc[m] * (wm * jd * l22[hid])[:, None],
+            ]
+        ).ravel()
+        rows = np.tile(S.cols[m].ravel(), 2)  # camera columns, padding n
+        cols = np.repeat(np.r_[hid, hid + nh], L)
+        G = sp.csr_matrix((vals, (rows, cols)), (n + 1, 2 * nh))
+        A_red -= (G @ G.T).toarray()[:n, :n]
+    ng = len(S.A)
+    # Jacobi scaling: the columns (radians, metres, pixels, distortion) differ
+    # by orders of magnitude; scaled, the condition number is the geometry's.
+    d = np.sqrt(np.clip(np.diag(A_red), 0.0, None))
+    if not np.all(d > 0):
+        return np.full((n, n), np.nan)  # a direction without any observation
+    kkt = np.zeros((n + ng, n + ng))
+    kkt[:n, :n] = A_red / np.outer(d, d)
+    kkt[:n, n:] = (S.A / d).T
+    kkt[n:, :n] = S.A / d
+    try:
+        inv_kkt = np.linalg.inv(kkt)
+    except np.linalg.LinAlgError:
+        return np.full((n, n), np.nan)
+    return inv_kkt[:n, :n] / np.outer(d, d)
+
+
+def image_jacobians(S: Setup, st: State):
+    """Per active image slot k: ``(k, J, cols)``, J (n, 2, 6 + q) the
+    Jacobian of the projections of its rows' world points (map corners,
+    facade anchors at their heights) by its pose (rotation increment,
+    centre) and its camera's q refined intrinsics, cols their global
+    columns in the camera block."""
+    h_all = st.heights[np.maximum(S.hidx, 0)] if S.n_heights else S.zfix
+    height = np.where(S.has_h, h_all, S.zfix)
+    for a, b, cols in S.image_runs:
+        k = int(S.img[a])
+        slot = int(S.img_cam[k])
+        basis = S.refined[slot]
+        X = np.column_stack([S.xy[a:b], height[a:b]])
+        Xc = (X - st.c[k]) @ st.R[k].T  # (n, 3)
+        model = S.camera_model[slot]
+        _, d_pt, d_par = res.project_with_jacobian(model, st.params[slot], Xc)
+        J = np.concatenate(
+            [
+                -d_pt @ skew(Xc),  # R <- Exp(omega) R
+                -d_pt @ st.R[k],  # c <- c + dc
+                d_par @ basis,
+            ],
+            axis=2,
+        )
+        yield k, J, cols[: 6 + basis.shape[1]]
+
+
+def image_precision(S: Setup, st: State, cov: np.ndarray) -> dict[int, float]:
+    """Per active image slot: RMS over its rows' world points of the
+    standard deviation (px, 2D) of their projection, from ``cov`` of its
+    pose and its camera's refined intrinsics (:func:`image_jacobians`)."""
+    out: dict[int, float] = {}
+    for k, J, cols in image_jacobians(S, st):
+        C = cov[np.ix_(cols, cols)]
+        var = np.einsum("npi,ij,npj->n", J, C, J)
+        out[k] = float(np.sqrt(np.mean(var))) if np.all(np.isfinite(var)) else np.nan
+    return out

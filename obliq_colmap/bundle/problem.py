@@ -1,0 +1,387 @@
+"""Input, options and results of the bundle; the linked image components.
+
+:class:`BundleProblem` is plain data in the local map frame (metres, pixels);
+:class:`BundleOptions` configures :func:`~obliq_colmap.bundle.solve_bundle`;
+:class:`BundleResult` and :class:`BundleSummary` are what it returns.
+:func:`image_components` finds the groups of images linked by shared height
+unknowns, each with its own vertical datum.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+import scipy.sparse as sp
+from scipy.sparse.csgraph import connected_components
+
+from ..geometry import Camera, Pose
+
+LOSSES = ("huber", "cauchy", "none")
+CORNER_HEIGHT_MODES = ("free", "fixed")
+GAUGES = ("component_mean_camera_height", "none")
+
+
+@dataclass(kw_only=True)
+class BundleOptions:
+    """Options of :func:`solve_bundle`."""
+
+    #: Robust loss on each residual: "huber", "cauchy" or "none".
+    loss: str = "huber"
+    #: Scale of the robust loss, pixels (residuals below it count fully).
+    loss_scale_px: float = 2.0
+    #: A priori standard deviations (px) of the two residual kinds, cost weight
+    #: 1 / sigma^2 (the robust loss keeps its scale in pixels): map corners carry
+    #: the map's vertex noise (~1 px), facade edges only the image noise (~0.3 px).
+    vertical_sigma_px: float = 1.0
+    horizontal_sigma_px: float = 1.0
+    #: Maximum number of Levenberg-Marquardt iterations (accepted or not).
+    max_iterations: int = 100
+    #: Stop when an accepted step lowers the cost by less than this fraction.
+    function_tolerance: float = 1e-8
+    #: Stop when |step| <= tol * (|x| + tol), x = centres, intrinsics, heights.
+    parameter_tolerance: float = 1e-8
+    #: Refine the focal length(s) of every camera.
+    refine_focal_length: bool = True
+    #: Refine fx and fy of two-focal models (PINHOLE, OPENCV) independently; False
+    #: keeps the aspect ratio (as the paper): without map heights a vertical
+    #: stretch of the scene is nearly a gauge freedom that fx != fy would absorb.
+    refine_aspect_ratio: bool = False
+    #: Refine the principal point of every camera.
+    refine_principal_point: bool = True
+    #: Refine the distortion parameters of every camera.
+    refine_extra_params: bool = False
+    #: "free": one unknown height per map corner, shared by its observations
+    #: in all images; "fixed": corners at ``BundleProblem.corner_heights``.
+    corner_heights: str = "free"
+    #: Standard deviation, metres, of a weak prior pulling free corner heights
+    #: towards their initial values (None: no prior). 1 px of cost per sigma.
+    corner_height_prior_m: float | None = 5.0
+    #: Standard deviation (deg) of each image's rotation about its prior
+    #: (``BundleProblem.prior_rotations``, a calibrated INS); None: no prior. It
+    #: holds the rotation, which an image's map constraints determine worst.
+    rotation_prior_sigma_deg: float | None = None
+    #: Standard deviation (m) of each image's camera centre about its prior
+    #: (``BundleProblem.prior_centers``: survey-grade GNSS with the lever arm
+    #: applied, in the priors' frame and datum); None: no prior. Centres known
+    #: to ~0.1 m fix the block's tilt and each centre, which the map's
+    #: constraints trade against the rotation.
+    position_prior_sigma_m: float | None = None
+    #: With ``position_prior_sigma_m``: estimate one horizontal offset (2
+    #: unknowns) of the priors' centres against the map (a GNSS frame off the
+    #: cadastre's, a lever arm left out), which would otherwise bend every image
+    #: along its weak direction. The priors' heights stay the vertical datum.
+    estimate_prior_offset: bool = True
+    #: Vertical datum: "component_mean_camera_height" (per linked component,
+    #: hard constraint) or "none" (rank-deficient; damping only). With
+    #: ``position_prior_sigma_m`` the observed centres hold it instead.
+    gauge: str = "component_mean_camera_height"
+    #: Gauss-Newton steps on the heights alone (cameras fixed) before the
+    #: joint solve; 0 disables.
+    height_initialisation_steps: int = 3
+    #: Initial Marquardt damping factor lambda.
+    initial_damping: float = 1e-4
+    #: BLAS threads inside the solver (threadpoolctl); None leaves it alone.
+    blas_threads: int | None = 1
+    #: Compute each image's a-posteriori precision at the optimum
+    #: (:attr:`BundleResult.image_precision_px`): one more linearisation and
+    #: one dense inverse of the reduced camera system.
+    compute_precision: bool = True
+    #: The precision inverts the dense reduced camera system, O(n^3) in its n
+    #: parameters (6 per image + the intrinsics): above this n it is skipped
+    #: (NaN, and a log line).
+    precision_max_camera_params: int = 3000
+    #: Prior standard deviation (m) of the anchor offsets counted in the
+    #: precision (``BundleProblem.horizontal_offset_normal``).
+    horizontal_offset_sigma_m: float = 10.0
+
+    def __post_init__(self) -> None:
+        for name, value, allowed in (
+            ("loss", self.loss, LOSSES),
+            ("corner_heights", self.corner_heights, CORNER_HEIGHT_MODES),
+            ("gauge", self.gauge, GAUGES),
+        ):
+            if value not in allowed:
+                raise ValueError(
+                    f"BundleOptions.{name}={value!r}; allowed: {', '.join(allowed)}"
+                )
+        if self.loss_scale_px <= 0:
+            raise ValueError(f"loss_scale_px must be > 0, got {self.loss_scale_px}")
+        if self.vertical_sigma_px <= 0 or self.horizontal_sigma_px <= 0:
+            raise ValueError("vertical_sigma_px and horizontal_sigma_px must be > 0")
+        if self.corner_height_prior_m is not None and self.corner_height_prior_m <= 0:
+            raise ValueError("corner_height_prior_m must be > 0 or None")
+        if (
+            self.rotation_prior_sigma_deg is not None
+            and not self.rotation_prior_sigma_deg > 0
+        ):
+            raise ValueError("rotation_prior_sigma_deg must be > 0 or None")
+        if (
+            self.position_prior_sigma_m is not None
+            and not self.position_prior_sigma_m > 0
+        ):
+            raise ValueError("position_prior_sigma_m must be > 0 or None")
+        if self.horizontal_offset_sigma_m <= 0:
+            raise ValueError("horizontal_offset_sigma_m must be > 0")
+
+
+def _as(a, shape_tail: tuple[int, ...], name: str, dtype=float) -> np.ndarray:
+    arr = np.asarray(a, dtype=dtype)
+    if arr.ndim != 1 + len(shape_tail) or arr.shape[1:] != shape_tail:
+        want = ", ".join(["N", *map(str, shape_tail)])
+        raise ValueError(f"{name} must have shape ({want}), got {arr.shape}")
+    return arr
+
+
+@dataclass(kw_only=True)
+class BundleProblem:
+    """Plain-data input of the bundle; positions in the local map frame (metres).
+
+    Attributes
+    ----------
+    cameras : dict camera_id -> Camera
+        Initial intrinsics; one camera per physical head.
+    poses : dict image_id -> Pose
+        Initial ``cam_from_world`` of every image.
+    image_camera : dict image_id -> camera_id
+    image_ids : sequence of int, optional
+        Order of images for the ``*_image`` index arrays; default ``sorted(poses)``.
+    corner_xy : (C, 2) array
+        Map corner positions.
+    corner_heights : (C,) array
+        Initial heights of the corners (reference heights when fixed), metres.
+    vertical_image, vertical_corner : (M,) int arrays
+        Image (index into ``image_ids``) and corner of each vertical constraint.
+    vertical_line : (M, 3) array
+        Homogeneous vertical image line (pixels) of each.
+    facade_heights : (J,) array
+        Initial heights ``h_j`` of the facade-edge constraints, metres.
+    horizontal_image, horizontal_height : (H,) int arrays
+        Image index and facade-height index of each horizontal constraint.
+    horizontal_anchor_xy : (H, 2) array
+        Map-edge anchor ``(x, y)`` of each (the edge centre), metres.
+    horizontal_line : (H, 3) array
+        Homogeneous horizontal image line (pixels) of each.
+    horizontal_offset_normal : (H, 2) array, optional
+        Where each anchor's position across its map edge was itself fitted
+        to these observations (facade tracks re-triangulated as 3D lines):
+        the unit horizontal direction of that offset. The solve keeps the
+        anchors fixed; the precision (:attr:`BundleResult.image_precision_px`)
+        counts one offset unknown per facade height along it (prior sigma
+        ``BundleOptions.horizontal_offset_sigma_m``). None: anchors known.
+    prior_rotations : dict image_id -> (3, 3) array, optional
+        Prior ``cam_from_world`` rotation of each image (the INS), used with
+        ``BundleOptions.rotation_prior_sigma_deg``.
+    prior_centers : dict image_id -> (3,) array, optional
+        Prior camera centre of each image (GNSS), same frame as ``poses``,
+        used with ``BundleOptions.position_prior_sigma_m``.
+    """
+
+    cameras: dict[int, Camera]
+    poses: dict[int, Pose]
+    image_camera: dict[int, int]
+    corner_xy: np.ndarray
+    corner_heights: np.ndarray
+    vertical_image: np.ndarray
+    vertical_corner: np.ndarray
+    vertical_line: np.ndarray
+    facade_heights: np.ndarray
+    horizontal_image: np.ndarray
+    horizontal_height: np.ndarray
+    horizontal_anchor_xy: np.ndarray
+    horizontal_line: np.ndarray
+    image_ids: tuple[int, ...] | None = None
+    horizontal_offset_normal: np.ndarray | None = None
+    prior_rotations: dict[int, np.ndarray] | None = None
+    prior_centers: dict[int, np.ndarray] | None = None
+
+    def __post_init__(self) -> None:
+        if self.image_ids is None:
+            self.image_ids = tuple(sorted(self.poses))
+        self.image_ids = tuple(int(i) for i in self.image_ids)
+        missing = [i for i in self.image_ids if i not in self.poses]
+        if missing:
+            raise ValueError(f"image_ids without a pose: {missing[:10]}")
+        bad = [
+            i for i in self.image_ids if self.image_camera.get(i) not in self.cameras
+        ]
+        for name, prior in (
+            ("rotation", self.prior_rotations),
+            ("centre", self.prior_centers),
+        ):
+            missing = [
+                i for i in self.image_ids if prior is not None and i not in prior
+            ]
+            if missing:
+                raise ValueError(f"image_ids without a prior {name}: {missing[:10]}")
+        if bad:
+            raise ValueError(f"images without a known camera: {bad[:10]}")
+        self.corner_xy = _as(self.corner_xy, (2,), "corner_xy")
+        self.corner_heights = _as(self.corner_heights, (), "corner_heights")
+        self.vertical_image = _as(self.vertical_image, (), "vertical_image", np.int64)
+        self.vertical_corner = _as(
+            self.vertical_corner, (), "vertical_corner", np.int64
+        )
+        self.vertical_line = _as(self.vertical_line, (3,), "vertical_line")
+        self.facade_heights = _as(self.facade_heights, (), "facade_heights")
+        self.horizontal_image = _as(
+            self.horizontal_image, (), "horizontal_image", np.int64
+        )
+        self.horizontal_height = _as(
+            self.horizontal_height, (), "horizontal_height", np.int64
+        )
+        self.horizontal_anchor_xy = _as(
+            self.horizontal_anchor_xy, (2,), "horizontal_anchor_xy"
+        )
+        self.horizontal_line = _as(self.horizontal_line, (3,), "horizontal_line")
+        if self.horizontal_offset_normal is not None:
+            self.horizontal_offset_normal = _as(
+                self.horizontal_offset_normal, (2,), "horizontal_offset_normal"
+            )
+        nc, ni, nj = len(self.corner_xy), len(self.image_ids), len(self.facade_heights)
+        checks = [
+            ("corner_heights", len(self.corner_heights) == nc),
+            ("vertical_corner", len(self.vertical_corner) == len(self.vertical_image)),
+            ("vertical_line", len(self.vertical_line) == len(self.vertical_image)),
+            (
+                "horizontal_height",
+                len(self.horizontal_height) == len(self.horizontal_image),
+            ),
+            (
+                "horizontal_anchor_xy",
+                len(self.horizontal_anchor_xy) == len(self.horizontal_image),
+            ),
+            (
+                "horizontal_line",
+                len(self.horizontal_line) == len(self.horizontal_image),
+            ),
+            (
+                "horizontal_offset_normal",
+                self.horizontal_offset_normal is None
+                or len(self.horizontal_offset_normal) == len(self.horizontal_image),
+            ),
+        ]
+        for name, ok in checks:
+            if not ok:
+                raise ValueError(f"{name} has the wrong length")
+        for name, idx, n in (
+            ("vertical_image", self.vertical_image, ni),
+            ("vertical_corner", self.vertical_corner, nc),
+            ("horizontal_image", self.horizontal_image, ni),
+            ("horizontal_height", self.horizontal_height, nj),
+        ):
+            if len(idx) and (idx.min() < 0 or idx.max() >= n):
+                raise ValueError(f"{name} out of range [0, {n})")
+        for name, lines in (
+            ("vertical_line", self.vertical_line),
+            ("horizontal_line", self.horizontal_line),
+        ):
+            if len(lines) and np.any(np.linalg.norm(lines[:, :2], axis=1) == 0):
+                raise ValueError(f"{name} has lines with a = b = 0")
+
+
+@dataclass
+class BundleSummary:
+    """What happened in one solve; ``brief()`` gives a one-line report."""
+
+    initial_cost: float
+    final_cost: float
+    initial_rmse_vertical_px: float
+    final_rmse_vertical_px: float
+    initial_rmse_horizontal_px: float
+    final_rmse_horizontal_px: float
+    num_iterations: int
+    num_successful_steps: int
+    time_s: float
+    termination: str
+    converged: bool
+    #: Linked image groups (image ids); each has its own vertical datum.
+    components: list[tuple[int, ...]]
+    num_vertical: int
+    num_horizontal: int
+    num_heights: int
+    num_camera_params: int
+
+    def brief(self) -> str:
+        return (
+            f"bundle: {self.num_vertical} vertical + {self.num_horizontal} horizontal"
+            f" residuals, {self.num_camera_params} camera params, {self.num_heights}"
+            f" heights, {len(self.components)} component(s); cost"
+            f" {self.initial_cost:.6g} -> {self.final_cost:.6g}; RMSE px vertical"
+            f" {self.initial_rmse_vertical_px:.4g} ->"
+            f" {self.final_rmse_vertical_px:.4g},"
+            f" horizontal {self.initial_rmse_horizontal_px:.4g} ->"
+            f" {self.final_rmse_horizontal_px:.4g}; {self.num_iterations} iterations,"
+            f" {self.time_s:.3f} s, {self.termination}"
+        )
+
+
+@dataclass
+class BundleResult:
+    """Refined unknowns, final residuals and the summary.
+
+    Attributes
+    ----------
+    cameras : dict camera_id -> Camera (copies, refined).
+    poses : dict image_id -> Pose (refined ``cam_from_world``).
+    facade_heights : (J,) array, metres.
+    corner_heights : (C,) array, metres (the input values when fixed).
+    vertical_residuals_px : (M,) final residuals in the problem's order.
+    horizontal_residuals_px : (H,) final residuals in the problem's order.
+    summary : BundleSummary
+    image_precision_px : dict image_id -> float
+        Predicted RMS deviation (px) of the image's constrained points (map
+        corners and facade-edge anchors at their solved heights) projected by
+        its solved camera, from the a-posteriori covariance of its pose and
+        intrinsics (heights marginalised, datum by the gauge, scaled by the
+        variance factor). NaN where not computed or not determinable.
+    variance_factor : float
+        A-posteriori variance of unit weight, ``r^T W r / redundancy``.
+    prior_offset_m : (2,) array or None
+        The priors' centres' horizontal offset against the map (m, priors
+        minus solved), where estimated (``BundleOptions.estimate_prior_offset``).
+    """
+
+    cameras: dict[int, Camera]
+    poses: dict[int, Pose]
+    facade_heights: np.ndarray
+    corner_heights: np.ndarray
+    vertical_residuals_px: np.ndarray
+    horizontal_residuals_px: np.ndarray
+    summary: BundleSummary = field(repr=False)
+    image_precision_px: dict[int, float] = field(default_factory=dict)
+    variance_factor: float = float("nan")
+    prior_offset_m: np.ndarray | None = None
+
+
+def image_components(
+    num_images: int, image_index: np.ndarray, height_index: np.ndarray
+) -> tuple[int, np.ndarray]:
+    """Connected components of images linked by shared height unknowns.
+
+    Parameters
+    ----------
+    num_images : int
+    image_index, height_index : (N,) int arrays
+        One entry per residual that touches a height (image, height index).
+
+    Returns
+    -------
+    num_components : int
+    labels : (num_images,) int array, component of each image, 0-based,
+        numbered in order of first appearance.
+    """
+    image_index = np.asarray(image_index, np.int64)
+    height_index = np.asarray(height_index, np.int64)
+    nh = int(height_index.max()) + 1 if len(height_index) else 0
+    n = num_images + nh
+    g = sp.coo_matrix(
+        (np.ones(len(image_index)), (image_index, num_images + height_index)),
+        shape=(n, n),
+    )
+    _, labels = connected_components(g, directed=False)
+    labels = labels[:num_images]
+    _, first, inv = np.unique(labels, return_index=True, return_inverse=True)
+    order = np.argsort(np.argsort(first))
+    labels = order[inv]
+    return int(labels.max()) + 1 if num_images else 0, labels

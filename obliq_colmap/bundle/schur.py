@@ -1,0 +1,94 @@
+"""Normal equations and the damped step with the heights eliminated (Schur).
+
+The camera block C (6 per image + refined intrinsics, dense: a few hundred
+unknowns) and the DIAGONAL height block h; Marquardt damping
+``H + lambda * clip(diag H, 1e-6, 1e32)`` on both; the Schur complement
+``S = H_CC - E^T D_h^-1 E`` solved densely with the gauge constraints as a
+KKT system, then back-substitution of the heights.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from .coupling import Coupling
+from .setup import Setup
+
+
+def normal_equations(S: Setup, Jc, Jh, r, w):
+    """Blocks of J^T W J and J^T W r: dense camera block, diagonal heights,
+    and the (Nh, L) blocks F of the coupling E (rows with a height; products
+    with E by :class:`Coupling`)."""
+    n = S.n_red + 1
+    H_cc = np.zeros((n, n))
+    g_c = np.zeros(n)
+    wJ = Jc * w[:, None]
+    for a, b, cols in S.image_runs:
+        H_cc[np.ix_(cols, cols)] += Jc[a:b].T @ wJ[a:b]
+        g_c[cols] += wJ[a:b].T @ r[a:b]
+    m = S.has_h
+    H_hh = np.bincount(S.hidx[m], (w * Jh * Jh)[m], S.n_heights)
+    g_h = np.bincount(S.hidx[m], (w * Jh * r)[m], S.n_heights)
+    F = np.multiply(Jc, (w * Jh)[:, None], order="C")
+    if S.h_runs != [(0, len(r))]:
+        F = np.concatenate([F[a:b] for a, b in S.h_runs] or [F[:0]])
+    return H_cc[:-1, :-1], g_c[:-1], H_hh, g_h, F
+
+
+class Schur:
+    """``E^T Dinv E`` and ``E^T Dinv g_h``, ``Dinv = (H_hh + lam D_h)^-1``,
+    for any damping ``lam`` of one build.
+
+    Where the height block's damping is its own diagonal (``D_h = H_hh``,
+    unclipped) they are ``E^T H_hh^-1 E / (1 + lam)`` and
+    ``E^T H_hh^-1 g_h / (1 + lam)``: that part is formed once per
+    linearisation, not once per trial step, from the blocks F per image pair
+    (:class:`Coupling`); the clipped rows (few) are added per step.
+    """
+
+    def __init__(self, coupling: Coupling, H_hh: np.ndarray, g_h, F) -> None:
+        own = (H_hh >= 1e-6) & (H_hh <= 1e32)  # where clip(H_hh) = H_hh
+        scale = np.zeros(len(H_hh))
+        scale[own] = 1.0 / np.sqrt(H_hh[own])
+        self.base = coupling.gram(F, scale)
+        self.base_rhs = coupling.rmatvec(F, scale * scale * g_h)
+        self.rest = np.flatnonzero(~own)
+        self.E_rest = coupling.dense_rows(F, self.rest) if len(self.rest) else None
+
+    def at(self, H_hh: np.ndarray, g_h: np.ndarray, lam: float):
+        """(C, C) ``E^T Dinv E`` and (C,) ``E^T Dinv g_h`` at damping ``lam``."""
+        out, rhs = self.base / (1.0 + lam), self.base_rhs / (1.0 + lam)
+        if self.E_rest is not None:
+            h = H_hh[self.rest]
+            dinv = 1.0 / (h + lam * np.clip(h, 1e-6, 1e32))
+            out = out + self.E_rest.T @ (dinv[:, None] * self.E_rest)
+            rhs = rhs + (dinv * g_h[self.rest]) @ self.E_rest
+        return out, rhs
+
+
+def damped_step(S: Setup, H_cc, g_c, H_hh, g_h, F, lam, schur: Schur):
+    """Solve the damped normal equations by the Schur complement on the heights."""
+    D_c = np.clip(np.diag(H_cc), 1e-6, 1e32)
+    D_h = np.clip(H_hh, 1e-6, 1e32)
+    dinv = 1.0 / (H_hh + lam * D_h)
+    if S.n_heights:
+        reduced, coupled = schur.at(H_hh, g_h, lam)
+        rhs = -g_c + coupled
+    else:
+        reduced = 0.0
+        rhs = -g_c
+    A_red = H_cc - reduced
+    A_red[np.diag_indices_from(A_red)] += lam * D_c
+    ng = len(S.A)
+    if ng:
+        n = S.n_red
+        kkt = np.zeros((n + ng, n + ng))
+        kkt[:n, :n] = A_red
+        kkt[:n, n:] = S.A.T
+        kkt[n:, :n] = S.A
+        sol = np.linalg.solve(kkt, np.concatenate([rhs, np.zeros(ng)]))
+        dc = sol[:n]
+    else:
+        dc = np.linalg.solve(A_red, rhs)
+    dh = -dinv * (g_h + S.coupling.matvec(F, dc)) if S.n_heights else np.zeros(0)
+    return dc, dh, D_c, D_h

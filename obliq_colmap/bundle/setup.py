@@ -1,0 +1,264 @@
+"""Static layout of one solve and the evaluation of residuals and Jacobians.
+
+:class:`Setup` fixes, once per solve, the residual order (sorted by camera
+model, kind, camera and image so that every evaluation group is a slice),
+the parameter columns of the camera block (6 per active image, the refined
+intrinsics per camera, the priors' offset), the height indices, the linked
+components and the gauge rows. :class:`State` holds the unknowns;
+:func:`evaluate` gives the residuals (px) and, on request, the camera
+Jacobian (N, L) and the height Jacobian (N,).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from . import residuals as res
+from .coupling import Coupling, runs
+from .problem import BundleOptions, BundleProblem, image_components
+
+
+def _intrinsics_basis(model: str, params: np.ndarray, opts: BundleOptions):
+    """(P, Q) basis of the refined steps of one camera's P parameters."""
+    focal, pp, extra = res.focal_principal_extra_indices(model)
+    cols = []
+    if opts.refine_focal_length:
+        if len(focal) == 2 and not opts.refine_aspect_ratio:
+            col = np.zeros(len(params))
+            col[focal[0]] = 1.0
+            col[focal[1]] = params[focal[1]] / params[focal[0]]
+            cols.append(col)
+        else:
+            cols += [np.eye(len(params))[i] for i in focal]
+    if opts.refine_principal_point:
+        cols += [np.eye(len(params))[i] for i in pp]
+    if opts.refine_extra_params:
+        cols += [np.eye(len(params))[i] for i in extra]
+    return np.array(cols).T.reshape(len(params), len(cols))
+
+
+class Setup:
+    """Static layout: residual order, parameter columns, groups, gauge."""
+
+    def __init__(self, problem: BundleProblem, options: BundleOptions) -> None:
+        P, opts = problem, options
+        self.image_ids = P.image_ids
+        K = len(P.image_ids)
+        self.camera_ids = sorted({P.image_camera[i] for i in P.image_ids})
+        cam_slot = {cid: s for s, cid in enumerate(self.camera_ids)}
+        self.img_cam = np.array([cam_slot[P.image_camera[i]] for i in P.image_ids])
+        nv, nh = len(P.vertical_image), len(P.horizontal_image)
+        free = opts.corner_heights == "free"
+        nJ = len(P.facade_heights)
+
+        # Residuals: vertical then horizontal, then sorted (stably) by camera
+        # model, kind, camera and image, so that each evaluation group (one
+        # model and kind) and each of its cameras and images is a slice.
+        img = np.concatenate([P.vertical_image, P.horizontal_image])
+        kind = np.concatenate([np.zeros(nv, np.int8), np.ones(nh, np.int8)])
+        xy = np.concatenate([P.corner_xy[P.vertical_corner], P.horizontal_anchor_xy])
+        line = np.concatenate([P.vertical_line, P.horizontal_line])
+        line = line / np.linalg.norm(line[:, :2], axis=1, keepdims=True)
+        hidx = np.concatenate(
+            [nJ + P.vertical_corner if free else np.full(nv, -1), P.horizontal_height]
+        )
+        zfix = np.concatenate([P.corner_heights[P.vertical_corner], np.zeros(nh)])
+        offset = np.zeros((nv + nh, 2))
+        if P.horizontal_offset_normal is not None:
+            offset[nv:] = P.horizontal_offset_normal
+        models = [P.cameras[c].model for c in self.camera_ids]
+        self.camera_model = models
+        model_rank = np.searchsorted(sorted(set(models)), models)
+        cam = self.img_cam[img]
+        order = np.lexsort((img, cam, kind, model_rank[cam]))
+        self.order = order
+        self.nv, self.nh = nv, nh
+        self.img, self.kind, self.xy = img[order], kind[order], xy[order]
+        self.line, self.hidx, self.zfix = line[order], hidx[order], zfix[order]
+        self.offset_dir = offset[order]  # (N, 2), zero: no offset unknown
+        self.cam = self.img_cam[self.img]
+        self.n_heights = nJ + (len(P.corner_xy) if free else 0)
+        self.has_h = self.hidx >= 0
+        # Heights whose anchor offset was fitted to the observations: each
+        # such offset is one more unknown in the redundancy.
+        with_offset = self.has_h & np.any(self.offset_dir != 0, axis=1)
+        self.n_offsets = len(np.unique(self.hidx[with_offset]))
+        # The rows with a height as runs (all rows, or all but the vertical
+        # ones when the corners are fixed): slices are cheaper than a mask.
+        self.h_runs = [(a, b) for a, b in runs(self.has_h) if self.has_h[a]]
+        # Cost weight of each residual: 1 / sigma^2 of its kind.
+        sigma = np.array([opts.vertical_sigma_px, opts.horizontal_sigma_px])
+        self.weight = 1.0 / sigma[self.kind] ** 2
+
+        # Active images and cameras; parameter columns of the camera block.
+        counts = np.bincount(self.img, minlength=K)
+        self.active_images = np.flatnonzero(counts > 0)
+        col = 0
+        self.pose_col = np.full(K, -1)
+        for k in self.active_images:
+            self.pose_col[k] = col
+            col += 6
+        # Per camera a (P, Q) basis of its refined parameter steps:
+        # params += basis @ step (one column per free parameter; fx and fy
+        # share one column unless the aspect ratio is refined).
+        self.refined: list[np.ndarray] = []
+        self.intr_col = np.full(len(self.camera_ids), -1)
+        active_cams = set(self.img_cam[self.active_images].tolist())
+        for s, cid in enumerate(self.camera_ids):
+            cam = P.cameras[cid]
+            basis = _intrinsics_basis(cam.model, cam.params, opts)
+            if s not in active_cams:
+                basis = basis[:, :0]
+            self.refined.append(basis)
+            if basis.shape[1]:
+                self.intr_col[s] = col
+                col += basis.shape[1]
+        # Observed centres (GNSS) hold every component's vertical datum, and
+        # may sit off the map horizontally by one offset (two columns).
+        self.centred = (
+            opts.position_prior_sigma_m is not None and P.prior_centers is not None
+        )
+        self.shift_col = -1
+        if self.centred and opts.estimate_prior_offset:
+            self.shift_col = col
+            col += 2
+        self.n_red = col
+        self.L = 6 + max((b.shape[1] for b in self.refined), default=0)
+        # (N, L) global columns of each residual's camera-side Jacobian; the
+        # padding column n_red is dropped after assembly.
+        N = len(self.img)
+        cols = np.full((N, self.L), self.n_red)
+        cols[:, :6] = self.pose_col[self.img][:, None] + np.arange(6)
+        for s, basis in enumerate(self.refined):
+            q = basis.shape[1]
+            m = self.cam == s
+            cols[np.ix_(m, 6 + np.arange(q))] = self.intr_col[s] + np.arange(q)
+        self.cols = cols
+        # Runs of rows of one image: (start, end, the image's columns).
+        self.image_runs = [(a, b, cols[a]) for a, b in runs(self.img)]
+        # Evaluation groups: one camera model and kind, at most _CHUNK rows.
+        self.groups = [
+            _Group(self, models[self.cam[a]], int(self.kind[a]), c, min(c + _CHUNK, b))
+            for a, b in runs(model_rank[self.cam] * 2 + self.kind)
+            for c in range(a, b, _CHUNK)
+        ]
+
+        # Components and gauge rows (over the camera block).
+        hmask = self.has_h
+        self.num_components, self.labels = image_components(
+            K, self.img[hmask], self.hidx[hmask]
+        )
+        self.components = [
+            tuple(P.image_ids[k] for k in np.flatnonzero(self.labels == c))
+            for c in range(self.num_components)
+        ]
+        rows = []
+        if opts.gauge == "component_mean_camera_height" and not self.centred:
+            for c in range(self.num_components):
+                members = [
+                    k for k in np.flatnonzero(self.labels == c) if self.pose_col[k] >= 0
+                ]
+                if members:
+                    a = np.zeros(self.n_red)
+                    a[self.pose_col[members] + 5] = 1.0 / len(members)
+                    rows.append(a)
+        self.A = np.array(rows).reshape(-1, self.n_red)
+        # Layout of the height x camera coupling E.
+        self.coupling = Coupling(
+            self.img[hmask], self.hidx[hmask], cols[hmask], self.n_heights, self.n_red
+        )
+
+
+#: Rows per residual evaluation call: the per-row temporaries (~60 of them
+#: with Jacobians) then stay small and in cache.
+_CHUNK = 8192
+
+
+class _Group:
+    """Static rows of one evaluation group (a camera model and a residual
+    kind): the slice ``[start, end)`` of the residual order, as (., n) rows."""
+
+    def __init__(self, S: Setup, model: str, kind: int, start: int, end: int):
+        self.model, self.kind, self.start, self.end = model, kind, start, end
+        sl = slice(start, end)
+        self.img = S.img[sl]
+        self.line = np.ascontiguousarray(S.line[sl].T)  # (3, n) unit lines
+        self.xy = np.ascontiguousarray(S.xy[sl].T)  # (2, n)
+        self.has_h, self.zfix = S.has_h[sl], S.zfix[sl]
+        self.hidx = np.maximum(S.hidx[sl], 0)
+        # The group's cameras, each a run of rows: (slot, start, end) local.
+        cam = S.cam[sl]
+        self.cam_runs = [(int(cam[a]), a, b) for a, b in runs(cam)]
+        self.cams = [c for c, _, _ in self.cam_runs]
+        self.cam_local = np.searchsorted(self.cams, cam)
+        self.E = res.expansion_matrix(model)
+
+    def full_params(self, params: list[np.ndarray]) -> np.ndarray:
+        """(8, 1) or (8, n) general parameters of the rows."""
+        full = self.E @ np.stack([params[c] for c in self.cams], 1)  # (8, cams)
+        return full if len(self.cams) == 1 else full[:, self.cam_local]
+
+
+class State:
+    def __init__(self, R, c, params, heights, shift=None):
+        self.R, self.c, self.params, self.heights = R, c, params, heights
+        # horizontal offset of the priors' centres against the map (m;
+        # BundleOptions.estimate_prior_offset)
+        self.shift = np.zeros(2) if shift is None else shift
+
+    @classmethod
+    def start(cls, P: BundleProblem, S: Setup) -> State:
+        """The problem's start: its poses, cameras and heights (the corner
+        heights too where they are free unknowns)."""
+        free = S.n_heights > len(P.facade_heights)
+        return cls(
+            np.stack([P.poses[i].rotation for i in P.image_ids]),
+            np.stack([P.poses[i].center for i in P.image_ids]),
+            [P.cameras[c].params.copy() for c in S.camera_ids],
+            np.concatenate([P.facade_heights, P.corner_heights if free else []]),
+        )
+
+    def copy(self):
+        return State(
+            self.R.copy(),
+            self.c.copy(),
+            [p.copy() for p in self.params],
+            self.heights.copy(),
+            self.shift.copy(),
+        )
+
+
+def evaluate(setup: Setup, st: State, jac: bool):
+    """Residuals (N,) and, if jac, camera Jacobian (N, L) and height Jacobian (N,).
+
+    The camera Jacobian is the transpose of an (L, N) array, so that each
+    group writes its rows contiguously.
+    """
+    N = len(setup.img)
+    r = np.empty(N)
+    JcT = np.zeros((setup.L, N)) if jac else None
+    Jh = np.zeros(N) if jac else None
+    Rk = st.R.transpose(1, 2, 0)  # (3, 3, K)
+    ck = st.c.T  # (3, K)
+    for g in setup.groups:
+        R = np.take(Rk, g.img, axis=2)  # (3, 3, n)
+        c = np.take(ck, g.img, axis=1)
+        D = np.empty_like(c)  # X - c
+        np.subtract(g.xy, c[:2], out=D[:2])
+        h = np.where(g.has_h, st.heights[g.hidx], g.zfix) if len(st.heights) else g.zfix
+        np.subtract(h, c[2], out=D[2])
+        fn = res.vertical_rows if g.kind == 0 else res.horizontal_rows
+        out = fn(g.model, g.full_params(st.params), R, D, g.line, jac)
+        r[g.start : g.end] = out[0]
+        if jac:
+            _, d_pose, d_params, d_height = out
+            JcT[:6, g.start : g.end] = d_pose
+            for s, a, b in g.cam_runs:
+                basis = setup.refined[s]
+                if basis.shape[1]:
+                    rows = slice(g.start + a, g.start + b)
+                    JcT[6 : 6 + basis.shape[1], rows] = basis.T @ d_params[:, a:b]
+            Jh[g.start : g.end] = d_height
+    if jac:
+        Jh[~setup.has_h] = 0.0
+    return r, (JcT.T if jac else None), Jh
