@@ -1,37 +1,55 @@
 """What point tie observations would add to each image's precision (a what-if).
 
-The bundle's constraints (map corners on vertical lines, facade edges with free
-heights) leave each image's vertical direction traded against its centre as
-the weak direction (``diagnose_precision.py``). Image-to-image tie points
-(e.g. SIFT matches of a COLMAP database: ground, roofs, facades) tie the
-neighbouring images' relative orientation. This script takes the last
-bundle of split runs (``bench_seeds.py``'s path and cache) at its optimum and
-adds, to the information of the camera block, that of hypothetical tie
+The bundle's constraints (map corners on vertical lines, facade edges with
+free heights) leave each image's vertical direction traded against its
+centre as the weak direction (``diagnose/precision.py``). Image-to-image tie
+points (e.g. SIFT matches of a COLMAP database: ground, roofs, facades) tie
+the neighbouring images' relative orientation. This script takes the last
+bundle of split runs (stages 1-2 cached, ``split_runs.py``) at its optimum
+and adds, to the information of the camera block, that of hypothetical tie
 points: ``--points_per_image`` random 3D points per image footprint between
-the ground and ``--max_height_m`` above it, each observed (``--tie_sigma_px``)
-in every image of the same head (``--cross_head``: of any head) in which it
-projects inside the frame (occlusions ignored: an upper bound for those
-points), each point's three coordinates free (eliminated, Schur complement).
-Prints the median over the images of the predicted sd (px, as
-``BundleResult.image_precision_px``) without and with them:
+the ground and ``--max_height_m`` above it, each observed
+(``--tie_sigma_px``) in every image of the same head (``--cross_head``: of
+any head) in which it projects inside the frame (occlusions ignored: an
+upper bound for those points), each point's three coordinates free
+(eliminated, Schur complement). Prints the median over the images of the
+predicted sd (px, as ``BundleResult.image_precision_px``) without and with
+them.
 
-    python scripts/diagnose_tie_points.py --scene_path /work/scenes/paper_s1 \\
+Run (from the repository root)::
+
+    python scripts/diagnose/tie_points.py --scene_path /work/scenes/paper_s1 \\
         --seeds 0 --bundle_only [--points_per_image 50 300] [--cross_head]
 
-docs/BENCHMARKS.md, issue 5, "What more information would give" (2026-12-03).
+Figures: docs/journal/stage3-bundle.md (issue 5, "What more information
+would give", 2026-12-03); the live question is issue 26 (tie points in the
+bundle).
+
+Data: synthetic scenes (``obliq-colmap synth``); the stage 1-2 cache under
+``--cache_path`` (shared with ``bench/seeds.py``).
+
+It replaces the bundle solver's private ``_image_precision`` and ``_solve``
+by recording wrappers and reads the solver's private setup and state (their
+columns, Jacobians): it follows the solver's internals and must move with
+them.
 """
 
 from __future__ import annotations
 
 import sys
+from pathlib import Path
 
 import numpy as np
 import scipy.sparse as sp
-from bench_resolution import scene_parser, synthetic_scenes
-from diagnose_precision import observed, run_all
 
 from obliq_colmap.bundle import residuals as res
 from obliq_colmap.bundle import solver
+from obliq_colmap.geometry import skew
+
+# The helpers shared by the scripts live in scripts/bench/, which is not a
+# package: put it first on the path (scripts/README.md).
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "bench"))
+from split_runs import observed, run_all, scene_parser, synthetic_scenes  # noqa: E402
 
 _ORIGINAL = solver._image_precision
 _ORIGINAL_SOLVE = solver._solve
@@ -88,7 +106,7 @@ def _tie_information(S, st, X: np.ndarray, sigma: float, cross: bool) -> np.ndar
         _, d_pt, d_par = res.project_with_jacobian(
             S.camera_model[slot], st.params[slot], Xc
         )
-        pose = [-d_pt @ res._skew(Xc), -d_pt @ st.R[k], d_par @ S.refined[slot]]
+        pose = [-d_pt @ skew(Xc), -d_pt @ st.R[k], d_par @ S.refined[slot]]
         Jc = np.concatenate(pose, axis=2) / sigma  # as solver._image_jacobians
         Jx = (d_pt @ st.R[k]) / sigma
         H[np.ix_(cols, cols)] += np.einsum("npi,npj->ij", Jc, Jc)

@@ -1,7 +1,30 @@
 """Benchmark of the standard COLMAP route (SfM + GPS alignment) on synthetic scenes.
 
-What a COLMAP user does today with oblique images and rough GPS/INS priors,
-measured exactly like ``obliq-colmap register``:
+Measures what a COLMAP user gets today with oblique images and rough GPS/INS
+priors, scored exactly like ``obliq-colmap register``: SIFT, exhaustive
+matching, incremental mapping and a 7-DoF alignment to the prior centres,
+evaluated with ``obliq_colmap.evaluate.evaluate_model`` beside the priors
+(baseline) and beside the route's ceiling (a perfect SfM aligned the same
+way); per scene also the verified image pairs within and across the cardinal
+directions and how many of them agree with the true epipolar geometry (why
+the mapper fails where it fails).
+
+Run (from the repository root)::
+
+    python scripts/bench/sfm_baseline.py \\
+        --scene_path data_samples/oblique_small --scene_path /work/scenes/paper_s1 \\
+        [--num_threads 2] [--max_image_size 2004] [--output_path bench_sfm.json] \\
+        [--workspace_path /tmp/bench_sfm [--reuse_database matches]]
+
+This is a benchmark, not a test: it takes minutes per scene.
+
+Figures: docs/STATUS.md (the COLMAP baseline beside ``register``) and
+docs/journal/sfm-baseline.md.
+
+Data: synthetic scenes (``obliq-colmap synth --preset paper --seed N
+--output_path DIR``, or ``data_samples/oblique_small``); ``pycolmap``.
+
+The route:
 
 1. SIFT feature extraction on the CPU, one camera per cardinal direction with
    the priors' intrinsics (``priors/`` shares one camera_id per direction);
@@ -17,22 +40,10 @@ measured exactly like ``obliq-colmap register``:
 6. the ceiling of the route: the TRUE cameras, moved by an arbitrary
    similarity and aligned to the priors the same way (a perfect SfM).
 
-Per scene it also counts the verified image pairs within and across the
-cardinal directions, and how many of them agree with the true epipolar
-geometry (why the mapper fails where it fails).
-
-    python scripts/bench_sfm_baseline.py \\
-        --scene_path data_samples/oblique_small --scene_path /work/scenes/paper_s1 \\
-        [--num_threads 2] [--max_image_size 2004] [--output_path bench_sfm.json] \\
-        [--workspace_path /tmp/bench_sfm [--reuse_database matches]]
-
 COLMAP's advice for few matches / large viewpoint changes (FAQ) is
 ``--estimate_affine_shape 1 --domain_size_pooling 1 --guided_matching 1``,
 and lower mapper thresholds (``--init_min_num_inliers``,
 ``--abs_pose_min_num_inliers``); CPU guided matching is slow (seconds per pair).
-
-Scenes are made with ``obliq-colmap synth --preset paper --seed N --output_path DIR``.
-This is a benchmark, not a test: it takes minutes per scene.
 """
 
 from __future__ import annotations

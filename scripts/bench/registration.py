@@ -1,7 +1,9 @@
 """Benchmark of the initial registration (stage 2) on synthetic scenes.
 
-For each scene folder (``obliq-colmap synth``) and each setting, the images
-go through the pipeline's own chain of ``register --stop_after initial``
+Measures how many images stage 2 registers and how well, and its time per
+image: for each scene folder and each setting (the scene's own priors, or
+priors and maps drawn with given errors: ``--sweep``), the images go through
+the pipeline's own chain of ``register --stop_after initial``
 (:func:`obliq_colmap.pipeline.initial_stage`, one process): the inputs read
 as ``register`` reads them (:func:`~obliq_colmap.pipeline.load_inputs`), per
 image the vertical VP with the INS prior cone of the prior rotation and focal
@@ -15,6 +17,19 @@ the registered images (pose and refined focal length) is scored with
 (what one image can observe); an image that failed is left out of the model,
 as ``register`` leaves it out, so it counts as missing (above every
 threshold), never at its prior.
+
+Run (from the repository root)::
+
+    OMP_NUM_THREADS=1 python scripts/bench/registration.py \\
+        --scene /work/scenes/paper_s1 --sweep scene default large \\
+        --output /tmp/bench_registration.json
+
+Figures: docs/STATUS.md (stage 2: images below 2 px across the vertical,
+time per image) and docs/journal/stage2-registration.md.
+
+Data: synthetic scenes (``obliq-colmap synth --preset paper --seed N
+--output_path DIR``); the drawn priors and maps are written under
+``$TMPDIR/bench_registration_inputs`` (default ``/tmp``).
 
 Printed per setting: the fraction of images with a mean deviation below 2 px
 and 5 px after the first pass and after the rescue; the median inlier ratio
@@ -37,19 +52,17 @@ priors drawn from the ground truth (position, rotation and focal errors as in
 map with a given discrepancy rate (a third each of buildings shifted by 1 m,
 missing from the map, and demolished, i.e. mapped but not in the scene). The
 registration is told the prior errors as a user tells ``register`` (the
-``--prior_*_sigma`` options, as ``bench_register.py``: the focal error in
+``--prior_*_sigma`` options, as ``bench/register.py``: the focal error in
 percent / 100), all other options at their defaults.
 
 Settings with the same prior rotations, focal lengths and VP cone (e.g. a
 position or map sweep) detect the same VPs: the VP of an image is computed
 once per such key (image, camera, prior, cone, options) and reused; its time
-is the one measured when it was computed.
-
-Example::
-
-    OMP_NUM_THREADS=1 python scripts/bench_registration.py \\
-        --scene /work/scenes/paper_s1 --sweep scene default large \\
-        --output /tmp/bench_registration.json
+is the one measured when it was computed. For that the script replaces
+``pipeline.detect_vertical_vp`` (where the pipeline's per-image stage looks
+it up) and runs ``initial_stage`` in the pipeline's private pool
+(``pipeline._workers``, one worker): both follow the pipeline's internals
+and must move with them.
 """
 
 from __future__ import annotations
@@ -225,7 +238,7 @@ def run_pipeline(
     origin3 = np.r_[inputs.cadastre.origin[:2], 0.0]
     init_args = (inputs.cadastre_path, options.cadastre, origin3)
     tc = time.process_time()
-    with pipeline._Workers(1, init_args, inputs.cadastre, False) as pool:
+    with pipeline._workers(1, init_args, inputs.cadastre, False) as pool:
         outcomes, first, _ = initial_stage(pool, tasks, options, timings)
     return inputs, tasks, outcomes, first, timings, time.process_time() - tc
 

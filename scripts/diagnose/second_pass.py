@@ -2,10 +2,23 @@
 """Why the second pass misses true corner edges, and what its "false" detections are.
 
 On a synthetic scene (true intrinsics, aerial prior, default options, as in
-``bench_vanishing.py --sections synthetic``), every pixel-sample of every
+``bench/vanishing.py --sections synthetic``), every pixel-sample of every
 visible true building-corner edge > 20 px that the final detections do not
 cover (within 1 px) is traced back through the stages of the second pass,
-and every final detection that the bench counts as false is classified.
+and every final detection that the bench counts as false is classified;
+also the signed offset of detections from the true corner edges they match.
+
+Run (from the repository root)::
+
+    python scripts/diagnose/second_pass.py --scene /work/scenes/paper_s1 \\
+        [--every 3] [--output diag.json] [--set second_pass.high=5]
+
+Figures: docs/journal/stage1-vanishing.md (the second pass's misses,
+classified, 2026-12-02); the live question is issue 25 (``no_vp`` and weak
+VPs on scenes we did not make).
+
+Data: a synthetic scene (``obliq-colmap synth``); the scoring is
+``vanishing_scoring.py``'s, shared with the bench.
 
 Recall side, per 1-px sample of a target edge (first matching cause):
 
@@ -13,7 +26,8 @@ Recall side, per 1-px sample of a target edge (first matching cause):
   3 samples along it) is below the bench's visible-contrast bound;
 - ``final within 2 px``: a final detection covers it within 2 px, not 1;
 - ``final rule``: covered by the second pass at the final VP with default
-  filters, but removed by the competing-VP rule (``_refine_on_chains``);
+  filters (``vanishing.vertical_segments``), but removed by the stage's
+  competing-VP rule (its refinement on chains);
 - ``chain filters: length / density / RMS``: covered with that filter of
   the second pass off (``min_length_px`` 0, ``min_density`` 0,
   ``max_rms_px`` 1.5), ``several``: only with all three off;
@@ -41,9 +55,6 @@ side (wall|ground, roof|roof, tree|...).
 
 Also the signed offset of detections from the true corner edges they match
 within 3 px (positive towards the brighter side).
-
-    python scripts/diagnose_second_pass.py --scene /work/scenes/paper_s1 \\
-        [--every 3] [--output diag.json] [--set second_pass.high=5]
 """
 
 from __future__ import annotations
@@ -61,23 +72,25 @@ from scipy.spatial import cKDTree
 from threadpoolctl import threadpool_limits
 
 from obliq_colmap.lines import bilinear, edge_points, gradients
-from obliq_colmap.synthetic import load_scene, true_vertical_edges
+from obliq_colmap.synthetic import load_scene
 from obliq_colmap.synthetic.city import MATERIAL_NAMES
 from obliq_colmap.synthetic.render import render_depth
+from obliq_colmap.synthetic.truth import vertical_edge_segments
 from obliq_colmap.vanishing import (
     VanishingOptions,
     VPPrior,
-    _normaliser,
-    _second_pass,
     detect_vertical_vp,
+    vertical_segments,
 )
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-from bench_vanishing import (  # noqa: E402
-    _on_line,
-    _union_coverage,
+# The helpers shared by the scripts live in scripts/bench/, which is not a
+# package: put it first on the path (scripts/README.md).
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "bench"))
+from vanishing_scoring import (  # noqa: E402
     edge_contrast,
+    on_line,
     step_contrast,
+    union_coverage,
     vertical_in_3d,
     with_overrides,
 )
@@ -134,7 +147,7 @@ def covered_by_segments(segs, edge, s, det, tol):
     """(K,) bool: sample (edge, s) lies in the extent of a detection within tol."""
     if len(det) == 0 or len(segs) == 0:
         return np.zeros(len(edge), bool)
-    _, lo, hi, close = _on_line(segs, det, tol)
+    _, lo, hi, close = on_line(segs, det, tol)
     ok = close & (hi > lo)
     cov = np.zeros(len(edge), bool)
     for m in np.unique(edge):
@@ -209,7 +222,6 @@ def diagnose_image(scene, name, options, min_contrast, acc):
     H, W = img.shape
     cam_l, pose_l = scene.camera_pose(name)
     depth, face_id = render_depth(scene.city, cam_l, pose_l)
-    scene._depth[name] = depth
     mat_face = scene.city.face_material
 
     r = detect_vertical_vp(img, options, camera=cam, prior=VPPrior.aerial())
@@ -217,16 +229,16 @@ def diagnose_image(scene, name, options, min_contrast, acc):
         return
     F = r.vertical_segments.endpoints
     sp = options.second_pass
-    T, _ = _normaliser(W, H)
-    B = _second_pass(img, r.vp, sp, cam, T).segments.endpoints
+    # The second pass alone at the final VP (no competing-VP rule).
+    B = vertical_segments(img, r.vp, sp, cam).endpoints
     relax = {"min_length_px": 0.0, "min_density": 0.0, "max_rms_px": 1.5}
-    R = _second_pass(img, r.vp, dataclasses.replace(sp, **relax), cam, T)
-    R = R.segments.endpoints
+    R = vertical_segments(img, r.vp, dataclasses.replace(sp, **relax), cam)
+    R = R.endpoints
     # One filter off at a time.
     R1 = {
-        k: _second_pass(
-            img, r.vp, dataclasses.replace(sp, **{k: v}), cam, T
-        ).segments.endpoints
+        k: vertical_segments(
+            img, r.vp, dataclasses.replace(sp, **{k: v}), cam
+        ).endpoints
         for k, v in relax.items()
     }
     gx, gy = gradients(img, sp.sigma_px)
@@ -235,7 +247,8 @@ def diagnose_image(scene, name, options, min_contrast, acc):
     eph = edge_points(gx, gy, field, sp.low, sp.high, sp.max_gradient_angle_deg)
     p_high = eph.xy
 
-    edges = true_vertical_edges(scene, name)
+    # As synthetic.true_vertical_edges, on the depth buffer rendered above.
+    edges = vertical_edge_segments(scene.vertical_edges, cam_l, pose_l, depth)
     segs, kind = edges["segments_undistorted"], np.asarray(edges["kind"])
     L = np.linalg.norm(segs[:, 1] - segs[:, 0], axis=1)
     target = (kind == "corner") & (L > 20)
@@ -252,8 +265,8 @@ def diagnose_image(scene, name, options, min_contrast, acc):
     def edge_cov(det, tol):
         if len(det) == 0:
             return np.zeros(len(tsegs))
-        _, lo, hi, close = _on_line(tsegs, det, tol)
-        return _union_coverage(lo, hi, close, L[visible])
+        _, lo, hi, close = on_line(tsegs, det, tol)
+        return union_coverage(lo, hi, close, L[visible])
 
     cov1, cov2 = edge_cov(F, 1.0), edge_cov(F, 2.0)
     hit = cov1 >= 0.8
@@ -365,7 +378,7 @@ def diagnose_image(scene, name, options, min_contrast, acc):
 
     # --- localisation: signed offsets of detections near target edges -------
     if len(F):
-        _, lo, hi, close3 = _on_line(tsegs, F, 3.0)
+        _, lo, hi, close3 = on_line(tsegs, F, 3.0)
         mm, jj = np.nonzero(close3 & (hi - lo > 5))
         mid = F[jj].mean(axis=1)
         off = np.sum((mid - tsegs[mm, 0]) * n[mm], axis=1)
@@ -379,10 +392,10 @@ def diagnose_image(scene, name, options, min_contrast, acc):
     if len(F) == 0:
         return
     Ld = np.linalg.norm(F[:, 1] - F[:, 0], axis=1)
-    _, lo, hi, close = _on_line(F, segs, 1.0)
-    pc1 = _union_coverage(lo, hi, close, Ld)
-    _, lo, hi, close = _on_line(F, segs, 2.0)
-    pc2 = _union_coverage(lo, hi, close, Ld)
+    _, lo, hi, close = on_line(F, segs, 1.0)
+    pc1 = union_coverage(lo, hi, close, Ld)
+    _, lo, hi, close = on_line(F, segs, 2.0)
+    pc2 = union_coverage(lo, hi, close, Ld)
     v3d = vertical_in_3d(F, cam_l, pose_l, depth)
     mid = F.mean(axis=1)
     dn = F[:, 1] - F[:, 0]
@@ -437,7 +450,7 @@ def partial_overhang(F, segs, kind, pc1, face_id, mat_face, acc) -> None:
     bottom_first = D[:, 0, 1] > D[:, 1, 1]  # (n,) endpoint 0 is the image-bottom one
     mp, mn = side_materials(face_id, mat_face, P, n[e])
     kinds_on = Counter()
-    _, lo, hi, close = _on_line(D, segs, 1.0)
+    _, lo, hi, close = on_line(D, segs, 1.0)
     for m in range(len(D)):
         j = np.flatnonzero(close[m] & (hi[m] > lo[m]))
         kinds_on[",".join(sorted(set(kind[j].tolist())))] += 1
@@ -601,7 +614,6 @@ def main(argv=None) -> int:
     with threadpool_limits(1):
         for name in names:
             diagnose_image(scene, name, options, min_contrast, acc)
-            scene._depth.clear()
             print(name, "done", flush=True, file=sys.stderr)
     out = report(acc)
     print(json.dumps(out, indent=1))

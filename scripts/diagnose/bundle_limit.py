@@ -1,9 +1,26 @@
 """How far the bundle's result is from what its observations allow.
 
-One ``register`` run of a synthetic scene, split after stage 2 as in
-``bench_resolution.py`` (same cache), then the bundle as the pipeline solves
-it. Its FINAL problem (constraints, weights, loss) is then solved again with
-some of its image observations replaced by exact ones, from the TRUE cameras:
+One ``register`` run of a synthetic scene, split after stage 2 (stages 1-2
+cached, ``split_runs.py``), then the bundle as the pipeline solves it. Its
+FINAL problem (constraints, weights, loss) is then solved again with some of
+its image observations replaced by exact ones, from the TRUE cameras, each
+variant scored with ``evaluate``'s full and across-vertical deviation: what
+limits the full deviation, the lines' noise, the map or the tracks.
+
+Run (from the repository root)::
+
+    python scripts/diagnose/bundle_limit.py --scene_path /work/scenes/paper_s1 \\
+        [--seeds 2] [--set PATH=VALUE ...]
+
+Figures: docs/journal/stage3-bundle.md (issue 5, "What limits the full
+deviation", 2026-12-02, and the limit analysis in the scene-datum measure);
+the live question is issue 26 (what the bundle's constraint model leaves
+unused).
+
+Data: synthetic scenes (``obliq-colmap synth``); the stage 1-2 cache under
+``--cache_path`` (shared with ``bench/seeds.py``).
+
+The exact observations:
 
 * a vertical constraint's line becomes the true camera's image of the
   vertical through the TRUE building corner nearest to its map corner (the
@@ -19,8 +36,7 @@ height difference; ``evaluate`` removes one vertical offset anyway).
 
 Gaussian noise (``--vertical_noise_px``, ``--horizontal_noise_px``) is added
 across the exact lines. Variants (each solved from the true cameras unless
-said otherwise, and scored with ``evaluate``'s full and across-vertical
-deviation):
+said otherwise):
 
 * ``exact``: both kinds exact, the real map: the limit of this constraint
   set with perfect line detection;
@@ -32,8 +48,9 @@ deviation):
 * ``real, from truth``: the final problem as it is, started at the true
   cameras.
 
-    python scripts/bench_bundle_limit.py --scene_path /work/scenes/paper_s1 \\
-        [--seeds 2] [--set PATH=VALUE ...]
+The bundle's last problem is caught by replacing ``adjustment.solve_bundle``
+(where ``bundle_stage`` looks it up) with a spy: it follows stage 3's
+internals and must move with them.
 """
 
 from __future__ import annotations
@@ -48,14 +65,15 @@ from pathlib import Path
 import numpy as np
 from scipy.spatial import cKDTree
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
+from obliq_colmap import adjustment as adj
+from obliq_colmap.bundle import BundleProblem, solve_bundle
+from obliq_colmap.geometry import Pose, lines_through
+from obliq_colmap.matching import triangulate_tracks
 
-import bench_resolution as br  # noqa: E402
-
-from obliq_colmap import adjustment as adj  # noqa: E402
-from obliq_colmap.bundle import BundleProblem, solve_bundle  # noqa: E402
-from obliq_colmap.geometry import Pose, lines_through  # noqa: E402
-from obliq_colmap.matching import triangulate_tracks  # noqa: E402
+# The helpers shared by the scripts live in scripts/bench/, which is not a
+# package: put it first on the path (scripts/README.md).
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "bench"))
+import split_runs as sr  # noqa: E402
 
 
 def _final_problem(inputs, outcomes, options):
@@ -153,24 +171,24 @@ def _exact_lines(problem: BundleProblem, inputs, stage3, gt, gtb, by_name):
 
 def run_scene(scene: Path, args: argparse.Namespace) -> None:
     """All variants of one scene, printed."""
-    options = br._options(scene, args)
-    inputs, outcomes, _ = br._stage12(scene, options, Path(args.cache_path))
-    gt, gtb, by_name = br._truth_local(scene, inputs)
+    options = sr.run_options(scene, args)
+    inputs, outcomes, _ = sr.stage12(scene, options, Path(args.cache_path))
+    gt, gtb, by_name = sr.truth_local(scene, inputs)
     state, new, stage3, (P, opts, _) = _final_problem(inputs, outcomes, options)
     print(f"{scene.name}" + (f"; overrides {args.set}" if args.set else ""))
 
     def report(label: str, problem: BundleProblem) -> None:
         result = solve_bundle(problem, opts)
-        full, across, _ = br._evaluate(
+        full, across, _ = sr.evaluate_state(
             inputs, state.with_bundle(result, P.image_camera), gt
         )
-        print(br._fmt_eval(f"{label}, full", full).replace("  ", " ", 1))
-        print(br._fmt_eval(f"{label}, across", across).replace("  ", " ", 1))
+        print(sr.format_evaluation(f"{label}, full", full).replace("  ", " ", 1))
+        print(sr.format_evaluation(f"{label}, across", across).replace("  ", " ", 1))
         print(f"      cost {result.summary.final_cost:.1f}")
 
-    full, across, _ = br._evaluate(inputs, new, gt)
-    print(br._fmt_eval("pipeline's bundle, full", full))
-    print(br._fmt_eval("pipeline's bundle, across", across))
+    full, across, _ = sr.evaluate_state(inputs, new, gt)
+    print(sr.format_evaluation("pipeline's bundle, full", full))
+    print(sr.format_evaluation("pipeline's bundle, across", across))
     vl, xy_true, hl, anchor, h, cams, poses = _exact_lines(
         P, inputs, stage3, gt, gtb, by_name
     )
@@ -204,12 +222,12 @@ def run_scene(scene: Path, args: argparse.Namespace) -> None:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = br.scene_parser(__doc__.split("\n\n")[0])
+    parser = sr.scene_parser(__doc__.split("\n\n")[0])
     parser.add_argument("--vertical_noise_px", type=float, default=0.3)
     parser.add_argument("--horizontal_noise_px", type=float, default=0.1)
     parser.add_argument("--seeds", type=int, default=2)
     args = parser.parse_args(argv)
-    scenes = br.synthetic_scenes(args)
+    scenes = sr.synthetic_scenes(args)
     if scenes is None:
         return 2
     for scene in scenes:

@@ -1,12 +1,30 @@
 """Benchmark the global bundle at the paper's scale against Ceres, same process.
 
+Measures the time and the accuracy of :func:`obliq_colmap.bundle.solve_bundle`
+on a synthetic bundle problem of the paper's scale, against Ceres (pyceres
+on pycolmap's own bundle problem) solving the same constraints, each route
+timed as the median of ``--runs`` solves (BLAS pinned to one thread, Ceres
+``num_threads=1``); with ``--reference TREE`` instead, that tree's
+``solve_bundle`` timed alternately with ours on the same problem.
+
+Run (from the repository root)::
+
+    python scripts/bench/bundle.py [--runs 5] [--ceres-runs 3] [--no-ceres]
+    python scripts/bench/bundle.py --reference /tmp/ref
+
+Figures: docs/STATUS.md (stage 3: the global solve's time and its ratio to
+Ceres) and docs/journal/stage3-bundle.md.
+
+Data: none (the problem is generated); the Ceres route needs ``pyceres`` and
+``pycolmap``; ``--reference`` a source tree (``git archive REV obliq_colmap
+| tar -x -C TREE``).
+
 Problem: 36 images (9 stations x 4 oblique heads, one COLMAP camera per head,
 SIMPLE_RADIAL 4008 x 2672), ~2.7k map corners and ~15k facade heights,
 ~48k horizontal + ~11k vertical line constraints, 0.5 px noise; start 0.5 deg /
-5 m / 2 % focal off the truth (``obliq_colmap.bundle.synthetic_problem``).
+5 m / 2 % focal off the truth (``make_synthetic_problem``).
 
-Routes, each timed as the median of ``--runs`` solves (BLAS pinned to one
-thread, Ceres ``num_threads=1``):
+Routes:
 
 * ours: :func:`obliq_colmap.bundle.solve_bundle` with default options
   (Huber 2 px, free corner heights with a 5 m prior, f / cx / cy refined);
@@ -17,10 +35,6 @@ thread, Ceres ``num_threads=1``):
   (a FROZEN denominator, so its optimum is near, not at, ours); the same Huber
   loss, the corner-height prior as Python costs; no gauge (damping only), so
   its vertical datum is removed before comparing.
-
-Usage::
-
-    python scripts/bench_bundle.py [--runs 5] [--ceres-runs 3] [--no-ceres]
 """
 
 from __future__ import annotations
@@ -38,6 +52,11 @@ from obliq_colmap.bundle import BundleOptions, solve_bundle
 from obliq_colmap.bundle import residuals as res
 from obliq_colmap.bundle.synthetic_problem import make_synthetic_problem
 from obliq_colmap.geometry import Pose, project
+
+# The helpers shared by the scripts live in scripts/bench/, which is not a
+# package: put it first on the path (scripts/README.md).
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "bench"))
+from reference import load_reference  # noqa: E402
 
 PAPER = dict(
     buildings=(26, 26),
@@ -254,9 +273,6 @@ def ceres_route(P, options: BundleOptions, max_iterations=100):
 
 def reference_timing(P, tree: Path, runs: int) -> None:
     """Ours and the reference tree's solver alternately on ``P`` (defaults)."""
-    sys.path.insert(0, str(Path(__file__).resolve().parent))
-    from _reference import load_reference
-
     (ref,) = load_reference(tree, ("bundle",))
     times = {"ours": [], "reference": []}
     for _ in range(runs):

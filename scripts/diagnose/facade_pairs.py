@@ -1,25 +1,37 @@
 """Stage 3's facade pairs against the truth: how many matched the wrong floor.
 
-For split runs (``bench_seeds.py``'s path and stage 1-2 cache), the facade
-edges and pair matching of the first block (the stage-2 poses), and per pair
-the true height difference of its matched segments: each segment's midpoint
-cast through the TRUE camera onto the wall plane of its map edge. A pair
-whose median true difference exceeds ``--limit`` m matched edges at
-different heights (a window row a floor off, or another edge); the
-per-image heights it was matched in were that far off. Prints per run the
-pairs, the wrong ones and their matches.
+For split runs (stages 1-2 cached, ``split_runs.py``), the facade edges and
+pair matching of the first block (the stage-2 poses), and per pair the true
+height difference of its matched segments: each segment's midpoint cast
+through the TRUE camera onto the wall plane of its map edge. A pair whose
+median true difference exceeds ``--limit`` m matched edges at different
+heights (a window row a floor off, or another edge); the per-image heights
+it was matched in were that far off. Prints per run the pairs, the wrong
+ones and their matches. With ``--oracle`` the run then goes on as
+``register`` does after stage 2 (``split_runs.run_once``) with the wrong
+pairs removed before the tracks are formed, every stage-3 round: what
+perfect pair rejection would give.
 
-With ``--oracle`` the run then goes on as ``register`` does after stage 2
-(``bench_seeds.run_once``) with the wrong pairs removed before the tracks
-are formed, every stage-3 round: what perfect pair rejection would give
-(docs/BENCHMARKS.md, issue 5, "Facade pairs a floor off", 2026-12-03).
+Run (from the repository root)::
 
-    python scripts/audit_facade_pairs.py --scene_path /work/scenes/hard_s1 \\
+    python scripts/diagnose/facade_pairs.py --scene_path /work/scenes/hard_s1 \\
         --seeds 0 1 2 [--oracle] [--set PATH=VALUE ...]
+
+Figures: docs/journal/stage3-bundle.md (issue 5, "Facade pairs a floor off",
+2026-12-03); the live question is issue 26 (facade edges as lines, tracks
+weighted by their own noise).
+
+Data: synthetic scenes (``obliq-colmap synth``); the stage 1-2 cache under
+``--cache_path`` (shared with ``bench/seeds.py``).
 
 The wall-plane height of a segment off the wall (a roof rim's overhang, a
 recessed window) differs between viewing directions by its offset times the
 difference of the cotangents, a few tenths of a metre: hence the 1 m limit.
+
+``--oracle`` replaces ``adjustment.facade_stage`` (where ``bundle_stage``
+looks it up) and rebuilds the tracks with the matching module's private
+``_anchor_xy`` and ``_tracks``: it follows stage 3's internals and must move
+with them.
 """
 
 from __future__ import annotations
@@ -28,16 +40,22 @@ import sys
 from pathlib import Path
 
 import numpy as np
-from bench_resolution import (
-    _stage12,
-    _truth_local,
-    scene_parser,
-    synthetic_scenes,
-)
-from bench_seeds import run_once, seed_options, summary
 
 from obliq_colmap import adjustment as adj
 from obliq_colmap import matching
+
+# The helpers shared by the scripts live in scripts/bench/, which is not a
+# package: put it first on the path (scripts/README.md).
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "bench"))
+from split_runs import (  # noqa: E402
+    run_once,
+    scene_parser,
+    seed_options,
+    stage12,
+    summary,
+    synthetic_scenes,
+    truth_local,
+)
 
 _FACADE_STAGE = adj.facade_stage
 #: The run's truth (block, images by name) and the wrong-pair limit (m).
@@ -110,8 +128,8 @@ def main(argv: list[str] | None = None) -> int:
     for scene in scenes:
         for seed in args.seeds:
             options = seed_options(scene, seed, args)
-            inputs, outcomes, _ = _stage12(scene, options, Path(args.cache_path))
-            _, gtb, by_name = _truth_local(scene, inputs)
+            inputs, outcomes, _ = stage12(scene, options, Path(args.cache_path))
+            _, gtb, by_name = truth_local(scene, inputs)
             _TRUTH.update(block=gtb, by_name=by_name)
             state = adj.BlockState.from_outcomes(
                 [o for o in outcomes.values() if o.registered]

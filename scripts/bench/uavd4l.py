@@ -1,25 +1,31 @@
 """Stage 1 + stage 2 on the real UAVD4L-LoD drone image (near-nadir, thermal).
 
-Data: ``shared/data/uavd4l_lodloc_demo`` (see its README and licence: the LoD1
-model is research use only; nothing of it is written outside a temporary
-folder). The LoD1 model is turned into a cadastre: its up-facing faces (flat
-roofs) projected to the ground plane and merged per connected building
-(shapely ``unary_union``), written as a temporary GeoJSON in the data's LOCAL
-metric frame (``"crs": null``, z up; the frame of the poses), loaded with
-origin (0, 0, 0) so that local = the data's frame. The GPS/IMU prior (4.3 m,
-20.7 m vertical, 4.0 deg off) is the registration's prior; the VP prior is
-the INS cone around the prior rotation's vertical (the image is 0.9 deg off
-nadir: the vertical VP, the nadir point, lies inside the frame).
+Measures stages 1 and 2 on one real image: the VP status and its error, the
+segments, the registration's result, and the rotation / centre error of the
+prior and of the result against the ground-truth pose (the centre error also
+without its vertical part: one image cannot observe the camera height, which
+stage 2 holds at the prior).
 
-Printed: VP status and its error, segments, the registration's result, and the
-rotation / centre error of the prior and of the result against the
-ground-truth pose (the centre error also without its vertical part: one image
-cannot observe the camera height, which stage 2 holds at the prior).
+Run (from the repository root)::
 
-Example::
-
-    OMP_NUM_THREADS=1 python scripts/bench_uavd4l.py \\
+    OMP_NUM_THREADS=1 python scripts/bench/uavd4l.py \\
         --data /work/shared/data/uavd4l_lodloc_demo --overlay /tmp/uavd4l.png
+
+Figures: docs/journal/stage2-registration.md ("The real UAVD4L-LoD drone
+image", 2026-12-01).
+
+Data: ``/work/shared/data/uavd4l_lodloc_demo`` (see its README and licence:
+the LoD1 model is research use only; nothing of it is written outside a
+temporary folder).
+
+The LoD1 model is turned into a cadastre: its up-facing faces (flat roofs)
+projected to the ground plane and merged per connected building (shapely
+``unary_union``), written as a temporary GeoJSON in the data's LOCAL metric
+frame (``"crs": null``, z up; the frame of the poses), loaded with origin (0,
+0, 0) so that local = the data's frame. The GPS/IMU prior (4.3 m, 20.7 m
+vertical, 4.0 deg off) is the registration's prior; the VP prior is the INS
+cone around the prior rotation's vertical (the image is 0.9 deg off nadir:
+the vertical VP, the nadir point, lies inside the frame).
 """
 
 from __future__ import annotations

@@ -2,7 +2,24 @@
 
 Each variant is a copy of a synthetic scene (images, map and truth linked,
 not copied) whose priors model is changed in ONE respect, so that the run
-tells which error of the priors the pipeline fails on:
+tells which error of the priors the pipeline fails on; each runs ``register``
+end to end and is scored as in ``bench/register.py``
+(``register_runs.bench_scene``), one row per variant.
+
+Run (from the repository root)::
+
+    python scripts/diagnose/prior_variants.py --scene_path /work/scenes/hard_s1 \\
+        --variant scene --variant true_camera [--stop_after initial] \\
+        [--camera_model RADIAL --refine_extra_params 1] [--output_path R.json]
+
+Figures: docs/journal/stage2-registration.md (issue 4, the ``hard`` scene's
+priors, 2026-12-01); the live question is issue 25 (scenes we did not make:
+which error of theirs the chain fails on).
+
+Data: a synthetic scene (``obliq-colmap synth``; variants are written to a
+temporary folder and removed).
+
+The variants:
 
 * ``scene``: the scene as generated;
 * ``true_camera``: the priors' cameras replaced by the true ones (focal
@@ -16,14 +33,8 @@ tells which error of the priors the pipeline fails on:
   stream as the generator, cameras as the priors (no distortion).
 
 The scene's ``scene.json`` goes with each variant with the prior noise it
-has, so that ``bench_register`` sets the ``--prior_*_sigma`` options as a user
-who knows their GPS/INS would.
-
-    python scripts/bench_register_variants.py --scene_path /work/scenes/hard_s1 \\
-        --variant scene --variant true_camera [--stop_after initial] \\
-        [--camera_model RADIAL --refine_extra_params 1] [--output_path R.json]
-
-Prints bench_register's rows, one per variant.
+has, so that the run sets the ``--prior_*_sigma`` options as a user who
+knows their GPS/INS would.
 """
 
 from __future__ import annotations
@@ -40,15 +51,16 @@ from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
+from obliq_colmap.bundle.residuals import focal_principal_extra_indices
+from obliq_colmap.colmap_io import Block, read_model, write_absolute_model
+from obliq_colmap.geometry import Camera
+from obliq_colmap.synthetic.cameras import prior_block
+from obliq_colmap.synthetic.options import PRESETS, SceneOptions
 
-import bench_register  # noqa: E402
-
-from obliq_colmap.bundle.residuals import focal_principal_extra_indices  # noqa: E402
-from obliq_colmap.colmap_io import Block, read_model, write_absolute_model  # noqa: E402
-from obliq_colmap.geometry import Camera  # noqa: E402
-from obliq_colmap.synthetic.cameras import prior_block  # noqa: E402
-from obliq_colmap.synthetic.options import PRESETS, SceneOptions  # noqa: E402
+# The helpers shared by the scripts live in scripts/bench/, which is not a
+# package: put it first on the path (scripts/README.md).
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "bench"))
+from register_runs import add_run_arguments, bench_scene, print_row  # noqa: E402
 
 VARIANTS = ("scene", "true_camera", "true_distortion", "true_focal", "paper_noise")
 #: The scene files a variant shares with its scene (linked).
@@ -117,7 +129,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--scene_path", required=True, help="synthetic scene folder")
     parser.add_argument("--variant", action="append", choices=VARIANTS, required=True)
     parser.add_argument("--output_path", help="write all rows as JSON here")
-    bench_register.add_run_arguments(parser)
+    add_run_arguments(parser)
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(message)s")
     tmp = Path(tempfile.mkdtemp(prefix="bench_variants_"))
@@ -125,10 +137,10 @@ def main(argv: list[str] | None = None) -> int:
     try:
         for variant in args.variant:
             path = make_variant(Path(args.scene_path), variant, tmp)
-            row = bench_register.bench_scene(path, args)
+            row = bench_scene(path, args)
             row["variant"] = variant
             print(f"variant {variant}:")
-            bench_register._print_row(row)
+            print_row(row)
             rows.append(row)
     finally:
         shutil.rmtree(tmp, ignore_errors=True)

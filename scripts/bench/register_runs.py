@@ -1,15 +1,12 @@
-"""Benchmark of ``obliq-colmap register`` end to end on synthetic scenes.
+"""One whole ``register`` run of a synthetic scene, scored against the truth.
 
-For each scene: the run's time per stage and in total, peak memory (this
-process and its workers), the counts of constraints, and the accuracy of the
-result against the ground truth (``evaluate``: full deviation and across the
-projected vertical), beside the priors' (baseline).
-
-    python scripts/bench_register.py --scene_path /tmp/syn/paper \\
-        --scene_path /tmp/syn/hard [--stop_after bundle] [--num_workers 2] \\
-        [--output_path bench_register.json]
-
-Scenes are made with ``obliq-colmap synth --preset paper --seed N --output_path DIR``.
+A helper module, not a script: shared by ``bench/register.py`` and
+``diagnose/prior_variants.py``, which import it after putting
+``scripts/bench/`` on the path (``scripts/README.md``). :func:`bench_scene`
+runs ``register`` with the scene's prior noise as the prior sigmas and the
+options of :func:`add_run_arguments`, writes the model to a temporary folder
+and evaluates it (full deviation and across the projected vertical) beside
+the priors; :func:`print_row` prints its row.
 """
 
 from __future__ import annotations
@@ -17,12 +14,8 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
-import logging
-import os
-import platform
 import resource
 import shutil
-import sys
 import tempfile
 import time
 from pathlib import Path
@@ -39,8 +32,6 @@ from obliq_colmap.pipeline import (
     write_run,
 )
 from obliq_colmap.registration import RegistrationOptions
-
-logger = logging.getLogger("bench_register")
 
 
 def _peak_rss_mib() -> tuple[float, float]:
@@ -64,6 +55,8 @@ def _summary(ev) -> dict:
 
 
 def bench_scene(scene: Path, args: argparse.Namespace) -> dict:
+    """One ``register`` run of ``scene`` with ``args`` (:func:`add_run_arguments`),
+    its times, memory, counts and evaluation as a JSON-ready row."""
     # A user knows the accuracy of their GPS/INS: take the scene's prior noise.
     noise = json.loads((scene / "scene.json").read_text())["options"]
     adjustment = AdjustmentOptions()
@@ -135,7 +128,8 @@ def bench_scene(scene: Path, args: argparse.Namespace) -> dict:
     return row
 
 
-def _print_row(row: dict) -> None:
+def print_row(row: dict) -> None:
+    """The row of :func:`bench_scene`, printed."""
     f, a, b = row["full"], row["across_vertical"], row["baseline_priors"]
     print(
         f"{Path(row['scene']).name}: {row['stop_after']}, {row['num_workers']} workers,"
@@ -187,40 +181,3 @@ def add_run_arguments(parser: argparse.ArgumentParser) -> None:
         help="register failed or weak images again against the solved block "
         "(PipelineOptions.reregister_failed)",
     )
-
-
-def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument(
-        "--scene_path", action="append", required=True, help="synthetic scene folder"
-    )
-    parser.add_argument("--output_path", help="write all rows as JSON here")
-    add_run_arguments(parser)
-    args = parser.parse_args(argv)
-    logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(message)s")
-    rows = []
-    for scene in args.scene_path:
-        scene = Path(scene)
-        if not (scene / "gt").is_dir():
-            print(f"error: {scene} is not a synthetic scene (no gt/)", file=sys.stderr)
-            return 2
-        row = bench_scene(scene, args)
-        _print_row(row)
-        rows.append(row)
-    meta = {
-        "date": time.strftime("%Y-%m-%d"),
-        "machine": platform.machine(),
-        "cpus": os.cpu_count(),
-        "load_average": os.getloadavg(),
-        "python": platform.python_version(),
-    }
-    print(f"machine: {meta}")
-    if args.output_path:
-        Path(args.output_path).write_text(
-            json.dumps({"meta": meta, "rows": rows}, indent=2, default=float) + "\n"
-        )
-    return 0
-
-
-if __name__ == "__main__":
-    sys.exit(main())

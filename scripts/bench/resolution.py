@@ -1,41 +1,40 @@
 """Where the accuracy goes with the image resolution: stage 2 and 3 figures.
 
-For each synthetic scene (e.g. the same ``paper`` scene at 2004 and at 4008
-px), one ``register`` run split at the end of stage 2 (its per-image
-outcomes are cached on disk, keyed by the stage 1-2 options, so that stage-3
-variants rerun in seconds), then:
+Per synthetic scene (e.g. the same ``paper`` scene at 2004 and at 4008 px),
+one ``register`` run split at the end of stage 2 (stages 1-2 cached by
+their options, ``split_runs.py``), then for stage 2: per image the vertical
+segments, the inlier corners (two vertical constraints each) and the
+across-vertical deviation of the per-image registration; the image scale (px
+per metre across the vertical at the inlier corners) and the residuals of
+the inlier pairs at the TRUE cameras (map-corner noise + edge noise, in px
+and in metres on the ground); for stage 3: the bundle's rounds (rejections,
+per-kind sigmas, from its log), the final constraints and per-kind residual
+spread, the same residuals at the true cameras, and the evaluation (full,
+across the vertical, and with the camera-height offset).
 
-* stage 2: per image the vertical segments, inlier corners (two vertical
-  constraints each) and the across-vertical deviation of the per-image
-  registration; the image scale (px per metre across the vertical at the
-  inlier corners) and the residuals of the inlier pairs at the TRUE camera
-  (map-corner noise + edge noise, in px and in metres on the ground);
-* stage 3: the bundle's rounds (rejections, per-kind sigmas, from its log),
-  the final constraints and per-kind residual spread, the same residuals at
-  the true cameras, and the evaluation (full and across the vertical).
+Run (from the repository root)::
+
+    python scripts/bench/resolution.py --scene_path /work/scenes/paper_s1 \\
+        --scene_path /work/scenes/paper4k_s1 [--set PATH=VALUE ...] \\
+        [--stop_after initial] [--per_image] [--cache_path /tmp/bench_resolution]
+
+Figures: docs/journal/stage3-bundle.md (the stage-2 part also in
+docs/journal/stage2-registration.md); a diagnosis, not a figure of
+docs/STATUS.md.
+
+Data: synthetic scenes, made with ``obliq-colmap synth --preset paper --seed N
+[--image_width 4008] --output_path DIR``; the stage 1-2 cache under
+``--cache_path`` (shared with the other split-run scripts).
 
 Options of stages 1-3 can be overridden by dotted paths (``--set
 adjustment.bundle.loss_scale_px=2``, ``--set registration.inlier_threshold_px=4``):
 a quick test of which threshold matters.
-
-    python scripts/bench_resolution.py --scene_path /work/scenes/paper_s1 \\
-        --scene_path /work/scenes/paper4k_s1 [--set PATH=VALUE ...] \\
-        [--stop_after initial] [--cache_path /tmp/bench_resolution]
-
-Scenes are made with ``obliq-colmap synth --preset paper --seed N
-[--image_width 4008] --output_path DIR``.
 """
 
 from __future__ import annotations
 
-import argparse
-import ast
-import dataclasses
-import hashlib
-import json
 import logging
 import os
-import pickle
 import sys
 import time
 from pathlib import Path
@@ -43,73 +42,21 @@ from pathlib import Path
 import numpy as np
 
 from obliq_colmap import adjustment as adj
-from obliq_colmap import pipeline as pl
 from obliq_colmap.bundle import residuals as res
-from obliq_colmap.evaluate import EvaluateOptions, evaluate_block, read_ground_truth
-from obliq_colmap.lines import RefineOptions
 from obliq_colmap.matching import triangulate_tracks
-from obliq_colmap.registration import RegistrationOptions
 
-
-def _set(obj, path: str, value):
-    """``obj`` with the dotted attribute ``path`` replaced (nested dataclasses)."""
-    head, _, rest = path.partition(".")
-    if not rest:
-        return dataclasses.replace(obj, **{head: value})
-    return dataclasses.replace(obj, **{head: _set(getattr(obj, head), rest, value)})
-
-
-def _options(scene: Path, args: argparse.Namespace) -> pl.PipelineOptions:
-    noise = json.loads((scene / "scene.json").read_text())["options"]
-    options = pl.PipelineOptions(
-        stop_after="initial",
-        num_workers=args.num_workers,
-        progress=False,
-        registration=RegistrationOptions(
-            prior_position_sigma_m=noise["prior_position_m"],
-            prior_rotation_sigma_deg=noise["prior_rotation_deg"],
-            prior_focal_sigma=noise["prior_focal_percent"] / 100.0,
-        ),
-    )
-    for item in args.set or []:
-        path, _, text = item.partition("=")
-        try:
-            value = ast.literal_eval(text)
-        except (ValueError, SyntaxError):
-            value = text
-        if path == "refine_segments" and text == "on":  # off by default
-            value = RefineOptions()
-        options = _set(options, path, value)
-    return options
-
-
-def _stage12(scene: Path, options: pl.PipelineOptions, cache: Path):
-    """Inputs and the per-image outcomes (cached by the stage 1-2 options)."""
-    key = repr(
-        (
-            str(scene.resolve()),
-            options.vanishing,
-            options.refine_segments,
-            options.registration,
-            options.cone_deg,
-            options.rescue_min_inliers,
-            options.head_focal_min_images,
-        )
-    )
-    path = cache / (hashlib.sha1(key.encode()).hexdigest()[:16] + ".pkl")
-    inputs = pl.load_inputs(
-        scene / "images", scene / "cadastre.geojson", scene / "priors", options
-    )
-    if path.is_file():
-        return inputs, pickle.loads(path.read_bytes()), None
-    t0 = time.perf_counter()
-    run = pl.run_register(
-        scene / "images", scene / "cadastre.geojson", scene / "priors", options
-    )
-    wall = time.perf_counter() - t0
-    cache.mkdir(parents=True, exist_ok=True)
-    path.write_bytes(pickle.dumps(run.outcomes))
-    return inputs, run.outcomes, wall
+# The helpers shared by the scripts live in scripts/bench/, which is not a
+# package: put it first on the path (scripts/README.md).
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "bench"))
+from split_runs import (  # noqa: E402
+    evaluate_state,
+    format_evaluation,
+    run_options,
+    scene_parser,
+    stage12,
+    synthetic_scenes,
+    truth_local,
+)
 
 
 def _q(a: np.ndarray, qs=(50, 90, 95)) -> str:
@@ -126,42 +73,6 @@ def _q(a: np.ndarray, qs=(50, 90, 95)) -> str:
     )
 
 
-def _truth_local(scene: Path, inputs):
-    cad = inputs.cadastre
-    gt = read_ground_truth(scene)
-    gtb = gt.block.shifted(np.array([cad.origin[0], cad.origin[1], 0.0]))
-    by_name = {im.name: im for im in gtb.images.values()}
-    return gt, gtb, by_name
-
-
-def _evaluate(inputs, state: adj.BlockState, gt) -> tuple:
-    cad = inputs.cadastre
-    block = pl._result_block(inputs, state).shifted(
-        -np.array([cad.origin[0], cad.origin[1], 0.0])
-    )
-    out = []
-    for across, offset in ((False, "corners"), (True, "corners"), (False, "cameras")):
-        ev = evaluate_block(
-            block,
-            gt.block,
-            gt.corners_world,
-            gt.visible,
-            EvaluateOptions(across_vertical=across, vertical_offset=offset),
-        )
-        out.append(ev)
-    return out
-
-
-def _fmt_eval(label: str, ev) -> str:
-    s = ev.summary
-    return (
-        f"  {label:20s} {s.num_registered}/{s.num_total} < 2 px, deviation median"
-        f" {s.deviation_median_px:.3f} p95 {s.deviation_p95_px:.3f} max"
-        f" {s.deviation_max_px:.3f} px; rotation {s.rotation_error_median_deg:.3f}"
-        f" deg, centre {s.center_error_median_m:.2f} m"
-    )
-
-
 def _vertical_at_truth(cam, pose, xy: np.ndarray, h: np.ndarray, line: np.ndarray):
     """(M,) signed px distances of points (xy, h) projected to lines (M, 3)."""
     X = pose.transform(np.column_stack([xy, h]))
@@ -172,9 +83,9 @@ def _vertical_at_truth(cam, pose, xy: np.ndarray, h: np.ndarray, line: np.ndarra
 def stage2_report(scene, inputs, outcomes, gt, gtb, by_name, per_image=False) -> None:
     reg = [o for o in outcomes.values() if o.registered]
     state = adj.BlockState.from_outcomes(reg)
-    full, across, _ = _evaluate(inputs, state, gt)
-    print(_fmt_eval("stage 2 full", full))
-    print(_fmt_eval("stage 2 across vert.", across))
+    full, across, _ = evaluate_state(inputs, state, gt)
+    print(format_evaluation("stage 2 full", full))
+    print(format_evaluation("stage 2 across vert.", across))
     nseg = np.array([len(o.segments) for o in outcomes.values()])
     ninl = np.array(
         [o.registration.num_inliers if o.registered else 0 for o in outcomes.values()]
@@ -272,10 +183,10 @@ def stage3_report(
         f"                   horizontal ({len(result.horizontal_residuals_px)})"
         f" {_q(result.horizontal_residuals_px)}"
     )
-    full, across, cameras = _evaluate(inputs, new, gt)
-    print(_fmt_eval("bundle full", full))
-    print(_fmt_eval("bundle across vert.", across))
-    print(_fmt_eval("bundle full, cam. dz", cameras))
+    full, across, cameras = evaluate_state(inputs, new, gt)
+    print(format_evaluation("bundle full", full))
+    print(format_evaluation("bundle across vert.", across))
+    print(format_evaluation("bundle full, cam. dz", cameras))
     if per_image:
         acr = {e.name: e for e in across.images}
         for e in full.images:
@@ -341,28 +252,6 @@ class _Capture(logging.Handler):
         self.lines.append(record.getMessage())
 
 
-def scene_parser(description: str) -> argparse.ArgumentParser:
-    """The options of the benchmarks built on this one's stage 1-2 cache."""
-    parser = argparse.ArgumentParser(description=description)
-    parser.add_argument("--scene_path", action="append", required=True)
-    parser.add_argument("--num_workers", type=int, default=2)
-    parser.add_argument("--set", action="append", help="PATH=VALUE option override")
-    parser.add_argument("--cache_path", default="/tmp/bench_resolution")
-    return parser
-
-
-def synthetic_scenes(args: argparse.Namespace) -> list[Path] | None:
-    """``--scene_path`` as paths; None (after one error line) when one is
-    not a synthetic scene folder. Sets up the warnings-only logging."""
-    logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(message)s")
-    scenes = [Path(p) for p in args.scene_path]
-    for scene in scenes:
-        if not (scene / "gt").is_dir():
-            print(f"error: {scene} is not a synthetic scene (no gt/)", file=sys.stderr)
-            return None
-    return scenes
-
-
 def main(argv: list[str] | None = None) -> int:
     parser = scene_parser(__doc__.split("\n\n")[0])
     parser.add_argument("--stop_after", choices=("initial", "bundle"), default="bundle")
@@ -372,15 +261,15 @@ def main(argv: list[str] | None = None) -> int:
     if scenes is None:
         return 2
     for scene in scenes:
-        options = _options(scene, args)
-        inputs, outcomes, wall = _stage12(scene, options, Path(args.cache_path))
+        options = run_options(scene, args)
+        inputs, outcomes, wall = stage12(scene, options, Path(args.cache_path))
         cam = next(iter(inputs.priors.cameras.values()))
         print(
             f"{scene.name} ({cam.width}x{cam.height}): stages 1-2"
             + (f" {wall:.0f} s" if wall is not None else " cached")
             + (f"; overrides {args.set}" if args.set else "")
         )
-        gt, gtb, by_name = _truth_local(scene, inputs)
+        gt, gtb, by_name = truth_local(scene, inputs)
         stage2_report(scene, inputs, outcomes, gt, gtb, by_name, args.per_image)
         if args.stop_after == "bundle":
             stage3_report(

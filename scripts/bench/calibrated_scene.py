@@ -1,32 +1,41 @@
 """A synthetic scene as a calibrated camera system would deliver it.
 
-Copies ``--scene_path`` (``obliq-colmap synth`` output) to ``--output_path``
-with the priors' cameras replaced by the truth's (focal length, principal
-point and distortion of each head: a calibration report) and the
-focal-error option of ``scene.json`` set to 0; with ``--rotation_sigma_deg
-S`` also each prior rotation replaced by the true one turned by a random
-rotation vector of S degrees per axis (a calibrated INS; the prior centres
-stay as they are, and so does ``scene.json``'s rotation noise, which sets
-stage 2's search); with ``--position_sigma_m S`` each prior centre replaced
-by the true one plus the scene's vertical datum offset plus normal noise of
-S metres per axis (survey-grade GNSS, PPK; ``scene.json``'s position noise,
-which sets stage 2's search, stays), shifted by ``--position_offset_m DX DY
-DZ`` (a GNSS frame off the map's, a lever arm left out). Everything else
-(images, map, truth) is linked, not copied. Used for the calibrated runs in
-docs/BENCHMARKS.md (issue 5):
+Not a measurement itself: it makes the scene copies that the calibrated and
+PPK runs of ``bench/seeds.py`` (and ``register``) measure. Copies
+``--scene_path`` (``obliq-colmap synth`` output) to ``--output_path`` with
+the priors' cameras replaced by the truth's (focal length, principal point
+and distortion of each head: a calibration report) and the focal-error
+option of ``scene.json`` set to 0; with ``--rotation_sigma_deg S`` also each
+prior rotation replaced by the true one turned by a random rotation vector
+of S degrees per axis (a calibrated INS; the prior centres stay as they are,
+and so does ``scene.json``'s rotation noise, which sets stage 2's search);
+with ``--position_sigma_m S`` each prior centre replaced by the true one plus
+the scene's vertical datum offset plus normal noise of S metres per axis
+(survey-grade GNSS, PPK; ``scene.json``'s position noise, which sets stage
+2's search, stays), shifted by ``--position_offset_m DX DY DZ`` (a GNSS frame
+off the map's, a lever arm left out). Everything else (images, map, truth)
+is linked, not copied.
 
-    python scripts/calibrated_scene.py --scene_path /work/scenes/paper_s1 \\
+Run (from the repository root)::
+
+    python scripts/bench/calibrated_scene.py --scene_path /work/scenes/paper_s1 \\
         --output_path /work/scenes/paper_s1_cal [--rotation_sigma_deg 0.01]
-    python scripts/bench_seeds.py --scene_path /work/scenes/paper_s1_cal \\
+    python scripts/bench/seeds.py --scene_path /work/scenes/paper_s1_cal \\
         --set registration.refine_focal=False \\
         --set adjustment.bundle.refine_focal_length=False \\
         --set adjustment.bundle.refine_principal_point=False \\
-        [--set adjustment.bundle.rotation_prior_sigma_deg=0.01] \
+        [--set adjustment.bundle.rotation_prior_sigma_deg=0.01] \\
         [--set adjustment.bundle.position_prior_sigma_m=0.1]
 
 (``register``: the same priors with ``--refine_focal_length 0
 --refine_principal_point 0 [--bundle_rotation_sigma 0.01]
 [--bundle_position_sigma 0.1]``.)
+
+Figures (of the runs on its copies): docs/journal/stage3-bundle.md (issue 5,
+the calibrated and GNSS runs).
+
+Data: a synthetic scene (``obliq-colmap synth``); writes the copy to
+``--output_path``.
 """
 
 from __future__ import annotations

@@ -1,32 +1,36 @@
 """Time stage 2 (:func:`registration.register_image`) alone, one core.
 
-Stage 1 runs once per image as the pipeline runs it (``_initial_image``: the
-vertical VP with the INS prior, the VP-constrained segments, or all
-first-pass segments and the fallback options when the VP fails) and its
-output is cached in a pickle (``--cache_dir``, default
-``/tmp/bench_register_speed``), so that a second run times stage 2 only.
-Then every image is registered as the pipeline's initial pass does, and the
-weak images (< ``rescue_min_inliers``) again from each of the block's ground
-heights (the pipeline's rescue, :func:`pipeline.rescue_heights`): what the
-pipeline spends on stage 2 per image (without ``refine_distortion``, whose
-head pass would add one more call per image).
+Measures what the pipeline spends on stage 2 per image: every image of a
+synthetic scene registered as the pipeline's initial pass does, and the weak
+images (< ``rescue_min_inliers``) again from each of the block's ground
+heights (the pipeline's rescue, :func:`pipeline.rescue_heights`), without
+``refine_distortion`` (whose head pass would add one more call per image).
+With ``--reference TREE`` that tree's ``register_image`` runs on the same
+inputs alternately with this one, in the same process: the time ratio new /
+reference, and the largest differences of the results (rotation, centre,
+focal, inlier count), which must be nil for a pure speed change.
 
-With ``--reference TREE`` (another checkout or ``git archive REV
-obliq_colmap | tar -x -C TREE``) that tree's ``register_image`` runs on the
-same inputs alternately with this one, in the same process; reported: the
-time ratio new / reference, and the largest differences of the results
-(rotation, centre, focal, inlier count) which must be nil for a pure speed
-change.
+Run (from the repository root)::
 
-One thread (OMP_NUM_THREADS=1, threadpoolctl, cv2.setNumThreads(1)).
-Options: the scene's prior noise (as ``bench_register.py``), or
-``--prior_position_sigma`` / ``--prior_rotation_sigma`` to time a wider
-search (the target is stated at 20 m / 3 deg).
-
-Example::
-
-    python scripts/bench_register_speed.py --scene_path /work/scenes/paper_s1 \\
+    python scripts/bench/register_speed.py --scene_path /work/scenes/paper_s1 \\
         --reference /tmp/ref [--prior_position_sigma 20 --prior_rotation_sigma 3]
+
+Figures: docs/STATUS.md (stage 2: time per image) and
+docs/journal/stage2-registration.md.
+
+Data: a synthetic scene (``obliq-colmap synth --preset paper --seed N
+--output_path DIR``); ``--reference`` a source tree (another checkout, or
+``git archive REV obliq_colmap | tar -x -C TREE``).
+
+Stage 1 runs once per image as the pipeline runs it (the vertical VP with
+the INS prior, the VP-constrained segments, or all first-pass segments and
+the fallback options when the VP fails) and its output is cached in a pickle
+(``--cache_dir``, default ``/tmp/bench_register_speed``), so that a second
+run times stage 2 only. One thread (OMP_NUM_THREADS=1, threadpoolctl,
+cv2.setNumThreads(1)). Options: the scene's prior noise (as
+``bench/register.py``), or ``--prior_position_sigma`` /
+``--prior_rotation_sigma`` to time a wider search (the target is stated at
+20 m / 3 deg).
 """
 
 from __future__ import annotations
@@ -54,8 +58,10 @@ from obliq_colmap import pipeline  # noqa: E402
 from obliq_colmap.registration import RegistrationOptions, register_image  # noqa: E402
 from obliq_colmap.vanishing import VPPrior, detect_vertical_vp  # noqa: E402
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _reference import load_reference  # noqa: E402
+# The helpers shared by the scripts live in scripts/bench/, which is not a
+# package: put it first on the path (scripts/README.md).
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "bench"))
+from reference import load_reference  # noqa: E402
 
 
 @dataclasses.dataclass
@@ -69,7 +75,7 @@ class Stage1:
 
 
 def stage1(task) -> Stage1:
-    """What ``pipeline._initial_image`` hands to stage 2."""
+    """What the pipeline's per-image stage 1 hands to stage 2."""
     img = cv2.imread(str(task.path), cv2.IMREAD_GRAYSCALE)
     prior = VPPrior.from_rotation(task.prior.rotation, task.cone_deg)
     vp = detect_vertical_vp(img, task.vanishing, task.camera, prior, task.image_id)

@@ -1,9 +1,11 @@
 """Import another source tree's ``obliq_colmap`` beside this one (benchmarks).
 
-Shared by the benchmarks with a ``--reference TREE`` mode
-(``bench_vanishing.py``, ``bench_register_speed.py``): both versions run in
-one process, alternately on each input, under the same machine load, so that
-the ratio of their times is meaningful on a shared machine.
+A helper module, not a script: shared by the benchmarks with a
+``--reference TREE`` mode (``vanishing.py``, ``register_speed.py``,
+``bundle.py``), which import it after putting ``scripts/bench/`` on the path
+(``scripts/README.md``). Both versions run in one process, alternately on
+each input, under the same machine load, so that the ratio of their times
+is meaningful on a shared machine.
 """
 
 from __future__ import annotations

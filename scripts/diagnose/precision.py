@@ -1,7 +1,7 @@
-"""Where each image's predicted precision comes from.
+"""Where each image's predicted precision comes from (the bundle's weak direction).
 
-For the last bundle of split runs (``bench_seeds.py``'s path and cache), the
-predicted sd (px) of each image's constrained points (as
+For the last bundle of split runs (stages 1-2 cached, ``split_runs.py``),
+the predicted sd (px) of each image's constrained points (as
 ``BundleResult.image_precision_px``) and the same with one block of the
 image's parameters known, i.e. from the conditional covariance given its
 rotation, its camera height, or its head's intrinsics; the rotation split
@@ -13,22 +13,38 @@ block's tilt (all cameras turned together about the horizontal axes through
 their mean centre, the centres turning with them), and with every camera
 centre observed at ``--centre_sigma_m`` (each value: GNSS). Where the sd
 drops most, that block is the weak direction. Prints the medians over the
-images of each run (docs/BENCHMARKS.md, issue 5, "The bundle's a-posteriori
-precision per image", and "What more information would give", 2026-12-03):
+images of each run.
 
-    python scripts/diagnose_precision.py --scene_path /work/scenes/paper_s1 \\
+Run (from the repository root)::
+
+    python scripts/diagnose/precision.py --scene_path /work/scenes/paper_s1 \\
         --seeds 0 [--set PATH=VALUE ...]
+
+Figures: docs/journal/stage3-bundle.md (issue 5, "The bundle's a-posteriori
+precision per image" and "What more information would give", 2026-12-03);
+issue 25 / 26.
+
+Data: synthetic scenes (``obliq-colmap synth``); the stage 1-2 cache under
+``--cache_path`` (shared with ``bench/seeds.py``).
+
+It replaces the bundle solver's private ``_image_precision`` by a recording
+wrapper (on the same Jacobians, ``_image_jacobians``): it follows the
+solver's internals and must move with them.
 """
 
 from __future__ import annotations
 
 import sys
+from pathlib import Path
 
 import numpy as np
-from bench_resolution import scene_parser, synthetic_scenes
-from bench_seeds import run_once
 
 from obliq_colmap.bundle import solver
+
+# The helpers shared by the scripts live in scripts/bench/, which is not a
+# package: put it first on the path (scripts/README.md).
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "bench"))
+from split_runs import observed, run_all, scene_parser, synthetic_scenes  # noqa: E402
 
 _ORIGINAL = solver._image_precision
 #: One dict per bundle solved: image id -> {condition: variance (px^2)}.
@@ -52,13 +68,6 @@ def _conditional(J: np.ndarray, C: np.ndarray, known: list[int]) -> float:
         )
         J = J[:, :, rest]
     return float(np.mean(np.einsum("npi,ij,npj->n", J, C, J)))
-
-
-def observed(C: np.ndarray, A: np.ndarray, sigma: float) -> np.ndarray:
-    """Covariance (p, p) after the combinations ``A`` (m, p) of the
-    parameters are observed with standard deviation ``sigma`` (0: known)."""
-    CA = C @ A.T
-    return C - CA @ np.linalg.solve(A @ CA + sigma**2 * np.eye(len(A)), CA.T)
 
 
 def _observed(J: np.ndarray, C: np.ndarray, A: np.ndarray, sigma: float) -> float:
@@ -140,20 +149,6 @@ def _recording(S, st, cov):
     return out
 
 
-def print_medians(scene, seed: int, row: dict, record: dict) -> None:
-    """One line: the run's deviation and, per condition, the median over the
-    images of the predicted sd. ``record``: image id -> {condition:
-    variance (px^2)}, every image with the same conditions."""
-    keys = list(next(iter(record.values())))
-    sd = np.sqrt(np.median([[v[k] for k in keys] for v in record.values()], 0))
-    parts = ", ".join(f"{k} {x:.3f}" for k, x in zip(keys, sd, strict=True))
-    print(
-        f"{scene.name} seed {seed}: median deviation {row['median_px']:.3f} px;"
-        f" predicted sd (median over images, px): {parts}",
-        flush=True,
-    )
-
-
 def main(argv: list[str] | None = None) -> int:
     parser = scene_parser(__doc__.split("\n\n")[0])
     parser.add_argument("--seeds", type=int, nargs="+", default=[0])
@@ -174,16 +169,6 @@ def main(argv: list[str] | None = None) -> int:
     solver._image_precision = _recording
     run_all(scenes, args, _SOLVES)
     return 0
-
-
-def run_all(scenes, args, solves: list) -> None:
-    """Every scene x seed run, printed with the last solve ``solves`` holds
-    (the recording hook appends one per precision computed)."""
-    for scene in scenes:
-        for seed in args.seeds:
-            solves.clear()
-            row = run_once(scene, seed, args)
-            print_medians(scene, seed, row, solves[-1])
 
 
 if __name__ == "__main__":

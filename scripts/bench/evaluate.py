@@ -1,10 +1,17 @@
 """Time :func:`obliq_colmap.evaluate.evaluate_block` on a city-sized block.
 
-    python scripts/bench_evaluate.py [--num_images 500] [--num_corners 20000]
-
 Random oblique cameras over a square of corners; each image sees the corners
 that project inside it. Prints the wall time of the evaluation (full and
 across verticals); no files are written.
+
+Run (from the repository root)::
+
+    python scripts/bench/evaluate.py [--num_images 500] [--num_corners 20000]
+
+Figures: docs/STATUS.md (foundation: the evaluation's time) and
+docs/journal/render.md (the foundation's journal, beside the renderer).
+
+Data: none (the block is generated in memory).
 """
 
 from __future__ import annotations

@@ -1,5 +1,32 @@
 #!/usr/bin/env python
-"""Benchmarks of the vertical vanishing point stage (obliq_colmap.vanishing).
+"""Benchmarks of the vertical vanishing point stage (stage 1, obliq_colmap.vanishing).
+
+Measures the vertical VP's accuracy and speed: the angular error of the
+vertical direction on YorkUrbanDB (known K) and on Eurasian Cities (K
+unknown), against the peer lu-vp-detect on the same images and machine; the
+time per image at 640x480, 2004x1336 and 4008x2672 (optionally against
+another source tree in the same process); and on a synthetic scene the
+direction error and the second pass's recall and precision on the true
+vertical edges. One thread everywhere (cv2.setNumThreads(1), BLAS via
+threadpoolctl).
+
+Run (from the repository root)::
+
+    python scripts/bench/vanishing.py --sections yud,peer --split train
+    python scripts/bench/vanishing.py --sections yud --set second_pass.weak_high=4
+    python scripts/bench/vanishing.py --sections timing --reference /tmp/ref
+    python scripts/bench/vanishing.py --sections synthetic \\
+        --scene /work/scenes/paper_s1 [--synthetic_prior ins]
+
+Figures: docs/STATUS.md (stage 1: error and time per image) and
+docs/journal/stage1-vanishing.md.
+
+Data: under ``/work/shared/data/``: ``yorkurbandb/`` (``yud_gt.json`` and the
+images), ``eurasian_cities/`` (``ecd_gt.json`` and the images),
+``rennes_oblique_aerial/images/`` (timing); the ``peer`` section needs the
+``lu-vp-detect`` package (PyPI); ``synthetic`` a scene from ``obliq-colmap
+synth``; ``--reference`` a source tree (``git archive REV obliq_colmap | tar
+-x -C TREE``).
 
 Sections (``--sections``, comma separated):
 
@@ -31,13 +58,8 @@ Sections (``--sections``, comma separated):
   edges or on unlisted vertical 3D structure (``vertical_in_3d``). The
   prior is the paper's aerial one, or with ``--synthetic_prior ins`` the
   INS prior ``register`` uses: each image's prior rotation with the cone
-  ``PipelineOptions.cone_deg`` gives for the scene's prior noise.
-
-One thread everywhere (cv2.setNumThreads(1), BLAS via threadpoolctl).
-Example::
-
-    python scripts/bench_vanishing.py --sections yud,peer --split train
-    python scripts/bench_vanishing.py --sections yud --set second_pass.weak_high=4
+  ``PipelineOptions.cone_deg`` gives for the scene's prior noise. The
+  scoring is in ``vanishing_scoring.py``.
 
 ``--set PATH=VALUE`` (repeatable) overrides one field of ``VanishingOptions``
 (dotted path into the nested options, VALUE a Python literal) for ablations.
@@ -46,8 +68,6 @@ Example::
 from __future__ import annotations
 
 import argparse
-import ast
-import dataclasses
 import json
 import os
 import platform
@@ -67,8 +87,18 @@ from obliq_colmap.vanishing import (
     refine_vp,
 )
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _reference import load_reference  # noqa: E402
+# The helpers shared by the scripts live in scripts/bench/, which is not a
+# package: put it first on the path (scripts/README.md).
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "bench"))
+from reference import load_reference  # noqa: E402
+from vanishing_scoring import (  # noqa: E402
+    edge_contrast,
+    on_line,
+    step_contrast,
+    union_coverage,
+    vertical_in_3d,
+    with_overrides,
+)
 
 DATA = Path("/work/shared/data")
 
@@ -128,12 +158,20 @@ def yud_images(split: str):
         yield im["name"], img, K, g, vert
 
 
+def _normaliser(width: int, height: int) -> np.ndarray:
+    """T mapping pixels to centred coordinates scaled by half the longer
+    side: the normalisation the vanishing stage fits VPs in."""
+    s = max(width, height) / 2.0
+    return np.array(
+        [[1 / s, 0, -width / 2 / s], [0, 1 / s, -height / 2 / s], [0, 0, 1.0]]
+    )
+
+
 def ml_gt(vert_px, K, g):
     """ML VP of the labelled vertical segments, as a direction (camera frame)."""
     from obliq_colmap.lines import scatter_matrices
-    from obliq_colmap.vanishing import _normaliser
 
-    T, _ = _normaliser(640, 480)
+    T = _normaliser(640, 480)
     en = vert_px @ T[:2, :2].T + T[:2, 2]
     S = scatter_matrices(en.reshape(-1, 2), np.repeat(np.arange(len(en)), 2), len(en))
     v0 = T @ (K @ g)
@@ -392,75 +430,6 @@ def bench_timing(
 # --------------------------------------------------------------------------
 
 
-def _on_line(true_seg, det, tol=1.0):
-    """(M, N) overlap lengths along true segments of detections within tol px."""
-    p0, p1 = true_seg[:, 0], true_seg[:, 1]
-    d = p1 - p0
-    L = np.linalg.norm(d, axis=1)
-    t = d / np.maximum(L, 1e-9)[:, None]
-    n = np.stack([-t[:, 1], t[:, 0]], axis=1)
-    q = det  # (N, 2, 2)
-    dist = np.abs(
-        np.einsum("nkd,md->mnk", q, n) - np.sum(p0 * n, axis=1)[:, None, None]
-    )
-    s = np.einsum("nkd,md->mnk", q, t) - np.sum(p0 * t, axis=1)[:, None, None]
-    lo = np.maximum(np.minimum(s[..., 0], s[..., 1]), 0)
-    hi = np.minimum(np.maximum(s[..., 0], s[..., 1]), L[:, None])
-    close = dist.max(axis=2) <= tol
-    return np.where(close, np.maximum(hi - lo, 0), 0.0), lo, hi, close
-
-
-def _union_coverage(lo, hi, close, L):
-    """Fraction of each true segment covered by the union of close detections."""
-    cov = np.zeros(len(L))
-    for m in range(len(L)):
-        idx = np.flatnonzero(close[m] & (hi[m] > lo[m]))
-        if len(idx) == 0:
-            continue
-        iv = sorted(zip(lo[m, idx], hi[m, idx], strict=True))
-        total, cur_lo, cur_hi = 0.0, *iv[0]
-        for a, b in iv[1:]:
-            if a > cur_hi:
-                total += cur_hi - cur_lo
-                cur_lo, cur_hi = a, b
-            else:
-                cur_hi = max(cur_hi, b)
-        cov[m] = (total + cur_hi - cur_lo) / max(L[m], 1e-9)
-    return cov
-
-
-def edge_contrast(img: np.ndarray, segs: np.ndarray, offset_px: float = 2.0):
-    """(M,) median |I(+offset) - I(-offset)| across segments (9 samples each)."""
-    from obliq_colmap.lines import bilinear
-
-    d = segs[:, 1] - segs[:, 0]
-    L = np.maximum(np.linalg.norm(d, axis=1, keepdims=True), 1e-9)
-    n = np.stack([-d[:, 1], d[:, 0]], axis=1) / L
-    f = np.linspace(0.1, 0.9, 9)
-    P = segs[:, None, 0] + f[None, :, None] * d[:, None]
-    gray = img.astype(float)
-    a = bilinear(gray, (P + offset_px * n[:, None]).reshape(-1, 2)).reshape(-1, 9)
-    b = bilinear(gray, (P - offset_px * n[:, None]).reshape(-1, 2)).reshape(-1, 9)
-    return np.median(np.abs(a - b), axis=1)
-
-
-def step_contrast(gray, P, t_edge, n_edge, offset=2.0):
-    """(K,) |I(+offset) - I(-offset)| across an edge at points P (K, 2).
-
-    Mean of 3 samples along it (-1, 0, +1 px); t_edge, n_edge (K, 2) unit
-    tangent and normal at each point; gray (H, W) float image.
-    """
-    from obliq_colmap.lines import bilinear
-
-    acc = np.zeros(len(P))
-    for a in (-1.0, 0.0, 1.0):
-        Q = P + a * t_edge
-        acc += np.abs(
-            bilinear(gray, Q + offset * n_edge) - bilinear(gray, Q - offset * n_edge)
-        )
-    return acc / 3
-
-
 def contrast_extent(img, segs, segs_undistorted, min_contrast):
     """(M, 2, 2) the part of each segment between its first and last pixel
     with visible contrast (``step_contrast`` >= min_contrast), undistorted.
@@ -494,59 +463,6 @@ def contrast_extent(img, segs, segs_undistorted, min_contrast):
     out[has, 0] = segs_undistorted[has, 0] + f_lo[has, None] * du[has]
     out[has, 1] = segs_undistorted[has, 0] + f_hi[has, None] * du[has]
     return out
-
-
-def vertical_in_3d(det, camera, pose, depth, max_angle_deg=3.0, offset_px=1.5):
-    """(N,) bool: a detection back-projects onto a vertical 3D line.
-
-    Points at 10..90% of each detection, moved ``offset_px`` to either side,
-    are lifted to 3D with the true depth buffer (local frame); a detection
-    counts when, on either side, the 3D points lie on one line (all within
-    0.1 m + 2 pixel footprints of the chord) within ``max_angle_deg`` of the
-    vertical. Covers texture edges (windows, shop fronts, panels) and
-    structures (tree trunks) that the list of true 3D edges does not hold;
-    lines on the ground or on roofs fail.
-    """
-    if len(det) == 0:
-        return np.zeros(0, bool)
-    H, W = depth.shape
-    d = det[:, 1] - det[:, 0]
-    L = np.maximum(np.linalg.norm(d, axis=1, keepdims=True), 1e-9)
-    n = np.stack([-d[:, 1], d[:, 0]], axis=1) / L
-    f = np.linspace(0.1, 0.9, 9)
-    Kinv = np.linalg.inv(camera.K)
-    R, t = pose.rotation, pose.translation
-    ok = np.zeros(len(det), bool)
-    for side in (1.0, -1.0):
-        P = (
-            det[:, None, 0]
-            + f[None, :, None] * d[:, None]
-            + side * offset_px * n[:, None]
-        )
-        # Detections are undistorted; the depth buffer is on the image grid.
-        Pd = P
-        if camera.has_distortion:
-            Pd = camera.distort_pixels(P.reshape(-1, 2)).reshape(P.shape)
-        col = np.clip(np.floor(Pd[..., 0]).astype(int), 0, W - 1)
-        row = np.clip(np.floor(Pd[..., 1]).astype(int), 0, H - 1)
-        z = depth[row, col].astype(float)  # (N, 9)
-        ray = np.concatenate([P, np.ones(P.shape[:2] + (1,))], axis=2) @ Kinv.T
-        Xc = ray * z[..., None]
-        X = (Xc - t) @ R  # world (local) = R^T (Xc - t)
-        finite = np.isfinite(X).all(axis=(1, 2))
-        X = np.where(np.isfinite(X), X, 0.0)
-        chord = X[:, -1] - X[:, 0]
-        lc = np.maximum(np.linalg.norm(chord, axis=1), 1e-9)
-        u = chord / lc[:, None]
-        rel = X - X[:, :1]
-        off = np.linalg.norm(
-            rel - np.sum(rel * u[:, None], axis=2)[..., None] * u[:, None], axis=2
-        )
-        tol = 0.1 + 2.0 * z.max(axis=1) / camera.K[0, 0]
-        straight = off.max(axis=1) <= tol
-        vertical = np.abs(u[:, 2]) >= np.cos(np.radians(max_angle_deg))
-        ok |= finite & straight & vertical
-    return ok
 
 
 def _ins_cone_deg(scene) -> float:
@@ -630,9 +546,9 @@ def bench_synthetic(
         visible = target & (contrast >= min_contrast)
         for mask, out in ((target, recalls), (visible, recalls_vis)):
             if mask.any() and len(det):
-                _, lo, hi, close = _on_line(segs[mask], det)
+                _, lo, hi, close = on_line(segs[mask], det)
                 out.append(
-                    float(np.mean(_union_coverage(lo, hi, close, L[mask]) >= 0.8))
+                    float(np.mean(union_coverage(lo, hi, close, L[mask]) >= 0.8))
                 )
             elif mask.any():
                 out.append(0.0)
@@ -645,16 +561,16 @@ def bench_synthetic(
         if ext_t.any():
             cov = np.zeros(int(ext_t.sum()))
             if len(det):
-                _, lo, hi, close = _on_line(ext[ext_t], det)
-                cov = _union_coverage(lo, hi, close, Le[ext_t])
+                _, lo, hi, close = on_line(ext[ext_t], det)
+                cov = union_coverage(lo, hi, close, Le[ext_t])
             recalls_ext.append(float(np.mean(cov >= 0.8)))
         on_listed = np.zeros(len(det), bool)
         if len(det) and len(segs):
             # Precision: a detection counts when >= 80% of it lies within 1 px
             # of true vertical edges (any kind).
-            _, lo, hi, close = _on_line(det, segs)
+            _, lo, hi, close = on_line(det, segs)
             Ld = np.linalg.norm(det[:, 1] - det[:, 0], axis=1)
-            on_listed = _union_coverage(lo, hi, close, Ld) >= 0.8
+            on_listed = union_coverage(lo, hi, close, Ld) >= 0.8
             precisions.append(float(np.mean(on_listed)))
         if len(det):
             cam_l, pose_l = scene.camera_pose(name)
@@ -702,27 +618,6 @@ def bench_synthetic(
         "second_pass_segments_median": float(np.median(n_sp)),
         "time_s_median": float(np.median(times)),
     }
-
-
-def with_overrides(options: VanishingOptions, items: list[str]) -> VanishingOptions:
-    """``options`` with ``PATH=VALUE`` overrides (``second_pass.weak_high=4``)."""
-    for item in items:
-        path, _, text = item.partition("=")
-        keys = path.strip().split(".")
-        value = ast.literal_eval(text.strip())
-
-        def replace(obj, keys, value=value, path=path):
-            if not dataclasses.is_dataclass(obj) or keys[0] not in {
-                f.name for f in dataclasses.fields(obj)
-            }:
-                raise SystemExit(f"--set {path}: no option {keys[0]!r}")
-            if len(keys) == 1:
-                return dataclasses.replace(obj, **{keys[0]: value})
-            inner = replace(getattr(obj, keys[0]), keys[1:])
-            return dataclasses.replace(obj, **{keys[0]: inner})
-
-        options = replace(options, keys)
-    return options
 
 
 def main(argv=None) -> int:

@@ -4,7 +4,15 @@ Renders ``--num_images`` images of a preset's flight on ONE core (OpenCV and
 BLAS limited to one thread; numpy's element-wise kernels are single-threaded) and
 prints the median per stage and in total, plus the city build time.
 
-    python scripts/bench_render.py --preset paper --image_width 2004 --num_images 7
+Run (from the repository root)::
+
+    python scripts/bench/render.py --preset paper --image_width 2004 --num_images 7
+    python scripts/bench/render.py --preset paper --image_width 4008 --num_images 3
+
+Figures: docs/STATUS.md (foundation: seconds per rendered image) and
+docs/journal/render.md.
+
+Data: none (the city and the images are generated in memory).
 """
 
 from __future__ import annotations
