@@ -68,6 +68,10 @@ class Setup:
             offset[nv:] = P.horizontal_offset_normal
         models = [P.cameras[c].model for c in self.camera_ids]
         self.camera_model = models
+        #: (width, height) px of each camera slot (the frames points fall in).
+        self.camera_size = [
+            (P.cameras[c].width, P.cameras[c].height) for c in self.camera_ids
+        ]
         model_rank = np.searchsorted(sorted(set(models)), models)
         cam = self.img_cam[img]
         order = np.lexsort((img, cam, kind, model_rank[cam]))

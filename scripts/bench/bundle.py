@@ -50,8 +50,8 @@ from threadpoolctl import threadpool_limits
 
 from obliq_colmap.bundle import BundleOptions, solve_bundle
 from obliq_colmap.bundle import residuals as res
-from obliq_colmap.bundle.synthetic_problem import make_synthetic_problem
 from obliq_colmap.geometry import Pose, project
+from obliq_colmap.synthetic.bundle_problem import make_synthetic_problem
 
 # The helpers shared by the scripts live in scripts/bench/, which is not a
 # package: put it first on the path (scripts/README.md).

@@ -27,9 +27,9 @@ issue 25 / 26.
 Data: synthetic scenes (``obliq-colmap synth``); the stage 1-2 cache under
 ``--cache_path`` (shared with ``bench/seeds.py``).
 
-It replaces the bundle solver's private ``_image_precision`` by a recording
-wrapper (on the same Jacobians, ``_image_jacobians``): it follows the
-solver's internals and must move with them.
+It replaces ``obliq_colmap.bundle.covariance.image_precision`` by a recording
+wrapper (on the same Jacobians, ``covariance.image_jacobians``): it follows
+the solver's layout and must move with it.
 """
 
 from __future__ import annotations
@@ -39,14 +39,14 @@ from pathlib import Path
 
 import numpy as np
 
-from obliq_colmap.bundle import solver
+from obliq_colmap.bundle import covariance
 
 # The helpers shared by the scripts live in scripts/bench/, which is not a
 # package: put it first on the path (scripts/README.md).
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "bench"))
 from split_runs import observed, run_all, scene_parser, synthetic_scenes  # noqa: E402
 
-_ORIGINAL = solver._image_precision
+_ORIGINAL = covariance.image_precision
 #: One dict per bundle solved: image id -> {condition: variance (px^2)}.
 _SOLVES: list[dict[int, dict[str, float]]] = []
 
@@ -112,11 +112,11 @@ def _block_rows(S, st) -> dict[str, tuple[np.ndarray, list[float]]]:
 
 
 def _recording(S, st, cov):
-    """``solver._image_precision`` that also records the conditional sds
-    (on the same Jacobians, :func:`solver._image_jacobians`)."""
+    """``covariance.image_precision`` that also records the conditional sds
+    (on the same Jacobians, :func:`covariance.image_jacobians`)."""
     out = _ORIGINAL(S, st, cov)
     record = {}
-    for k, J, cols in solver._image_jacobians(S, st):
+    for k, J, cols in covariance.image_jacobians(S, st):
         C = cov[np.ix_(cols, cols)]
         intrinsics = list(range(6, len(cols)))
         tilt, heading = _rotation_rows(st.R[k], len(cols))
@@ -166,7 +166,7 @@ def main(argv: list[str] | None = None) -> int:
     if scenes is None:
         return 2
     args.base_set = list(args.set or [])
-    solver._image_precision = _recording
+    covariance.image_precision = _recording
     run_all(scenes, args, _SOLVES)
     return 0
 

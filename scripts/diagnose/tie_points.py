@@ -28,10 +28,10 @@ bundle).
 Data: synthetic scenes (``obliq-colmap synth``); the stage 1-2 cache under
 ``--cache_path`` (shared with ``bench/seeds.py``).
 
-It replaces the bundle solver's private ``_image_precision`` and ``_solve``
-by recording wrappers and reads the solver's private setup and state (their
-columns, Jacobians): it follows the solver's internals and must move with
-them.
+It replaces ``obliq_colmap.bundle.covariance.image_precision`` by a
+recording wrapper and reads the solver's setup and state (their columns,
+Jacobians, camera sizes): it follows the solver's layout and must move with
+it.
 """
 
 from __future__ import annotations
@@ -42,8 +42,8 @@ from pathlib import Path
 import numpy as np
 import scipy.sparse as sp
 
+from obliq_colmap.bundle import covariance
 from obliq_colmap.bundle import residuals as res
-from obliq_colmap.bundle import solver
 from obliq_colmap.geometry import skew
 
 # The helpers shared by the scripts live in scripts/bench/, which is not a
@@ -51,8 +51,7 @@ from obliq_colmap.geometry import skew
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "bench"))
 from split_runs import observed, run_all, scene_parser, synthetic_scenes  # noqa: E402
 
-_ORIGINAL = solver._image_precision
-_ORIGINAL_SOLVE = solver._solve
+_ORIGINAL = covariance.image_precision
 _CTX: dict = {}
 #: One dict per bundle solved: image id -> {variant: variance (px^2)}.
 _SOLVES: list[dict[int, dict[str, float]]] = []
@@ -87,7 +86,7 @@ def _tie_information(S, st, X: np.ndarray, sigma: float, cross: bool) -> np.ndar
     for k in S.active_images:
         slot = int(S.img_cam[k])
         Xc = (X - st.c[k]) @ st.R[k].T
-        W, Hh = _CTX["sizes"][S.camera_ids[slot]]
+        W, Hh = S.camera_size[slot]
         with np.errstate(divide="ignore", invalid="ignore"):
             uv = res.project_with_jacobian(S.camera_model[slot], st.params[slot], Xc)[0]
         seen[k] = (Xc[:, 2] > 0) & np.all((uv >= 0) & (uv <= [W, Hh]), axis=1)
@@ -107,7 +106,7 @@ def _tie_information(S, st, X: np.ndarray, sigma: float, cross: bool) -> np.ndar
             S.camera_model[slot], st.params[slot], Xc
         )
         pose = [-d_pt @ skew(Xc), -d_pt @ st.R[k], d_par @ S.refined[slot]]
-        Jc = np.concatenate(pose, axis=2) / sigma  # as solver._image_jacobians
+        Jc = np.concatenate(pose, axis=2) / sigma  # as covariance.image_jacobians
         Jx = (d_pt @ st.R[k]) / sigma
         H[np.ix_(cols, cols)] += np.einsum("npi,npj->ij", Jc, Jc)
         B[np.ix_(np.flatnonzero(obs), cols)] += np.einsum("npi,npj->nij", Jc, Jx)
@@ -122,7 +121,7 @@ def _tie_information(S, st, X: np.ndarray, sigma: float, cross: bool) -> np.ndar
 
 
 def _recording(S, st, cov):
-    """``solver._image_precision`` that also records the sd with the tie
+    """``covariance.image_precision`` that also records the sd with the tie
     points of each density added (their information ``L L^T`` observed as
     ``L^T`` with unit sigma)."""
     out = _ORIGINAL(S, st, cov)
@@ -140,13 +139,6 @@ def _recording(S, st, cov):
             record[S.image_ids[k]][label] = v**2
     _SOLVES.append(record)
     return out
-
-
-def _solving(problem, opts):
-    """``solver._solve`` that keeps the image sizes (the frames tie points
-    fall in) of the problem's cameras."""
-    _CTX["sizes"] = {c: (cam.width, cam.height) for c, cam in problem.cameras.items()}
-    return _ORIGINAL_SOLVE(problem, opts)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -168,8 +160,7 @@ def main(argv: list[str] | None = None) -> int:
         max_height=args.max_height_m,
         cross=args.cross_head,
     )
-    solver._image_precision = _recording
-    solver._solve = _solving
+    covariance.image_precision = _recording
     run_all(scenes, args, _SOLVES)
     return 0
 
