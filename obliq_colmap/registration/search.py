@@ -8,19 +8,20 @@ from __future__ import annotations
 import logging
 import math
 import time
+from dataclasses import dataclass
 
 import numpy as np
 
 from obliq_colmap.geometry import Camera, Pose
-from obliq_colmap.registration.hough import hough
+from obliq_colmap.registration.hough import HoughGrid, HoughPeak, hough
 from obliq_colmap.registration.options import (
     RegistrationOptions,
     RegistrationResult,
     at_image_scale,
 )
-from obliq_colmap.registration.refine import lens_of, radial_index, refine_rounds
-from obliq_colmap.registration.segments import pairs_near, prepare_segments
-from obliq_colmap.registration.tries import finish_try, try_start
+from obliq_colmap.registration.refine import Fit, lens_of, radial_index, refine_rounds
+from obliq_colmap.registration.segments import Segments, pairs_near, prepare_segments
+from obliq_colmap.registration.tries import Try, finish_try, try_start
 from obliq_colmap.registration.view import EZ, View, make_view
 
 logger = logging.getLogger(__name__)
@@ -55,6 +56,33 @@ def _vp_in_frame(camera: Camera, n: np.ndarray) -> np.ndarray | None:
     x, y = v[:2] / v[2]
     inside = 0.0 <= x <= camera.width and 0.0 <= y <= camera.height
     return np.array([x, y]) if inside else None
+
+
+def _oriented_vertical(n: np.ndarray | None, prior: Pose) -> tuple[np.ndarray, str]:
+    """The vertical direction (camera frame) oriented down the world, the
+    prior's when ``n`` is None, and its source ("detected" or "prior")."""
+    vertical_source = "detected"
+    down_prior = prior.rotation @ -EZ
+    if n is None:
+        n = down_prior
+        vertical_source = "prior"
+    elif n @ down_prior < 0:
+        n = -n  # orient down the world
+    return n, vertical_source
+
+
+def _undistorted_and_raw(
+    seg: np.ndarray, camera: Camera, segments_undistorted: bool
+) -> tuple[np.ndarray, np.ndarray]:
+    """The (N, 2, 2) segments in undistorted pixels and as detected (RAW)."""
+    # RAW (as detected) endpoints are kept for a refinement of the distortion.
+    raw = seg
+    if len(seg) and camera.has_distortion:
+        if segments_undistorted:
+            raw = camera.distort_pixels(seg.reshape(-1, 2)).reshape(-1, 2, 2)
+        else:
+            seg = camera.undistort_pixels(seg.reshape(-1, 2)).reshape(-1, 2, 2)
+    return seg, raw
 
 
 def _median_depth(view: View, corner_rel: np.ndarray) -> float:
@@ -94,18 +122,10 @@ def search(
     segments_undistorted: bool,
 ) -> RegistrationResult:
     """:func:`~obliq_colmap.registration.register_image` without the chance test."""
-    from obliq_colmap.cadastre import visible_corners
-
     t_start = time.perf_counter()
     timings: dict[str, float] = {}
     seg, n = _check_inputs(segments_px, vertical_direction_cam)
-    vertical_source = "detected"
-    down_prior = prior.rotation @ -EZ
-    if n is None:
-        n = down_prior
-        vertical_source = "prior"
-    elif n @ down_prior < 0:
-        n = -n  # orient down the world
+    n, vertical_source = _oriented_vertical(n, prior)
     refine_vertical = options.refine_vertical == "always" or (
         options.refine_vertical == "auto" and vertical_source == "prior"
     )
@@ -134,13 +154,7 @@ def search(
 
     # 1. Segments.
     t0 = time.perf_counter()
-    # RAW (as detected) endpoints are kept for a refinement of the distortion.
-    raw = seg
-    if len(seg) and camera.has_distortion:
-        if segments_undistorted:
-            raw = camera.distort_pixels(seg.reshape(-1, 2)).reshape(-1, 2, 2)
-        else:
-            seg = camera.undistort_pixels(seg.reshape(-1, 2)).reshape(-1, 2, 2)
+    seg, raw = _undistorted_and_raw(seg, camera, segments_undistorted)
     segs = prepare_segments(seg, view, options)
     timings["segments"] = time.perf_counter() - t0
     if len(segs) < options.min_segments:
@@ -152,113 +166,17 @@ def search(
 
     # 2. Ground height and coarse pose: 4-D Hough vote over (alpha, c, h).
     t0 = time.perf_counter()
-    alt_lo, alt_hi = options.altitude_range_m
-    c0z = view.c0[2]
-    if options.ground_height is not None:
-        h_bounds = (
-            options.ground_height - options.candidate_height_tolerance_m,
-            options.ground_height + options.candidate_height_tolerance_m,
-        )
-    else:
-        h_bounds = (c0z - alt_hi, c0z - alt_lo)
-    prior0 = view.pose(0.0, np.zeros(2))
-    wide = visible_corners(
-        cadastre,
-        camera,
-        prior0,
-        ground_height=h_bounds[0],
-        height_range_m=(0.0, h_bounds[1] - h_bounds[0] + options.height_range_m[1]),
-        margin_px=0.25 * max(camera.width, camera.height),
-        use_building_heights=False,
-    )
-    if len(wide) < options.min_inliers:
-        return fail(
-            f"too few map corners in view of the prior: {len(wide)}",
-            num_segments=len(segs),
-        )
-    corner_rel = cadastre.corner_xy[wide] - view.c0[:2]
-    # Viewing distance for the search windows (the horizontal distance to the
-    # map corners; refined from the ground height below).
-    depth_m = _median_depth(view, corner_rel)
-    alpha_half, c_half, radius = _search_windows(view, options, depth_m)
-    ii, jj = pairs_near(
-        view,
-        segs,
-        corner_rel,
-        0.0,
-        np.zeros(2),
-        radius,
-        h_range=(h_bounds[0] - c_half, h_bounds[1] + c_half),
-    )
-    if len(segs) > options.coarse_max_segments:
-        # The coarse vote needs the strong structure only: its cost is
-        # linear in the pairs, and the long segments (building edges from
-        # the ground up) carry most of the true pairs.
-        rank = np.empty(len(segs), int)
-        rank[np.argsort(-segs.length, kind="stable")] = np.arange(len(segs))
-        keep = rank[jj] < options.coarse_max_segments
-        ii, jj = ii[keep], jj[keep]
-    if len(ii) < 3:
-        return fail(
-            f"no consensus: {len(ii)} candidate pairs near the prior",
-            num_segments=len(segs),
-        )
-    coarse = hough(
-        view,
-        segs,
-        corner_rel,
-        ii,
-        jj,
-        0.0,
-        alpha_half,
-        np.zeros(2),
-        c_half,
-        tuple(1e-3 * c * view.focal for c in options.coarse_cells_mrad),
-        depth_m,
-        options.hough_max_cells,
-        heights=(h_bounds[0], h_bounds[1], options.coarse_height_step_m),
-    )
-    separation = (
-        1,
-        1,
-        1,
-        int(
-            math.ceil(
-                options.candidate_height_tolerance_m / options.coarse_height_step_m
-            )
-        ),
-    )
-    starts = coarse.peaks_by_height(options.num_candidates_verified, separation[3])
+    coarse = _coarse_vote(view, segs, camera, cadastre, options)
+    if isinstance(coarse, str):
+        return fail(coarse, num_segments=len(segs))
     timings["ground"] = time.perf_counter() - t0
 
     # 3.-4. The strongest peaks: fine pose vote, then a short RANSAC; the one
     # with the most inlier corners wins and gets the full RANSAC.
     t0 = time.perf_counter()
-    tries = []
-    for start in starts:
-        h_k = (
-            start.height
-            if options.ground_height is None
-            else float(options.ground_height)
-        )
-        tries.append(
-            try_start(
-                view,
-                segs,
-                cadastre,
-                camera,
-                start,
-                h_k,
-                coarse,
-                radius,
-                alpha_half,
-                c_half,
-                options,
-                np.random.default_rng(options.seed),
-            )
-        )
+    tries = _try_starts(view, segs, cadastre, camera, coarse, options)
     timings["coarse"] = time.perf_counter() - t0
-    for st, tr in zip(starts, tries, strict=True):
+    for st, tr in zip(coarse.starts, tries, strict=True):
         logger.debug(
             "start h %.1f votes %.0f -> %s",
             st.height,
@@ -327,16 +245,7 @@ def search(
         cadastre,
         options,
     )
-    view, segs, lens, alpha, c_xy, plane = (
-        fit.view,
-        fit.segs,
-        fit.lens,
-        fit.alpha,
-        fit.c_xy,
-        fit.plane,
-    )
-    ci, sj, resid = fit.ci, fit.sj, fit.resid
-    distortion_refined = fit.distortion_refined
+    ci = fit.ci
     timings["refine"] = time.perf_counter() - t0
     common["num_inliers"] = len(ci)
     if len(ci) < options.min_inliers:
@@ -348,6 +257,185 @@ def search(
     if spread[0] < 1.0:
         return fail("degenerate geometry: the inlier corners coincide", **common)
 
+    return _registered(
+        fit,
+        seg,
+        corner_rel,
+        vis,
+        camera,
+        f0,
+        k_index,
+        "refined" if refine_vertical else vertical_source,
+        common,
+        trials,
+        timings,
+        t_start,
+    )
+
+
+@dataclass
+class _Coarse:
+    """Step 2's outcome: the coarse vote, its strongest peaks (one per
+    candidate ground height, strongest first) and the search windows (alpha
+    half-range rad, centre half-range m, search radius px)."""
+
+    grid: HoughGrid
+    starts: list[HoughPeak]
+    alpha_half: float
+    c_half: float
+    radius: float
+
+
+def _coarse_vote(
+    view: View,
+    segs: Segments,
+    camera: Camera,
+    cadastre,
+    options: RegistrationOptions,
+) -> _Coarse | str:
+    """Step 2: ground height and coarse pose, a 4-D Hough vote over (alpha, c,
+    h) of the pairs near the prior; the failure message when it cannot run."""
+    from obliq_colmap.cadastre import visible_corners
+
+    alt_lo, alt_hi = options.altitude_range_m
+    c0z = view.c0[2]
+    if options.ground_height is not None:
+        h_bounds = (
+            options.ground_height - options.candidate_height_tolerance_m,
+            options.ground_height + options.candidate_height_tolerance_m,
+        )
+    else:
+        h_bounds = (c0z - alt_hi, c0z - alt_lo)
+    prior0 = view.pose(0.0, np.zeros(2))
+    wide = visible_corners(
+        cadastre,
+        camera,
+        prior0,
+        ground_height=h_bounds[0],
+        height_range_m=(0.0, h_bounds[1] - h_bounds[0] + options.height_range_m[1]),
+        margin_px=0.25 * max(camera.width, camera.height),
+        use_building_heights=False,
+    )
+    if len(wide) < options.min_inliers:
+        return f"too few map corners in view of the prior: {len(wide)}"
+    corner_rel = cadastre.corner_xy[wide] - view.c0[:2]
+    # Viewing distance for the search windows (the horizontal distance to the
+    # map corners; refined from the ground height below).
+    depth_m = _median_depth(view, corner_rel)
+    alpha_half, c_half, radius = _search_windows(view, options, depth_m)
+    ii, jj = pairs_near(
+        view,
+        segs,
+        corner_rel,
+        0.0,
+        np.zeros(2),
+        radius,
+        h_range=(h_bounds[0] - c_half, h_bounds[1] + c_half),
+    )
+    if len(segs) > options.coarse_max_segments:
+        # The coarse vote needs the strong structure only: its cost is
+        # linear in the pairs, and the long segments (building edges from
+        # the ground up) carry most of the true pairs.
+        rank = np.empty(len(segs), int)
+        rank[np.argsort(-segs.length, kind="stable")] = np.arange(len(segs))
+        keep = rank[jj] < options.coarse_max_segments
+        ii, jj = ii[keep], jj[keep]
+    if len(ii) < 3:
+        return f"no consensus: {len(ii)} candidate pairs near the prior"
+    coarse = hough(
+        view,
+        segs,
+        corner_rel,
+        ii,
+        jj,
+        0.0,
+        alpha_half,
+        np.zeros(2),
+        c_half,
+        tuple(1e-3 * c * view.focal for c in options.coarse_cells_mrad),
+        depth_m,
+        options.hough_max_cells,
+        heights=(h_bounds[0], h_bounds[1], options.coarse_height_step_m),
+    )
+    separation = (
+        1,
+        1,
+        1,
+        int(
+            math.ceil(
+                options.candidate_height_tolerance_m / options.coarse_height_step_m
+            )
+        ),
+    )
+    starts = coarse.peaks_by_height(options.num_candidates_verified, separation[3])
+    return _Coarse(coarse, starts, alpha_half, c_half, radius)
+
+
+def _try_starts(
+    view: View,
+    segs: Segments,
+    cadastre,
+    camera: Camera,
+    coarse: _Coarse,
+    options: RegistrationOptions,
+) -> list[Try | None]:
+    """Steps 3-4 from each of the coarse peaks (:func:`try_start`), in their
+    order; None where nothing matches."""
+    tries = []
+    for start in coarse.starts:
+        h_k = (
+            start.height
+            if options.ground_height is None
+            else float(options.ground_height)
+        )
+        tries.append(
+            try_start(
+                view,
+                segs,
+                cadastre,
+                camera,
+                start,
+                h_k,
+                coarse.grid,
+                coarse.radius,
+                coarse.alpha_half,
+                coarse.c_half,
+                options,
+                np.random.default_rng(options.seed),
+            )
+        )
+    return tries
+
+
+def _registered(
+    fit: Fit,
+    seg: np.ndarray,
+    corner_rel: np.ndarray,
+    vis: np.ndarray,
+    camera: Camera,
+    f0: float,
+    k_index: int | None,
+    vertical_source: str,
+    common: dict,
+    trials: int,
+    timings: dict[str, float],
+    t_start: float,
+) -> RegistrationResult:
+    """The result of a successful search from its refined ``fit`` (step 5):
+    ``seg`` the input segments (undistorted pixels), ``corner_rel`` and ``vis``
+    the best try's corners, ``f0`` the focal length before the refinement,
+    ``common`` the counts so far, ``trials`` the best try's RANSAC samples."""
+    view, segs, lens, alpha, c_xy, plane = (
+        fit.view,
+        fit.segs,
+        fit.lens,
+        fit.alpha,
+        fit.c_xy,
+        fit.plane,
+    )
+    ci, sj, resid = fit.ci, fit.sj, fit.resid
+    distortion_refined = fit.distortion_refined
+    num_candidates = common["num_candidates"]
     pose = view.pose(alpha, c_xy)
     centroid = corner_rel[ci].mean(axis=0)
     common["ground_height"] = float(
@@ -367,7 +455,7 @@ def search(
         success=True,
         cam_from_world=pose,
         vertical_direction=view.n.copy(),
-        vertical_source="refined" if refine_vertical else vertical_source,
+        vertical_source=vertical_source,
         inlier_pairs=np.column_stack([vis[ci], segs.index[sj]]).astype(int),
         inlier_segments_px=seg[segs.index[sj]].copy(),
         height_plane=plane_abs,
