@@ -32,15 +32,16 @@ Steps of :func:`register_image`:
    VP detection failed); ``alpha`` is the heading correction from the prior.
    Segment endpoints are undistorted; each segment's line is taken through
    the VP and its endpoint nearer the nadir is its bottom.
-2. Ground height and coarse offset. The priors' heights are in an unknown
-   datum, so the ground height is estimated first: for every (corner,
-   segment) pair within the search radius across the corner's projected
-   vertical, the height of the segment's bottom on the corner's vertical is
-   computed with the prior pose; a 2-D vote over (offset across the vertical,
-   height) peaks at the ground height and the mean image offset.
-3. Coarse pose (Hough). The pairs consistent with that peak vote over a grid
-   of (alpha, c_x, c_y): for each alpha every pair's constraint is a straight
-   line in the (c_x, c_y) plane, rasterised into the accumulator. The peak
+2. Ground height and coarse pose (Hough). The priors' heights are in an
+   unknown datum, so the ground height is searched with the pose: the
+   (corner, segment) pairs within the search radius across the corner's
+   projected vertical at the prior pose vote over a coarse grid of (alpha,
+   c_x, c_y, height). For each alpha a pair's constraint is a straight line
+   in the (c_x, c_y) plane, rasterised into the accumulator at the height of
+   the segment's bottom on the corner's vertical at that pose. The best pose
+   at each of the ``num_candidates_verified`` strongest heights is a start.
+3. Fine pose (Hough). From each start, the pairs near its ground height vote
+   over a fine grid of (alpha, c_x, c_y) a few coarse cells wide. The peak
    leaves a few pixels of error, so RANSAC runs in a small radius.
 4. RANSAC. Candidates: pairs within ``ransac_radius_px`` across and
    ``candidate_height_tolerance_m`` of the ground. Samples of three pairs
@@ -51,6 +52,8 @@ Steps of :func:`register_image`:
    ``along_segment_stretch`` times more, measured from the segment's bottom
    to the corner projected at the height function. Score: the number of
    distinct inlier corners. Adaptive number of trials for ``confidence``.
+   Each start gets a short RANSAC (``verify_trials``); the one with the most
+   inlier corners is resumed to the full RANSAC.
 5. Refinement. Levenberg-Marquardt (scipy, robust Huber loss) over (alpha,
    c_x, c_y) of the height-free geometric residual: the distances of both
    endpoints of each inlier segment to the image of its corner's vertical

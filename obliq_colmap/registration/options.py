@@ -51,11 +51,11 @@ class RegistrationOptions:
     coarse_cells_mrad : (float, float, float)
         Cells of the coarse pose vote (step 2) along alpha, the lateral and
         the forward axis of the centre, in milliradians of image motion at the
-        median viewing distance (pixels / focal length; 13 mrad is 16 px at
-        1000 px image width). Angles, not pixels: the vote only has to land
-        within the reach of the fine vote, whose error budget is angular, and
-        its cost grows with the cube of the number of cells. Alpha and forward
-        are coarse on purpose (see :func:`~obliq_colmap.registration.hough.hough`).
+        median viewing distance (pixels / focal length). Angles, not pixels:
+        the vote only has to land within the reach of the fine vote, whose
+        error budget is angular, and its cost grows with the cube of the
+        number of cells. Alpha and forward are coarse on purpose (see
+        :func:`~obliq_colmap.registration.hough.hough`).
     coarse_max_segments : int
         The coarse vote uses at most this many segments, the longest.
     coarse_height_step_m : float
@@ -78,9 +78,9 @@ class RegistrationOptions:
         ... and the threshold on the ground (m) for the map's vertex noise,
         which lives in metres: converted with the image's scale (focal length
         over the median depth of the corners in view, px per m), the larger
-        of the two is used. 0.3 m is 2 sigma of a map with 0.15 m vertex noise
-        (2 px at 0.15 m/px; 4 px at 0.075 m/px, where a fixed 2 px kept only
-        the inliers within 1 sigma); 0 keeps the threshold in pixels.
+        of the two is used: a fixed pixel threshold is fewer sigmas of the
+        map's noise on a finer image. 0.3 m is 2 sigma of a map with 0.15 m
+        vertex noise; 0 keeps the threshold in pixels.
     along_segment_stretch : float
         The inlier ellipse is this many times longer along the segment than
         across it (the segment's bottom vs the corner on the height function).
@@ -116,17 +116,16 @@ class RegistrationOptions:
     refine_vertical : str
         "always" (refine the vertical direction with the pose, from
         ``min_inliers_intrinsics`` inliers on), "auto" (only when it comes
-        from the prior rotation) or "never". A detected VP 1-5 deg off (the
-        vanishing stage's tail) tilts every projected vertical; the tilt is
-        observable from the positions of many corners at different
-        distances.
+        from the prior rotation) or "never". A detected VP a few degrees off
+        tilts every projected vertical; the positions of many corners at
+        different distances observe the tilt.
     vertical_sigma_deg : float
         Prior 1-sigma of the given vertical direction when it is refined
         (deg): a weak prior against drift with few inliers.
     refine_focal : bool
-        Refine the focal length with the pose (the rough focal length of the
-        priors is a few percent off; at 0.15 m/px a 3 % error leaves ~2 px
-        across the verticals). The result carries the refined ``camera``.
+        Refine the focal length with the pose (the priors' rough focal length
+        is a few percent off, which leaves pixels of error across the
+        verticals). The result carries the refined ``camera``.
     focal_sigma_min : float
         Lower bound of the relative 1-sigma focal prior in the refinement
         (``prior_focal_sigma`` also sets the search window; a tight focal
@@ -137,11 +136,10 @@ class RegistrationOptions:
     refine_distortion : bool
         Refine the radial distortion ``k1`` (``k`` of SIMPLE_RADIAL) with the
         pose when the camera model has it; the other distortion terms are
-        held. A lens the priors do not describe (``k1 = -0.05`` is ~13 px at
-        the corners of a 45 deg image) bends the projected verticals by more
-        than the inlier threshold, which no pose and focal length absorb. The
-        segments are undistorted with the current ``k1`` inside the
-        refinement (consistent residuals), and again after it.
+        held. A lens the priors do not describe bends the projected verticals
+        by more than the inlier threshold, which no pose and focal length
+        absorb. The segments are undistorted with the current ``k1`` inside
+        the refinement (consistent residuals), and again after it.
     distortion_sigma_px : float
         Prior 1-sigma of the change of the radial distortion, as the
         displacement it makes at the image corners (px): weak, so that a few
@@ -153,8 +151,7 @@ class RegistrationOptions:
         so ground and roof edges radiating from the nadir pass as verticals,
         and every corner's vertical passes the nadir point, which leaves the
         scale about it (camera height over ground) to the ground-height
-        search (measured on the UAVD4L drone image 0.9 deg off nadir: 15
-        inliers, 20 m wrong).
+        search.
     chance_trials : int
         Searches run with the segments mirrored about lines through the
         vertical VP (:func:`~obliq_colmap.registration.chance_counts`): the
@@ -162,16 +159,15 @@ class RegistrationOptions:
         them, so whatever inliers they find are chance. 0 switches the test
         off. One search draws from a wide space of poses and ground heights,
         so its best chance consensus is far above what a local count
-        predicts (docs/BENCHMARKS.md).
+        predicts: it is measured, not modelled.
     chance_factor : float
         A result needs more than this times the most inliers found by the
-        turned searches (the turned counts of one image spread by ~22 %
-        (1 sigma) about their mean, so a chance result rarely beats the
-        largest of three by half).
+        mirrored searches (a chance result rarely beats the largest of three
+        by half).
     chance_test_below : int
         Only results with fewer inlier corners are tested (each test costs
-        ``chance_trials`` searches); at least ``chance_factor`` x the
-        largest chance count measured (22, above) with a margin.
+        ``chance_trials`` searches); at least ``chance_factor`` x the largest
+        chance count seen, with a margin.
     seed : int
         Seed of the random generator; the result is a deterministic function
         of the inputs and the seed.
