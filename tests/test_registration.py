@@ -15,7 +15,6 @@ import pytest
 from shapely import affinity
 from shapely.geometry import box
 
-from obliq_colmap import ransac
 from obliq_colmap.cadastre import load_cadastre, visible_corners, write_geojson
 from obliq_colmap.geometry import (
     Camera,
@@ -30,6 +29,7 @@ from obliq_colmap.registration import (
     draw_registration_overlay,
     focal_profile,
     inlier_threshold_px,
+    ransac_core,
     refine_with_camera,
     register_image,
 )
@@ -234,7 +234,9 @@ def test_minimal_solver_exact_random_cameras():
     rng = np.random.default_rng(1)
     for m, xy, side, R0, alpha, c, _ in random_problem(rng, 50):
         ref = c + rng.uniform(-20, 20, 2)  # any reference point
-        a, cxy, valid = ransac.solve_minimal(m[None], (xy - ref)[None], R0, side[None])
+        a, cxy, valid = ransac_core.solve_minimal(
+            m[None], (xy - ref)[None], R0, side[None]
+        )
         assert valid[0]
         assert abs(np.angle(np.exp(1j * (a[0] - alpha)))) < 1e-9
         np.testing.assert_allclose(cxy[0] + ref, c, atol=1e-7)
@@ -248,7 +250,7 @@ def test_minimal_solver_vectorised_matches_single():
     rows_m = np.repeat(m[None], 1000, axis=0)
     rows_xy = np.repeat(xy[None], 1000, axis=0) - c
     rows_side = np.repeat(side[None], 1000, axis=0)
-    a, cxy, valid = ransac.solve_minimal(rows_m, rows_xy, R0, rows_side)
+    a, cxy, valid = ransac_core.solve_minimal(rows_m, rows_xy, R0, rows_side)
     assert valid.all()
     np.testing.assert_allclose(a, alpha, atol=1e-9)
     np.testing.assert_allclose(cxy, 0.0, atol=1e-7)
@@ -257,25 +259,27 @@ def test_minimal_solver_vectorised_matches_single():
 def test_minimal_solver_two_signs_and_cheirality():
     rng = np.random.default_rng(3)
     m, xy, side, R0, alpha, c, _ = random_problem(rng, 1)[0]
-    rows = ransac.constraint_rows(m, xy - c)[None]
-    w, valid = ransac.null_vectors(rows)
+    rows = ransac_core.constraint_rows(m, xy - c)[None]
+    w, valid = ransac_core.null_vectors(rows)
     assert valid[0]
     np.testing.assert_allclose(rows[0] @ w[0], 0.0, atol=1e-9)
     assert w[0, 0] ** 2 + w[0, 1] ** 2 == pytest.approx(1.0)
     # Both signs solve the algebraic system with the same centre ...
     for sign in (1.0, -1.0):
-        a, cxy = ransac.pose_parameters(sign * w)
+        a, cxy = ransac_core.pose_parameters(sign * w)
         np.testing.assert_allclose(cxy[0], 0.0, atol=1e-7)
     # ... and cheirality keeps the true one, whatever sign came out.
     for sign in (1.0, -1.0):
-        w2, ok = ransac.choose_sign(sign * w, valid, R0, (xy - c)[None], side[None])
-        a, _ = ransac.pose_parameters(w2)
+        w2, ok = ransac_core.choose_sign(
+            sign * w, valid, R0, (xy - c)[None], side[None]
+        )
+        a, _ = ransac_core.pose_parameters(w2)
         assert ok[0]
         assert abs(np.angle(np.exp(1j * (a[0] - alpha)))) < 1e-9
     # Segments on the wrong side for one pair only: inconsistent sample.
     bad = side.copy()
     bad[0] *= -1
-    _, ok = ransac.choose_sign(w, valid, R0, (xy - c)[None], bad[None])
+    _, ok = ransac_core.choose_sign(w, valid, R0, (xy - c)[None], bad[None])
     assert not ok[0]
 
 
@@ -284,10 +288,10 @@ def test_minimal_solver_degenerate_samples():
     m, xy, side, R0, _, c, _ = random_problem(rng, 1)[0]
     m2, xy2 = m.copy(), xy.copy()
     m2[2], xy2[2] = m2[1], xy2[1]  # a repeated pair
-    _, _, valid = ransac.solve_minimal(m2[None], (xy2 - c)[None], R0, side[None])
+    _, _, valid = ransac_core.solve_minimal(m2[None], (xy2 - c)[None], R0, side[None])
     assert not valid[0]
     with pytest.raises(ValueError, match="rows must be"):
-        ransac.null_vectors(np.zeros((2, 4, 4)))
+        ransac_core.null_vectors(np.zeros((2, 4, 4)))
 
 
 @pytest.mark.parametrize(
@@ -296,23 +300,23 @@ def test_minimal_solver_degenerate_samples():
     [(0.95, 3), (0.9, 4), (0.8, 7), (0.75, 9), (0.7, 11), (0.6, 19), (0.5, 35)],
 )
 def test_required_trials_textbook(inlier_ratio, expected):
-    assert ransac.required_trials(inlier_ratio, 3, 0.99) == expected
+    assert ransac_core.required_trials(inlier_ratio, 3, 0.99) == expected
 
 
 def test_required_trials_paper_and_limits():
     # The paper: ~6.5 % inliers need about 20k samples of 3.
-    assert 15_000 < ransac.required_trials(0.065, 3, 0.99) < 20_000
-    assert ransac.required_trials(0.0) == math.inf
-    assert ransac.required_trials(1.0) == 1
+    assert 15_000 < ransac_core.required_trials(0.065, 3, 0.99) < 20_000
+    assert ransac_core.required_trials(0.0) == math.inf
+    assert ransac_core.required_trials(1.0) == 1
     with pytest.raises(ValueError):
-        ransac.required_trials(0.5, 3, 1.0)
+        ransac_core.required_trials(0.5, 3, 1.0)
 
 
 def test_sample_pairs_distinct_and_deterministic():
     corner = np.array([0, 0, 1, 2, 3, 3, 4])
     segment = np.array([0, 1, 1, 2, 3, 4, 5])
-    a = ransac.sample_pairs(np.random.default_rng(5), 500, corner, segment)
-    b = ransac.sample_pairs(np.random.default_rng(5), 500, corner, segment)
+    a = ransac_core.sample_pairs(np.random.default_rng(5), 500, corner, segment)
+    b = ransac_core.sample_pairs(np.random.default_rng(5), 500, corner, segment)
     np.testing.assert_array_equal(a, b)
     assert len(a) > 0
     for s in a:
@@ -722,13 +726,14 @@ def test_overlay_draws_before_and_after(block):
 def _small_problem(block, num_pairs: int = 40):
     """A view, its segments, corners and a few true and false pairs near the
     prior, for the accumulator tests."""
-    from obliq_colmap.registration import _make_view, _pairs_near, _prepare_segments
+    from obliq_colmap.registration.segments import pairs_near, prepare_segments
+    from obliq_colmap.registration.view import make_view
 
     prior = perturbed_prior(block.pose, 3, position_m=2.0, heading_deg=0.3)
-    view = _make_view(block.camera, prior, vertical_of(block.pose))
-    segs = _prepare_segments(block.segments, view, RegistrationOptions())
+    view = make_view(block.camera, prior, vertical_of(block.pose))
+    segs = prepare_segments(block.segments, view, RegistrationOptions())
     corner_rel = block.cadastre.corner_xy - view.c0[:2]
-    ii, jj = _pairs_near(
+    ii, jj = pairs_near(
         view, segs, corner_rel, 0.0, np.zeros(2), 40.0, h_range=(-100.0, 100.0)
     )
     pick = np.random.default_rng(0).choice(len(ii), num_pairs, replace=False)
@@ -787,10 +792,10 @@ def _hough_reference(view, segs, corner_rel, ii, jj, grid, heights: bool):
 
 @pytest.mark.parametrize("heights", [False, True])
 def test_hough_matches_a_vote_by_vote_reference(block, heights):
-    from obliq_colmap.registration import _hough
+    from obliq_colmap.registration.hough import hough
 
     view, segs, corner_rel, ii, jj = _small_problem(block)
-    grid = _hough(
+    grid = hough(
         view,
         segs,
         corner_rel,
@@ -817,11 +822,7 @@ def test_rasterise_matches_enumeration_at_cell_boundaries():
     heights exactly on the accumulator's bounds, a corner exactly on the
     camera's vertical, too-wide t bounds): the trimmed dense rasterisation
     sums exactly the votes of a vote-by-vote enumeration."""
-    from obliq_colmap.registration import (
-        _HeightBand,
-        _rasterise,
-        _VoteRows,
-    )
+    from obliq_colmap.registration.raster import HeightBand, VoteRows, rasterise
 
     rng = np.random.default_rng(5)
     R, half_it, half_o, nh = 400, 6, 4, 5
@@ -836,7 +837,7 @@ def test_rasterise_matches_enumeration_at_cell_boundaries():
     # Cells laid out (height, other, t).
     n_o, n_t = 2 * half_o + 1, 2 * half_it + 1
     size = nh * n_o * n_t
-    rows = _VoteRows(
+    rows = VoteRows(
         A,
         B,
         np.full(R, half_o),
@@ -852,7 +853,7 @@ def test_rasterise_matches_enumeration_at_cell_boundaries():
     hA = h_lo + d_h * rng.integers(-2, nh + 2, R) + rng.choice([0.0, 1.0, -1e-13], R)
     TA = rng.choice([-1.0, 0.0, 3.0], R)
     TB = rng.choice([0.0, 0.5, -0.5], R)
-    band = _HeightBand(hA, hB, TA, TB, h_lo, d_h, nh, float(n_o * n_t))
+    band = HeightBand(hA, hB, TA, TB, h_lo, d_h, nh, float(n_o * n_t))
 
     def enumerate_votes(b, rows_of_group):
         want = np.zeros(size)
@@ -873,19 +874,19 @@ def test_rasterise_matches_enumeration_at_cell_boundaries():
     for b in (None, band):
         want = enumerate_votes(b, range(R))
         assert np.count_nonzero(want) > 50
-        np.testing.assert_array_equal(_rasterise(rows, b, size), want)
+        np.testing.assert_array_equal(rasterise(rows, b, size), want)
         # Four groups of rows voting into four disjoint ranges of cells.
         want = np.concatenate(
             [enumerate_votes(b, range(g * R // 4, (g + 1) * R // 4)) for g in range(4)]
         )
-        got = _rasterise(rows, b, size, groups=4)
+        got = rasterise(rows, b, size, groups=4)
         np.testing.assert_array_equal(got, want)
 
 
 def test_pair_distances_fused_equal_projection_then_mahalanobis(block):
     """The RANSAC's fused distances are bit-identical to projecting the
     corners and measuring them (corners behind the camera included)."""
-    from obliq_colmap.registration import _mahalanobis2, _pair_d2
+    from obliq_colmap.registration.segments import mahalanobis2, pair_d2
 
     view, segs, corner_rel, ii, jj = _small_problem(block, 200)
     rng = np.random.default_rng(2)
@@ -896,8 +897,8 @@ def test_pair_distances_fused_equal_projection_then_mahalanobis(block):
     xy[:5] = -xy[:5] * 3  # behind the camera
     z = view.c0[2] - 250 + rng.normal(0, 20, (H, len(ii)))
     px, _ = view.project(alpha, c_xy, xy, z)
-    want = _mahalanobis2(px, segs, jj, 5.0)
-    got = _pair_d2(view, segs, jj, alpha, c_xy, xy, z, 5.0)
+    want = mahalanobis2(px, segs, jj, 5.0)
+    got = pair_d2(view, segs, jj, alpha, c_xy, xy, z, 5.0)
     assert np.isinf(want).any() and np.isfinite(want).any()
     np.testing.assert_array_equal(got, want)
 
@@ -905,7 +906,7 @@ def test_pair_distances_fused_equal_projection_then_mahalanobis(block):
 def test_t_interval_brute_force():
     """The integer solutions of lo <= A + B t <= hi, also for B = 0 and for
     non-finite rows (none)."""
-    from obliq_colmap.registration import _t_interval
+    from obliq_colmap.registration.raster import t_interval
 
     rng = np.random.default_rng(1)
     A = rng.normal(0, 8, 300)
@@ -914,7 +915,7 @@ def test_t_interval_brute_force():
     A[::11], A[5], B[6] = np.inf, np.nan, np.nan
     lo = rng.normal(-3, 1, 300)
     for hi in (lo + rng.uniform(0, 6, 300), np.inf):
-        t_lo, t_hi = _t_interval(A, B, lo, hi)
+        t_lo, t_hi = t_interval(A, B, lo, hi)
         t = np.arange(-200, 201)[:, None]
         with np.errstate(invalid="ignore"):
             x = A + B * t

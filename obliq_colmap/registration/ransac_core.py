@@ -24,7 +24,8 @@ constraint, which fixes it arbitrarily; see DESIGN.md.
 
 Everything is vectorised over a batch of samples: thousands of hypotheses cost
 a few milliseconds. The algebraic residual is for generating hypotheses only;
-:mod:`obliq_colmap.registration` refines the winner on geometric residuals.
+:mod:`obliq_colmap.registration.refine` refines the winner on geometric
+residuals.
 
 References
 ----------
