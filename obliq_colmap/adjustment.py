@@ -23,9 +23,9 @@ import dataclasses
 import logging
 import math
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import numpy as np
 
@@ -39,9 +39,7 @@ from obliq_colmap.matching import (
     match_facade_edges,
     triangulate_tracks,
 )
-
-if TYPE_CHECKING:  # the pipeline's plain-data types (no import cycle at run time)
-    from obliq_colmap.pipeline import ImageOutcome, Inputs
+from obliq_colmap.state import BlockState, ImageOutcome, Inputs, json_float
 
 __all__ = [
     "AdjustmentOptions",
@@ -104,88 +102,6 @@ class AdjustmentOptions:
             raise ValueError("track_offset_sigma_m must be > 0")
 
 
-def _finite(x: float) -> float | None:
-    return float(x) if x is not None and math.isfinite(x) else None
-
-
-# --------------------------------------------------------------------------
-# The block as it stands (per-image stage, then the bundle)
-# --------------------------------------------------------------------------
-
-
-@dataclass
-class BlockState:
-    """Poses, intrinsics and ground planes of the registered images.
-
-    Attributes
-    ----------
-    poses : dict image_id -> Pose, ``cam_from_world``, local frame.
-    cameras : dict image_id -> Camera, the intrinsics each pose belongs to
-        (per image after stage 2, which refines the focal length per image;
-        the shared camera of the image's head after the bundle).
-    planes : dict image_id -> (3,) ground plane ``z = a x + b y + c``.
-    shared : bool, the cameras are shared per camera_id (after the bundle).
-    solved : the images whose pose comes from a bundle (in the block's
-        datum); the others are per-image registrations, each in its own.
-    """
-
-    poses: dict[int, Pose]
-    cameras: dict[int, Camera]
-    planes: dict[int, np.ndarray]
-    shared: bool = False
-    solved: frozenset[int] = frozenset()
-
-    @classmethod
-    def from_outcomes(cls, registered: Sequence[ImageOutcome]) -> BlockState:
-        return cls(
-            poses={o.image_id: o.registration.cam_from_world for o in registered},
-            cameras={o.image_id: o.camera for o in registered},
-            planes={o.image_id: o.registration.height_plane.copy() for o in registered},
-        )
-
-    def ground(self, image_id: int) -> Callable[[np.ndarray], np.ndarray]:
-        """The image's ground plane as a function of (N, 2) local xy."""
-        p = self.planes[image_id]
-        return lambda xy: xy @ p[:2] + p[2]
-
-    def with_datum_correction(self, correction: dict[int, float]) -> BlockState:
-        """Cameras and planes lowered by each image's height datum error (m).
-
-        The errors are relative (the facade matches give height offsets
-        between images); where some images are already solved, they are
-        measured from the solved images' median and only the others move."""
-        if self.solved:
-            ref = [e for i, e in correction.items() if i in self.solved]
-            ref = [e for e in ref if math.isfinite(e)]
-            offset = float(np.median(ref)) if ref else 0.0
-            correction = {
-                i: e - offset for i, e in correction.items() if i not in self.solved
-            }
-        poses, planes = dict(self.poses), {k: v.copy() for k, v in self.planes.items()}
-        for i, e in correction.items():
-            if not math.isfinite(e):
-                continue
-            pose = poses[i]
-            poses[i] = Pose.from_center(pose.rotation, pose.center - np.r_[0, 0, e])
-            planes[i][2] -= e
-        return dataclasses.replace(self, poses=poses, planes=planes)
-
-    def with_bundle(
-        self, result: BundleResult, image_camera: dict[int, int]
-    ) -> BlockState:
-        """The bundle's poses and shared cameras. The ground planes stay where
-        they are (the datum correction put them in the block's datum; the
-        ground does not move with a camera the bundle corrects: planes that
-        followed the cameras' height changes put the facade bands and the
-        next datum correction metres off, measured: a second bundle from the
-        solved block then fell from 0.66 to 22 px on ``paper`` seed 1)."""
-        cameras = {i: result.cameras[image_camera[i]] for i in result.poses}
-        planes = {i: p.copy() for i, p in self.planes.items()}
-        return BlockState(
-            dict(result.poses), cameras, planes, True, frozenset(result.poses)
-        )
-
-
 # --------------------------------------------------------------------------
 # Stage 3: facade edges, matching, the bundle problem
 # --------------------------------------------------------------------------
@@ -238,16 +154,19 @@ class Stage3:
                     "facade_segments": len(f),
                     "walls": f.num_walls,
                     "observations": int(obs[k]),
-                    "datum_correction_m": _finite(t.datum_correction[k]),
+                    "datum_correction_m": json_float(t.datum_correction[k]),
                     "bundle_rms_px": [
-                        _finite(x) for x in self.bundle_rms.get(i, (math.nan,) * 2)
+                        json_float(x) for x in self.bundle_rms.get(i, (math.nan,) * 2)
                     ],
-                    "constraints_kept": _finite(self.constraints_kept.get(i, math.nan)),
-                    "bundle_precision_px": _finite(
+                    "constraints_kept": json_float(
+                        self.constraints_kept.get(i, math.nan)
+                    ),
+                    "bundle_precision_px": json_float(
                         self.bundle_precision.get(i, math.nan)
                     ),
                     "edge_end_offset_px": [
-                        _finite(x) for x in self.end_offset_px.get(i, (math.nan,) * 2)
+                        json_float(x)
+                        for x in self.end_offset_px.get(i, (math.nan,) * 2)
                     ],
                 }
                 for k, (i, f) in enumerate(zip(self.ids, self.facades, strict=True))

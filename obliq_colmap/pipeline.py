@@ -42,9 +42,7 @@ import numpy as np
 from obliq_colmap import __version__
 from obliq_colmap.adjustment import (
     AdjustmentOptions,
-    BlockState,
     Stage3,
-    _finite,
     bundle_stage,
     imprecise_images,
     misplaced_images,
@@ -72,7 +70,7 @@ from obliq_colmap.geometry import (
     axis_angle_from_rotation,
     rotation_from_axis_angle,
 )
-from obliq_colmap.lines import RefineOptions, Segments, refine_segments
+from obliq_colmap.lines import RefineOptions, refine_segments
 from obliq_colmap.parallel import WorkerPool, available_cores
 from obliq_colmap.registration import (
     RegistrationOptions,
@@ -85,6 +83,7 @@ from obliq_colmap.registration import (
     refine_with_camera,
     register_image,
 )
+from obliq_colmap.state import BlockState, ImageOutcome, Inputs, json_float
 from obliq_colmap.vanishing import (
     VanishingOptions,
     VPPrior,
@@ -232,49 +231,6 @@ class PipelineOptions:
             reg.prior_rotation_sigma_deg, math.degrees(0.5 * reg.prior_focal_sigma)
         )
         return 3.0 * sigma + 1.0
-
-
-@dataclass
-class ImageOutcome:
-    """What the per-image stages made of one image.
-
-    Attributes
-    ----------
-    image_id, name : as in the priors.
-    status : "registered", "failed" (no registration) or "unreadable".
-    message : why, in words ("" when registered without remark).
-    vp_status : the vanishing stage's status ("ok", "low_confidence", "no_vp").
-    vertical_direction : (3,) array or None, detected, camera frame, down.
-    segments : (N, 2, 2) array, the VP-constrained vertical segments in
-        UNDISTORTED pixels (the registration's input).
-    line_segments : Segments, all first-pass segments (undistorted pixels,
-        with their bright side), the input of the facade-edge search.
-    registration : RegistrationResult or None (unreadable image).
-    camera : Camera or None, the intrinsics the registered pose belongs to
-        (the priors' camera with the focal length refined for this image).
-    rescued : the result comes from the second try with the block's ground.
-    reregistered : the result comes from the try against the solved block
-        (:func:`reregister_failed`), after the first bundle.
-    time_s : wall time per step, seconds.
-    """
-
-    image_id: int
-    name: str
-    status: str
-    message: str = ""
-    vp_status: str = ""
-    vertical_direction: np.ndarray | None = None
-    segments: np.ndarray = field(default_factory=lambda: np.zeros((0, 2, 2)))
-    line_segments: Segments = field(default_factory=Segments)
-    registration: RegistrationResult | None = None
-    camera: Camera | None = None
-    rescued: bool = False
-    reregistered: bool = False
-    time_s: dict[str, float] = field(default_factory=dict)
-
-    @property
-    def registered(self) -> bool:
-        return self.status == "registered"
 
 
 @dataclass
@@ -523,18 +479,6 @@ def _workers(
 # --------------------------------------------------------------------------
 # Inputs
 # --------------------------------------------------------------------------
-
-
-@dataclass
-class Inputs:
-    """The checked inputs of a run, in the local frame of the cadastre."""
-
-    image_path: Path
-    cadastre_path: Path
-    cadastre: Cadastre
-    priors: Block  # local frame
-    cameras: dict[int, Camera]  # in the result's camera model
-    priors_path: Path | None = None  # the priors model, for messages
 
 
 def load_inputs(
@@ -1592,8 +1536,8 @@ def run_report(
             "chance_inlier_corners": r.chance_inliers if r is not None else -1,
             "inlier_ratio": r.inlier_ratio if r is not None else 0.0,
             "ransac_trials": r.num_trials if r is not None else 0,
-            "residual_rms_px": _finite(r.residual_rms_px) if r is not None else None,
-            "ground_height_m": _finite(r.ground_height) if r is not None else None,
+            "residual_rms_px": json_float(r.residual_rms_px) if r is not None else None,
+            "ground_height_m": json_float(r.ground_height) if r is not None else None,
             "rescued": o.rescued,
             "reregistered": o.reregistered,
             "time_s": {k: round(v, 4) for k, v in o.time_s.items()},
@@ -1619,15 +1563,15 @@ def run_report(
             "num_heights": s.num_heights,
             "rmse_vertical_px": [s.initial_rmse_vertical_px, s.final_rmse_vertical_px],
             "rmse_horizontal_px": [
-                _finite(s.initial_rmse_horizontal_px),
-                _finite(s.final_rmse_horizontal_px),
+                json_float(s.initial_rmse_horizontal_px),
+                json_float(s.final_rmse_horizontal_px),
             ],
             "iterations": s.num_iterations,
             "termination": s.termination,
             "components": [list(c) for c in s.components],
             # A-posteriori variance of unit weight (residuals weighted by
             # their kind's sigma): ~1 where the sigmas fit the residuals.
-            "variance_factor": _finite(bundle.variance_factor),
+            "variance_factor": json_float(bundle.variance_factor),
             # With --bundle_position_sigma: how far the priors' centres sit
             # off the map horizontally (priors minus solved, m).
             "prior_offset_m": (

@@ -488,7 +488,7 @@ def test_bundle_starts_each_head_from_the_median_lens_of_its_images():
     from obliq_colmap.adjustment import _group_cameras, _in_camera
     from obliq_colmap.colmap_io import Block, ImageRecord
     from obliq_colmap.geometry import Camera, Pose
-    from obliq_colmap.pipeline import ImageOutcome
+    from obliq_colmap.state import ImageOutcome
     from obliq_colmap.registration import RegistrationResult
 
     prior = Camera("PINHOLE", 1000, 667, [1000.0, 1000.0, 500.0, 333.5], 7)
