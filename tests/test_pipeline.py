@@ -42,6 +42,7 @@ def _bundle_with_moved_edges(initial_run, monkeypatch, name, move):
     import dataclasses
 
     from obliq_colmap import adjustment as adj
+    from obliq_colmap.adjustment import rounds
 
     options, inputs, outcomes = _sample_after_stage2(initial_run)
     target = next(i for i, o in outcomes.items() if o.name == name)
@@ -54,7 +55,7 @@ def _bundle_with_moved_edges(initial_run, monkeypatch, name, move):
         stage3.facades[k] = dataclasses.replace(f, endpoints=move(f.endpoints.copy()))
         return stage3
 
-    monkeypatch.setattr(adj, "facade_stage", moved)
+    monkeypatch.setattr(rounds, "facade_stage", moved)  # where bundle_stage calls it
     state = adj.BlockState.from_outcomes(list(outcomes.values()))
     state, result, stage3 = adj.bundle_stage(
         inputs, outcomes, state, options.adjustment, {}
@@ -485,11 +486,11 @@ def test_bundle_starts_each_head_from_the_median_lens_of_its_images():
     the images that refined it), the focal as the median ratio to the prior."""
     from types import SimpleNamespace
 
-    from obliq_colmap.adjustment import _group_cameras, _in_camera
+    from obliq_colmap.adjustment.problem import _group_cameras, _in_camera
     from obliq_colmap.colmap_io import Block, ImageRecord
     from obliq_colmap.geometry import Camera, Pose
-    from obliq_colmap.state import ImageOutcome
     from obliq_colmap.registration import RegistrationResult
+    from obliq_colmap.state import ImageOutcome
 
     prior = Camera("PINHOLE", 1000, 667, [1000.0, 1000.0, 500.0, 333.5], 7)
     images = {i: ImageRecord(i, f"{i}.jpg", 7, Pose()) for i in range(1, 5)}
@@ -693,6 +694,7 @@ def test_an_image_held_by_few_facade_edges_is_left_out_as_imprecise(
     import dataclasses
 
     from obliq_colmap import adjustment as adj
+    from obliq_colmap.adjustment import problem
     from obliq_colmap.pipeline import leave_out_rejected
 
     options, inputs, outcomes = _sample_after_stage2(initial_run)
@@ -712,7 +714,7 @@ def test_an_image_held_by_few_facade_edges_is_left_out_as_imprecise(
             f, **{x.name: getattr(f, x.name)[keep] for x in fields}
         )
 
-    monkeypatch.setattr(adj, "facade_edges", thinned)
+    monkeypatch.setattr(problem, "facade_edges", thinned)  # where facade_stage calls it
     state = adj.BlockState.from_outcomes(list(outcomes.values()))
     state, result, stage3 = adj.bundle_stage(
         inputs, outcomes, state, options.adjustment, {}
