@@ -13,16 +13,17 @@ import json
 import numpy as np
 import pytest
 
-from obliq_colmap.cadastre import load_cadastre
-from obliq_colmap.facades import FacadeOptions, facade_edges
-from obliq_colmap.geometry import Camera, Pose
-from obliq_colmap.matching import (
+from obliq_colmap.adjustment import (
+    FacadeOptions,
     MatchingOptions,
     datum_corrections,
+    facade_edges,
     match_facade_edges,
     match_pair,
     triangulate_tracks,
 )
+from obliq_colmap.cadastre import load_cadastre
+from obliq_colmap.geometry import Camera, Pose
 
 F, W, H = 2400.0, 2000, 1334
 
@@ -210,7 +211,7 @@ def test_pair_matching_recovers_offset_and_rejects_floor_ambiguity(tmp_path):
 
 
 def test_datum_corrections_recover_image_offsets():
-    from obliq_colmap.matching import PairMatch
+    from obliq_colmap.adjustment import PairMatch
 
     e_true = np.array([2.0, -1.0, 0.5, -1.5])  # zero mean
     pairs = [

@@ -17,20 +17,20 @@ import logging
 import sys
 from pathlib import Path
 
-from obliq_colmap.adjustment import AdjustmentOptions
 from obliq_colmap.files import check_output_path
 from obliq_colmap.geometry import SUPPORTED_MODELS
-from obliq_colmap.lines import RefineOptions
 from obliq_colmap.parallel import available_cores
 from obliq_colmap.pipeline import (
     STOP_AFTER,
+    AdjustmentOptions,
     PipelineOptions,
+    RefineOptions,
+    RegistrationOptions,
     default_head_focal_min_images,
     run_register,
     summary_table,
     write_run,
 )
-from obliq_colmap.registration import RegistrationOptions
 
 logger = logging.getLogger(__name__)
 

@@ -27,7 +27,7 @@ big image, and its endpoints' noise is about constant in those pixels.
 
 The result is plain arrays, one row per (segment, wall) pair: a segment in
 the bands of two walls (a building behind another) is kept for both; the
-cross-image matching (:mod:`obliq_colmap.matching`) decides.
+cross-image matching (:mod:`~obliq_colmap.adjustment.matching`) decides.
 
 Heights ``t`` are RELATIVE to the image's ground plane: one image's absolute
 heights are only as good as its height datum (stage 2 holds the prior camera

@@ -1,0 +1,50 @@
+"""Options of stage 3: facade edges, matching, the bundle and its rounds."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+from obliq_colmap.adjustment.facades import FacadeOptions
+from obliq_colmap.adjustment.matching import MatchingOptions
+from obliq_colmap.bundle import BundleOptions
+
+__all__ = ["AdjustmentOptions"]
+
+
+@dataclass(kw_only=True)
+class AdjustmentOptions:
+    """Options of stage 3 (:func:`bundle_stage`)."""
+
+    facades: FacadeOptions = field(default_factory=FacadeOptions)
+    matching: MatchingOptions = field(default_factory=MatchingOptions)
+    #: The bundle (its corner points are always fixed: vertical_constraints).
+    #: Cauchy at 1 px: the facade tracks fit to ~0.15 px, so a wrong match is
+    #: many scales out and must lose its pull.
+    bundle: BundleOptions = field(
+        default_factory=lambda: BundleOptions(loss="cauchy", loss_scale_px=1.0)
+    )
+    #: Bundle rounds after the first that drop the constraints whose residual
+    #: exceeds ``outlier_factor`` robust standard deviations (of their kind)
+    #: and at least ``outlier_floor_px``, then solve again from the result.
+    #: The floor is in pixels of the image its segments were detected in (the
+    #: facade lines: ``Segments.pixel_scale``), where their noise lives.
+    outlier_rounds: int = 5
+    outlier_factor: float = 3.0
+    outlier_floor_px: float = 1.0
+    #: Huber scale (px) of the first bundle round (then the bundle's own
+    #: loss); 0 uses the bundle's own loss throughout.
+    initial_loss_scale_px: float = 0.0
+    #: Between rounds: re-triangulate each facade track as a 3D horizontal
+    #: line near its wall (roof rims overhang), and weight the residual kinds
+    #: by their robust standard deviations.
+    track_lines: bool = True
+    variance_components: bool = True
+    #: Prior 1-sigma (m) of a track's offset from its wall: weak, since roof
+    #: rims overhang and parapets stand back from the map edge.
+    track_offset_sigma_m: float = 10.0
+
+    def __post_init__(self) -> None:
+        if self.outlier_rounds < 0 or self.outlier_factor <= 0:
+            raise ValueError("outlier_rounds must be >= 0 and outlier_factor > 0")
+        if self.track_offset_sigma_m <= 0:
+            raise ValueError("track_offset_sigma_m must be > 0")

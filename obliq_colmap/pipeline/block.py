@@ -1,0 +1,394 @@
+"""Stage 3 in the run (:func:`block_stage`): the bundle
+(:func:`obliq_colmap.adjustment.bundle_stage`), the check of the pose priors
+(:func:`check_pose_priors`), the failed and weak images registered again
+against the solved block (:func:`reregister_failed`) and the bundle solved
+again with them (undone when it spoils the block), then the leave-outs.
+"""
+
+from __future__ import annotations
+
+import copy
+import dataclasses
+import logging
+import math
+import time
+from collections.abc import Sequence
+
+import numpy as np
+
+from obliq_colmap.adjustment import Stage3, bundle_stage
+from obliq_colmap.bundle import BundleResult
+from obliq_colmap.errors import InputError
+from obliq_colmap.geometry import (
+    Camera,
+    Pose,
+    axis_angle_from_rotation,
+    rotation_from_axis_angle,
+)
+from obliq_colmap.parallel import WorkerPool
+from obliq_colmap.pipeline.options import PipelineOptions
+from obliq_colmap.pipeline.verdicts import block_verdicts, leave_out_rejected
+from obliq_colmap.pipeline.workers import (
+    ImageTask,
+    reregister,
+    set_registration,
+    worker_pool,
+)
+from obliq_colmap.registration import RegistrationOptions
+from obliq_colmap.state import BlockState, ImageOutcome, Inputs
+
+__all__ = ["block_stage", "check_pose_priors", "reregister_failed"]
+
+logger = logging.getLogger(__name__)
+
+
+def block_stage(
+    inputs: Inputs,
+    tasks: list[ImageTask],
+    outcomes: list[ImageOutcome],
+    options: PipelineOptions,
+    timings: dict[str, float],
+    pool_args: tuple[int, tuple],
+) -> tuple[BlockState, BundleResult | None, Stage3, list[str]]:
+    """Stage 3 on the per-image outcomes, and what follows it.
+
+    The bundle (:func:`~obliq_colmap.adjustment.bundle_stage`); the failed
+    and weak images registered again against the solved block and, where that
+    succeeds, the bundle solved again (:func:`reregister_failed`), unless
+    that second bundle disagrees with an image the first accepted: then the
+    first bundle's block is kept and the images registered again get their
+    earlier outcome back (a failed one stays out; measured: `hard` s2 /
+    seed 0, a wrong re-registration 24 px off pulled two images 17-21 px
+    off); then the images the last bundle disagrees with or determines too
+    poorly are left out (:func:`leave_out_rejected`). ``pool_args``:
+    (workers, initializer arguments) of the re-registration's process pool.
+    Outcomes are updated in place. Returns the block, the last bundle's
+    result (None when it was skipped or failed), its facade stage and the
+    names registered again.
+    """
+    by_id = {o.image_id: o for o in outcomes}
+    state = BlockState.from_outcomes([o for o in outcomes if o.registered])
+    state, bundle_result, stage3 = bundle_stage(
+        inputs, by_id, state, options.adjustment, timings
+    )
+    reregistered: list[str] = []
+    rejected, imprecise, misplaced = block_verdicts(stage3, options)
+    check_pose_priors(inputs, by_id, len(state.poses), rejected, options)
+    if options.reregister_failed and bundle_result is not None:
+        t0 = time.perf_counter()
+        workers, init_args = pool_args
+        saved = {o.image_id: copy.copy(o) for o in outcomes}  # for an undo
+        first = (state, bundle_result, stage3)
+        with worker_pool(workers, init_args, inputs.cadastre, options.progress) as pool:
+            state, reregistered = reregister_failed(
+                pool, tasks, outcomes, state, options
+            )
+        timings["reregistration"] = time.perf_counter() - t0
+        if reregistered:
+            logger.info(
+                "%d image(s) registered against the solved block (%s): "
+                "the bundle is solved again",
+                len(reregistered),
+                ", ".join(reregistered),
+            )
+            first_bundle = timings["bundle"]
+            state, bundle_result, stage3 = bundle_stage(
+                inputs, by_id, state, options.adjustment, timings
+            )
+            timings["bundle"] += first_bundle
+            again, imprecise_again, misplaced_again = block_verdicts(stage3, options)
+            new = {o.image_id for o in outcomes if o.name in reregistered}
+            # Spoiled: rejected now, accepted before. Not the precision
+            # verdict: an image it flags is left out of the second block,
+            # which measured better than going back to the first (`hard` s2
+            # / seed 2: 34 / 36 at 0.64 px against 32 / 36 at 1.11 px); the
+            # height verdict is treated alike.
+            spoiled = sorted(set(again) - set(rejected) - new)
+            if spoiled:
+                # The second bundle disagrees with images the first accepted:
+                # the images registered again pulled the block off (a wrong
+                # pose with enough inliers). Back to the first bundle.
+                names = ", ".join(by_id[i].name for i in spoiled)
+                for i in new:
+                    o = by_id[i]
+                    _restore(o, saved[i])
+                    kept = "its first pose kept" if o.registered else "left out"
+                    o.message = (
+                        "registered against the solved block, but the bundle"
+                        f" with it disagreed with {names}: {kept}"
+                    )
+                    logger.warning("%s: %s", o.name, o.message)
+                state, bundle_result, stage3 = first
+                reregistered = []
+            else:
+                rejected, imprecise = again, imprecise_again
+                misplaced = misplaced_again
+    state = leave_out_rejected(state, stage3, by_id, rejected, imprecise, misplaced)
+    return state, bundle_result, stage3, reregistered
+
+
+def check_pose_priors(
+    inputs: Inputs,
+    by_id: dict[int, ImageOutcome],
+    num_images: int,
+    rejected: list[int],
+    options: PipelineOptions,
+) -> None:
+    """Raise an input error when the bundle's pose priors, not the images,
+    are what it disagrees with (:attr:`PipelineOptions.max_prior_rejected_fraction`).
+
+    Parameters
+    ----------
+    num_images : images in the bundle that ``rejected`` (ids) came from.
+
+    Raises
+    ------
+    InputError
+        Naming the priors model, the sigmas given and how far the block solved
+        without them lies from them.
+    """
+    b = options.adjustment.bundle
+    given = []
+    if b.position_prior_sigma_m is not None:
+        given.append(f"--bundle_position_sigma {b.position_prior_sigma_m:g} m")
+    if b.rotation_prior_sigma_deg is not None:
+        given.append(f"--bundle_rotation_sigma {b.rotation_prior_sigma_deg:g} deg")
+    limit = options.max_prior_rejected_fraction
+    if not given or limit <= 0 or len(rejected) <= limit * num_images:
+        return
+    free = dataclasses.replace(
+        options.adjustment,
+        bundle=dataclasses.replace(
+            b, position_prior_sigma_m=None, rotation_prior_sigma_deg=None
+        ),
+    )
+    state = BlockState.from_outcomes([o for o in by_id.values() if o.registered])
+    _, result, stage3 = bundle_stage(inputs, by_id, state, free, {})
+    if result is None:
+        return
+    rejected_free = block_verdicts(stage3, options)[0]
+    logger.info(
+        "the bundle disagrees with %d of %d images with the pose priors, with"
+        " %d without them",
+        len(rejected),
+        num_images,
+        len(rejected_free),
+    )
+    if 2 * len(rejected_free) > len(rejected):
+        return  # the images disagree either way: not the priors
+    ids = [i for i in result.poses if i not in rejected_free]
+    solved = np.array([result.poses[i].center for i in ids])
+    prior = np.array([inputs.priors.images[i].cam_from_world.center for i in ids])
+    d = solved - prior
+    d -= np.median(d, axis=0)  # the frames' offset and the vertical datum
+    # Angle of R R_prior^T: acos((trace - 1) / 2).
+    tr = [
+        np.trace(
+            result.poses[i].rotation @ inputs.priors.images[i].cam_from_world.rotation.T
+        )
+        for i in ids
+    ]
+    angle = np.degrees(np.arccos(np.clip((np.array(tr) - 1.0) / 2.0, -1.0, 1.0)))
+    raise InputError(
+        inputs.priors_path,
+        f"the priors' poses are less accurate than {' and '.join(given)}: with"
+        f" them the bundle disagrees with {len(rejected)} of {num_images}"
+        f" images, without them with {len(rejected_free)}; solved without them,"
+        " the camera centres lie a median"
+        f" {np.median(np.linalg.norm(d[:, :2], axis=1)):.2f} m horizontally and"
+        f" {np.median(np.abs(d[:, 2])):.2f} m vertically (after a common offset)"
+        f" and the rotations {np.median(angle):.3f} deg from the priors. Give"
+        " their real accuracy, or leave the option out",
+    )
+
+
+def reregister_failed(
+    pool: WorkerPool,
+    tasks: list[ImageTask],
+    outcomes: list[ImageOutcome],
+    state: BlockState,
+    options: PipelineOptions,
+) -> tuple[BlockState, list[str]]:
+    """Register failed and weak images again, against the solved block.
+
+    What the solved block knows that one image's priors do not: the
+    intrinsics of the image's head (the priors' focal may be percents off,
+    which a weak image cannot resolve by itself), the ground height around
+    the image, and the systematic part of its head's prior errors (the median
+    correction of the head's confident images, where it is significant).
+    Each image that failed per image, or registered with fewer than
+    ``options.rescue_min_inliers`` inlier corners, is registered once more
+    with these and its head's camera held; the new result is kept when it
+    succeeds with more inliers than before (the caller then solves the
+    bundle again).
+
+    Returns
+    -------
+    The block with the new registrations (per-image poses, their head's
+    camera) and the names of the images concerned.
+    """
+    by_id = {o.image_id: o for o in outcomes}
+    head_of = {t.image_id: t.camera.camera_id for t in tasks}
+
+    def weak(o: ImageOutcome) -> bool:
+        return (
+            not o.registered or o.registration.num_inliers < options.rescue_min_inliers
+        )
+
+    confident = [i for i in state.poses if by_id[i].registered and not weak(by_id[i])]
+    todo = [
+        k
+        for k, o in enumerate(outcomes)
+        if o.registration is not None
+        and weak(o)
+        and len(o.segments) >= options.registration.min_segments
+        and any(head_of[i] == tasks[k].camera.camera_id for i in confident)
+    ]
+    if not todo:
+        return state, []
+    task_of = {t.image_id: t for t in tasks}
+    heads: dict[int, list[ImageTask]] = {}
+    for i in confident:
+        heads.setdefault(head_of[i], []).append(task_of[i])
+    offsets = _head_offsets(state, heads)
+    ground0 = float(np.median([p[2] for p in state.planes.values()]))
+    jobs = []
+    for k in todo:
+        cid = tasks[k].camera.camera_id
+        camera = state.cameras[heads[cid][0].image_id]
+        task = _head_task(tasks[k], camera, offsets[cid], options.registration)
+        ground = _block_ground_at(state, _footprint_xy(task.prior, ground0))
+        jobs.append(
+            (task, outcomes[k].segments, outcomes[k].vertical_direction, ground)
+        )
+    logger.info(
+        "%d failed or weak image(s) registered again against the solved block",
+        len(jobs),
+    )
+    tries = pool.map(reregister, jobs, "against the block")
+    poses, cameras = dict(state.poses), dict(state.cameras)
+    planes = {i: p.copy() for i, p in state.planes.items()}
+    names, new = [], set()
+    for k, job, result in zip(todo, jobs, tries, strict=True):
+        o = outcomes[k]
+        before = o.registration.num_inliers if o.registered else -1
+        if not result.success or result.num_inliers <= before:
+            if not o.registered:
+                o.message += f"; against the solved block: {result.message}"
+            continue
+        set_registration(o, result)
+        o.reregistered = True
+        poses[o.image_id] = result.cam_from_world
+        cameras[o.image_id] = job[0].start
+        planes[o.image_id] = result.height_plane.copy()
+        names.append(o.name)
+        new.add(o.image_id)
+    # The new poses are per-image registrations: the next bundle corrects
+    # their datum against the solved images.
+    solved = state.solved - new
+    return BlockState(poses, cameras, planes, state.shared, solved), names
+
+
+def _robust_offsets(groups: Sequence[np.ndarray]) -> list[np.ndarray]:
+    """Per group of (N_g, D) samples, the (D,) per-component median where it
+    differs from zero by more than 3 standard errors, else 0.
+
+    The spread is the pooled standard deviation of all groups (each sample
+    about its group's mean, N - G degrees of freedom): the heads of one
+    system share their GPS/INS noise, and the spread of a head's three or
+    four images alone is too noisy for a test (measured with a MAD per
+    group: 25 % false detections with 3 samples, 5 % with 9). A group with
+    fewer than 3 samples gets 0. A head's prior errors have a systematic
+    part (boresight, lever arm, datum) and a random one; only a part that
+    stands out of the random scatter is worth applying to an image that the
+    block could not check.
+    """
+    meds = [np.median(g, axis=0) for g in groups]
+    dof = sum(len(g) - 1 for g in groups if len(g))
+    if dof < 2:
+        return [np.zeros(g.shape[1]) for g in groups]
+    ss = sum(np.sum((g - g.mean(axis=0)) ** 2, axis=0) for g in groups if len(g))
+    spread = np.sqrt(ss / dof)
+    out = []
+    for g, m in zip(groups, meds, strict=True):
+        stderr = 1.2533 * spread / math.sqrt(len(g))
+        ok = len(g) >= 3
+        out.append(np.where(ok & (np.abs(m) > 3.0 * stderr), m, 0.0))
+    return out
+
+
+def _block_ground_at(state: BlockState, xy: np.ndarray) -> float:
+    """Median over the solved images' ground planes of the height at xy (2,)."""
+    planes = np.array(list(state.planes.values()))
+    return float(np.median(planes[:, :2] @ xy + planes[:, 2]))
+
+
+def _footprint_xy(prior: Pose, ground: float) -> np.ndarray:
+    """(2,) where the prior's optical axis meets the level z = ground
+    (the camera's own xy when the axis does not point down)."""
+    axis = prior.rotation[2]  # viewing direction in the world
+    c = prior.center
+    if axis[2] >= -1e-3:
+        return c[:2].copy()
+    return c[:2] + (ground - c[2]) / axis[2] * axis[:2]
+
+
+def _head_task(
+    task: ImageTask,
+    camera: Camera,
+    offset: tuple[np.ndarray, np.ndarray],
+    options: RegistrationOptions,
+) -> ImageTask:
+    """The task of a failed image set up against the solved block: it starts
+    from its head's solved camera, held (no focal or lens refinement, no
+    focal search window), and from its prior corrected by the head's
+    systematic offset (rotation vector, centre xy)."""
+    rotvec, dxy = offset
+    R = rotation_from_axis_angle(rotvec) @ task.prior.rotation
+    c = task.prior.center + np.r_[dxy, 0.0]
+    registration = dataclasses.replace(
+        options, refine_focal=False, refine_distortion=False, prior_focal_sigma=0.0
+    )
+    return dataclasses.replace(
+        task, start=camera, prior=Pose.from_center(R, c), registration=registration
+    )
+
+
+def _head_offsets(
+    state: BlockState, heads: dict[int, Sequence[ImageTask]]
+) -> dict[int, tuple[np.ndarray, np.ndarray]]:
+    """Per head (camera id) its significant systematic prior error: (3,)
+    rotation vector in the camera frame (a boresight: solved = R(rotvec) @
+    prior, as ``cam_from_world`` rotations) and (2,) centre xy shift (m),
+    from its confident images' solved poses against their priors."""
+    ids = list(heads)
+    rot = [
+        np.array(
+            [
+                axis_angle_from_rotation(
+                    state.poses[t.image_id].rotation @ t.prior.rotation.T
+                )
+                for t in heads[c]
+            ]
+        )
+        for c in ids
+    ]
+    dxy = [
+        np.array(
+            [state.poses[t.image_id].center[:2] - t.prior.center[:2] for t in heads[c]]
+        )
+        for c in ids
+    ]
+    return dict(
+        zip(
+            ids,
+            zip(_robust_offsets(rot), _robust_offsets(dxy), strict=True),
+            strict=True,
+        )
+    )
+
+
+def _restore(outcome: ImageOutcome, saved: ImageOutcome) -> None:
+    """``outcome`` (the object others refer to) set back to ``saved``."""
+    for f in dataclasses.fields(ImageOutcome):
+        setattr(outcome, f.name, getattr(saved, f.name))

@@ -1,0 +1,85 @@
+"""The run's inputs: the priors, the images' presence and the map read and
+checked (:func:`load_inputs`), and the per-image work (:func:`image_tasks`).
+"""
+
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+
+import numpy as np
+
+from obliq_colmap.cadastre import load_cadastre
+from obliq_colmap.colmap_io import read_priors
+from obliq_colmap.errors import InputError
+from obliq_colmap.pipeline.options import PipelineOptions
+from obliq_colmap.pipeline.workers import ImageTask
+from obliq_colmap.state import Inputs
+
+__all__ = ["image_tasks", "load_inputs"]
+
+logger = logging.getLogger(__name__)
+
+
+def load_inputs(
+    image_path: str | Path,
+    cadastre_path: str | Path,
+    input_path: str | Path,
+    options: PipelineOptions,
+) -> Inputs:
+    """Read and check the priors, the images' presence and the map.
+
+    Raises
+    ------
+    InputError
+        Any user mistake (missing files, unreadable map or model, degrees).
+    """
+    image_path, cadastre_path = Path(image_path), Path(cadastre_path)
+    priors_abs = read_priors(input_path, image_path)
+    if not priors_abs.images:
+        raise InputError(input_path, "the priors model has no images")
+    cadastre = load_cadastre(cadastre_path, options.cadastre)
+    if cadastre.num_corners == 0:
+        raise InputError(cadastre_path, "the map has no usable footprints")
+    origin = np.array([cadastre.origin[0], cadastre.origin[1], 0.0])
+    priors = priors_abs.shifted(origin)
+    centres = np.array([im.cam_from_world.center for im in priors.images.values()])
+    far = np.linalg.norm(centres[:, :2], axis=1).min()
+    extent = np.ptp(cadastre.corner_xy, axis=0).max()
+    if far > 10.0 * extent + 5_000.0:
+        raise InputError(
+            input_path,
+            f"the prior camera centres lie {far / 1000:.1f} km from the map "
+            f"{cadastre_path} (is it in another CRS?)",
+        )
+    cameras = {}
+    for cid, cam in priors.cameras.items():
+        model = options.camera_model or cam.model
+        if model != cam.model:
+            logger.info("camera %d: %s -> %s", cid, cam.model, model)
+        cameras[cid] = cam.with_model(model)
+    return Inputs(
+        image_path, cadastre_path, cadastre, priors, cameras, Path(input_path)
+    )
+
+
+def image_tasks(inputs: Inputs, options: PipelineOptions) -> list[ImageTask]:
+    """The per-image work of the priors' images, in image id order."""
+    return [
+        ImageTask(
+            image_id=im.image_id,
+            name=im.name,
+            path=inputs.image_path / im.name,
+            # The vanishing stage undistorts with the priors' camera (a model
+            # change only adds parameters that start at zero); stage 2 gets
+            # it in the result model, whose radial term it may refine.
+            camera=inputs.priors.cameras[im.camera_id],
+            prior=im.cam_from_world,
+            cone_deg=options.cone_deg,
+            vanishing=options.vanishing,
+            registration=options.registration,
+            refine=options.refine_segments,
+            model=inputs.cameras[im.camera_id].model,
+        )
+        for im in sorted(inputs.priors.images.values(), key=lambda im: im.image_id)
+    ]

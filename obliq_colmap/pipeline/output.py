@@ -1,0 +1,306 @@
+"""The run's output: the result block (:func:`result_block`), the
+constrained points with tracks (:func:`constrained_points`), the JSON report
+(:func:`run_report`) and its closing table (:func:`summary_table`), all
+written atomically by :func:`write_run`.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from obliq_colmap import __version__
+from obliq_colmap.adjustment import Stage3
+from obliq_colmap.bundle import BundleResult
+from obliq_colmap.cadastre import visible_corners
+from obliq_colmap.colmap_io import Block, Georef, ImageRecord, Point3D, write_result
+from obliq_colmap.errors import InputError
+from obliq_colmap.geometry import Camera
+from obliq_colmap.state import BlockState, ImageOutcome, Inputs, json_float
+
+__all__ = [
+    "REPORT_FILE",
+    "RunResult",
+    "constrained_points",
+    "result_block",
+    "run_report",
+    "summary_table",
+    "write_run",
+]
+
+REPORT_FILE = "report.json"
+
+
+@dataclass
+class RunResult:
+    """Everything :func:`run_register` produced (before writing)."""
+
+    block: Block  # registered images only, local frame of ``georef``
+    georef: Georef
+    points3D: list[Point3D]
+    outcomes: dict[int, ImageOutcome]
+    report: dict[str, Any]
+    bundle: BundleResult | None = None
+
+
+def result_block(inputs: Inputs, state: BlockState) -> Block:
+    """The registered images with their poses and intrinsics.
+
+    After the bundle the images of one head share its camera (as in the
+    priors); a per-image result gives every image its own camera (id = the
+    image id), since stage 2 refines the focal length per image.
+    """
+    images, cameras = {}, {}
+    for i, pose in state.poses.items():
+        prior = inputs.priors.images[i]
+        # in the result's camera model (--camera_model), as after the bundle
+        cam = state.cameras[i].with_model(inputs.cameras[prior.camera_id].model)
+        cid = prior.camera_id if state.shared else i
+        cameras[cid] = Camera(cam.model, cam.width, cam.height, cam.params, cid)
+        images[i] = ImageRecord(i, prior.name, cid, pose)
+    return Block(dict(sorted(cameras.items())), images)
+
+
+def _observations(
+    block: Block, image_id: int, X: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """Where points (N, 3) project in an image: (kept (K,) indices, (K, 2) px),
+    only those in front of the camera and inside the image."""
+    im = block.images[image_id]
+    cam = block.cameras[im.camera_id]
+    Xc = im.cam_from_world.transform(X)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        px = cam.img_from_cam(Xc)
+    inside = (
+        (Xc[:, 2] > 0)
+        & np.all(np.isfinite(px), axis=1)
+        & (px[:, 0] >= 0)
+        & (px[:, 1] >= 0)
+        & (px[:, 0] <= cam.width)
+        & (px[:, 1] <= cam.height)
+    )
+    keep = np.flatnonzero(inside)
+    return keep, px[keep]
+
+
+def _corner_ground(inputs: Inputs, state: BlockState, seen: np.ndarray) -> np.ndarray:
+    """(C,) ground height of every map corner: the mean ground plane of the
+    images that used the corner (``seen``: (C, I) bool in
+    ``sorted(state.planes)`` order), else of all images."""
+    xy = inputs.cadastre.corner_xy
+    ids = sorted(state.planes)
+    planes = np.array([state.planes[i] for i in ids])
+    h = xy @ planes[:, :2].T + planes[:, 2]  # (C, I)
+    w = seen.astype(float)
+    w[w.sum(axis=1) == 0] = 1.0
+    return (h * w).sum(axis=1) / w.sum(axis=1)
+
+
+def constrained_points(
+    inputs: Inputs,
+    block: Block,
+    state: BlockState,
+    outcomes: dict[int, ImageOutcome],
+    bundle: BundleResult | None = None,
+    stage3: Stage3 | None = None,
+) -> list[Point3D]:
+    """The constrained points with tracks, for COLMAP's dense stages.
+
+    * Map corners at their ground heights, observed where they project in
+      every image in which the corner is potentially visible
+      (:func:`cadastre.visible_corners`: inside the image, an adjacent wall
+      facing the camera). Occlusion by other buildings is not tested.
+    * After the bundle, every facade track's point ``x_j + h_j z``, observed
+      where it projects in the images of the track.
+
+    Points seen in fewer than two images are dropped (COLMAP's dense stages
+    need shared points).
+    """
+    cad = inputs.cadastre
+    ids = sorted(block.images)
+    if not ids:
+        return []
+    seen = np.zeros((cad.num_corners, len(ids)), bool)
+    for k, i in enumerate(ids):
+        seen[outcomes[i].registration.inlier_pairs[:, 0], k] = True
+    X = np.column_stack([cad.corner_xy, _corner_ground(inputs, state, seen)])
+    obs: list[list[tuple[int, np.ndarray]]] = [[] for _ in range(len(X))]
+    for i in ids:
+        im = block.images[i]
+        vis = visible_corners(
+            cad,
+            block.cameras[im.camera_id],
+            im.cam_from_world,
+            state.ground(i),
+            (0.0, 0.5),
+        )
+        keep, px = _observations(block, i, X[vis])
+        for c, p in zip(vis[keep], px, strict=True):
+            obs[c].append((i, p))
+    points = [Point3D(X[c], o) for c, o in enumerate(obs) if len(o) >= 2]
+    if bundle is not None and stage3 is not None:
+        t = stage3.tracks
+        F = np.column_stack([t.anchor_xy, bundle.facade_heights])
+        fobs: list[list[tuple[int, np.ndarray]]] = [[] for _ in range(len(F))]
+        for k, i in enumerate(stage3.ids):
+            if i not in block.images:  # left out after the bundle
+                continue
+            tr = np.unique(t.track[t.image == k])
+            keep, px = _observations(block, i, F[tr])
+            for j, p in zip(tr[keep], px, strict=True):
+                fobs[j].append((i, p))
+        points += [Point3D(F[j], o) for j, o in enumerate(fobs) if len(o) >= 2]
+    return points
+
+
+def run_report(
+    inputs: Inputs,
+    outcomes: list[ImageOutcome],
+    rescued: list[str],
+    bundle: BundleResult | None,
+    georef: Georef,
+    timings: dict[str, float],
+) -> dict[str, Any]:
+    """The JSON run report: per image, per stage, and the bundle's summary."""
+    images = {}
+    for o in outcomes:
+        r = o.registration
+        images[o.name] = {
+            "image_id": o.image_id,
+            "status": o.status,
+            "message": o.message,
+            "vp_status": o.vp_status,
+            "vertical_source": r.vertical_source if r is not None else None,
+            "num_segments": int(len(o.segments)),
+            "num_candidates": r.num_candidates if r is not None else 0,
+            "num_inlier_corners": r.num_inliers if r is not None else 0,
+            "chance_inlier_corners": r.chance_inliers if r is not None else -1,
+            "inlier_ratio": r.inlier_ratio if r is not None else 0.0,
+            "ransac_trials": r.num_trials if r is not None else 0,
+            "residual_rms_px": json_float(r.residual_rms_px) if r is not None else None,
+            "ground_height_m": json_float(r.ground_height) if r is not None else None,
+            "rescued": o.rescued,
+            "reregistered": o.reregistered,
+            "time_s": {k: round(v, 4) for k, v in o.time_s.items()},
+        }
+    report: dict[str, Any] = {
+        "software": f"obliq-colmap {__version__}",
+        "image_path": str(inputs.image_path),
+        "cadastre_path": str(inputs.cadastre_path),
+        "georef": georef.to_json(),
+        "num_images": len(outcomes),
+        "num_registered": sum(o.registered for o in outcomes),
+        "left_out": {o.name: o.message for o in outcomes if not o.registered},
+        "rescued": rescued,
+        "time_s": {k: round(v, 3) for k, v in timings.items()},
+        "images": images,
+    }
+    if bundle is not None:
+        s = bundle.summary
+        report["bundle"] = {
+            "brief": s.brief(),
+            "num_vertical": s.num_vertical,
+            "num_horizontal": s.num_horizontal,
+            "num_heights": s.num_heights,
+            "rmse_vertical_px": [s.initial_rmse_vertical_px, s.final_rmse_vertical_px],
+            "rmse_horizontal_px": [
+                json_float(s.initial_rmse_horizontal_px),
+                json_float(s.final_rmse_horizontal_px),
+            ],
+            "iterations": s.num_iterations,
+            "termination": s.termination,
+            "components": [list(c) for c in s.components],
+            # A-posteriori variance of unit weight (residuals weighted by
+            # their kind's sigma): ~1 where the sigmas fit the residuals.
+            "variance_factor": json_float(bundle.variance_factor),
+            # With --bundle_position_sigma: how far the priors' centres sit
+            # off the map horizontally (priors minus solved, m).
+            "prior_offset_m": (
+                None
+                if bundle.prior_offset_m is None
+                else [round(float(v), 4) for v in bundle.prior_offset_m]
+            ),
+        }
+    return report
+
+
+def summary_table(report: dict[str, Any]) -> str:
+    """The closing table of a run, one line per image."""
+    facades = report.get("facades", {}).get("images", {})
+    head = (
+        "image",
+        "vp",
+        "segments",
+        "corners",
+        "rms px",
+        "facade obs",
+        "bundle v/h",
+        "sd px",
+    )
+    rows = [(*head, "status")]
+    for name, r in report["images"].items():
+        rms = r["residual_rms_px"]
+        status = r["status"] + (" (rescued)" if r["rescued"] else "")
+        status += " (against the block)" if r.get("reregistered") else ""
+        if r["message"]:
+            status += f": {r['message']}"
+        f = facades.get(name, {})
+        brms = [x for x in f.get("bundle_rms_px", []) if x is not None]
+        sd = f.get("bundle_precision_px")
+        rows.append(
+            (
+                name,
+                r["vp_status"] or "-",
+                str(r["num_segments"]),
+                str(r["num_inlier_corners"]),
+                f"{rms:.2f}" if rms is not None else "-",
+                str(f["observations"]) if f else "-",
+                "/".join(f"{x:.2f}" for x in brms) if len(brms) == 2 else "-",
+                f"{sd:.2f}" if sd is not None else "-",
+                status,
+            )
+        )
+    n = len(head)
+    widths = [max(len(row[k]) for row in rows) for k in range(n)]
+    lines = [
+        "  ".join(c.ljust(w) for c, w in zip(row[:n], widths, strict=True))
+        + "  "
+        + row[n]
+        for row in rows
+    ]
+    lines.append(
+        f"registered {report['num_registered']}/{report['num_images']} images"
+        f" in {report['time_s'].get('total', math.nan):.1f} s"
+    )
+    return "\n".join(lines)
+
+
+def write_run(output_path: str | Path, run: RunResult) -> Path:
+    """Write the model, georef.json and report.json atomically.
+
+    Raises
+    ------
+    InputError
+        The output folder exists and is not empty, or no image was registered.
+    """
+    if not run.block.images:
+        raise InputError(output_path, "no image could be registered; nothing written")
+    text = json.dumps(run.report, indent=2, default=_json_default) + "\n"
+    return write_result(
+        output_path, run.block, run.georef, run.points3D, {REPORT_FILE: text}
+    )
+
+
+def _json_default(x):
+    if isinstance(x, np.generic):
+        return x.item()
+    if isinstance(x, np.ndarray):
+        return x.tolist()
+    if isinstance(x, Path):
+        return str(x)
+    raise TypeError(f"not JSON serialisable: {type(x)}")

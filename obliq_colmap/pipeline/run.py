@@ -1,0 +1,140 @@
+"""The ``register`` run: :func:`run_register`, from the inputs to a
+:class:`~obliq_colmap.pipeline.output.RunResult` (not yet written).
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from pathlib import Path
+
+import numpy as np
+
+from obliq_colmap import __version__
+from obliq_colmap.adjustment import Stage3
+from obliq_colmap.bundle import BundleResult
+from obliq_colmap.colmap_io import Georef
+from obliq_colmap.pipeline.block import block_stage
+from obliq_colmap.pipeline.initial import initial_stage
+from obliq_colmap.pipeline.inputs import image_tasks, load_inputs
+from obliq_colmap.pipeline.options import PipelineOptions
+from obliq_colmap.pipeline.output import (
+    RunResult,
+    constrained_points,
+    result_block,
+    run_report,
+)
+from obliq_colmap.pipeline.workers import draw_overlay, worker_pool
+from obliq_colmap.registration import block_ground_height
+from obliq_colmap.state import BlockState
+
+__all__ = ["run_register"]
+
+logger = logging.getLogger(__name__)
+
+
+def run_register(
+    image_path: str | Path,
+    cadastre_path: str | Path,
+    input_path: str | Path,
+    options: PipelineOptions | None = None,
+) -> RunResult:
+    """Register a block of oblique images to a footprint map.
+
+    Parameters
+    ----------
+    image_path : folder of the images (names as in the priors).
+    cadastre_path : GeoJSON footprint map (projected metric CRS).
+    input_path : COLMAP priors model (rough poses in the map's frame).
+    options : PipelineOptions.
+
+    Returns
+    -------
+    RunResult, to be written with :func:`~obliq_colmap.pipeline.write_run`.
+
+    Raises
+    ------
+    InputError
+        User mistakes in the inputs.
+    """
+    options = options or PipelineOptions()
+    t_run = time.perf_counter()
+    timings: dict[str, float] = {}
+    inputs = load_inputs(image_path, cadastre_path, input_path, options)
+    cad = inputs.cadastre
+    tasks = image_tasks(inputs, options)
+    logger.info(
+        "%d images, %d cameras, map: %d buildings, %d corners (origin %s, %s)",
+        len(tasks),
+        len(inputs.cameras),
+        cad.num_buildings,
+        cad.num_corners,
+        cad.origin[:2].tolist(),
+        cad.crs,
+    )
+    origin3 = np.array([cad.origin[0], cad.origin[1], 0.0])
+    init_args = (inputs.cadastre_path, options.cadastre, origin3)
+    workers = min(options.workers, len(tasks))
+    with worker_pool(workers, init_args, cad, options.progress) as pool:
+        outcomes, _, rescued = initial_stage(pool, tasks, options, timings)
+        for o in outcomes:
+            if o.status == "unreadable" or not o.registered:
+                logger.warning("%s: left out: %s", o.name, o.message)
+        if options.overlay_path is not None:
+            folder = Path(options.overlay_path)
+            folder.mkdir(parents=True, exist_ok=True)
+            jobs = [
+                (t, o.registration, folder)
+                for t, o in zip(tasks, outcomes, strict=True)
+                if o.registration is not None
+            ]
+            pool.map(draw_overlay, jobs, "overlays")
+    by_id = {o.image_id: o for o in outcomes}
+    bundle_result: BundleResult | None = None
+    stage3: Stage3 | None = None
+    reregistered: list[str] = []
+    if options.stop_after == "bundle" and any(o.registered for o in outcomes):
+        state, bundle_result, stage3, reregistered = block_stage(
+            inputs, tasks, outcomes, options, timings, (workers, init_args)
+        )
+    else:
+        state = BlockState.from_outcomes([o for o in outcomes if o.registered])
+    registered = [o for o in outcomes if o.registered]
+    ground = block_ground_height([o.registration for o in registered], 1)
+    z0 = float(np.round(ground)) if ground is not None else 0.0
+    georef = Georef(
+        origin=np.array([cad.origin[0], cad.origin[1], z0]),
+        crs=cad.crs,
+        extra={
+            "vertical_datum": "the priors' (input_path) heights, unchanged",
+            "software": f"obliq-colmap {__version__}",
+        },
+    )
+    block = result_block(inputs, state)
+    points = constrained_points(inputs, block, state, by_id, bundle_result, stage3)
+    block = block.shifted(np.array([0.0, 0.0, z0]))
+    for p in points:
+        p.xyz = p.xyz - np.array([0.0, 0.0, z0])
+    timings["total"] = time.perf_counter() - t_run
+    report = run_report(inputs, outcomes, rescued, bundle_result, georef, timings)
+    report["reregistered"] = reregistered
+    if stage3 is not None:
+        report["facades"] = stage3.report(by_id)
+    report["options"] = {
+        "stop_after": options.stop_after,
+        "num_workers": workers,
+        "vp_cone_deg": options.cone_deg,
+        "camera_model": options.camera_model,
+        "refine_focal_length": options.adjustment.bundle.refine_focal_length,
+        "refine_principal_point": options.adjustment.bundle.refine_principal_point,
+        "refine_extra_params": options.adjustment.bundle.refine_extra_params,
+        "bundle_rotation_sigma_deg": options.adjustment.bundle.rotation_prior_sigma_deg,
+        "bundle_position_sigma_m": options.adjustment.bundle.position_prior_sigma_m,
+        "bundle_position_offset": options.adjustment.bundle.estimate_prior_offset,
+        "min_constraints_kept": options.min_constraints_kept,
+        "max_precision_ratio": options.max_precision_ratio,
+        "max_end_offset_ratio": options.max_end_offset_ratio,
+        "max_prior_rejected_fraction": options.max_prior_rejected_fraction,
+    }
+    report["num_points3D"] = len(points)
+    return RunResult(block, georef, points, by_id, report, bundle_result)

@@ -1,0 +1,86 @@
+"""The leave-outs: the images stage 3's verdicts name
+(:func:`block_verdicts`) leave the block as failures that say why
+(:func:`leave_out_rejected`).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+import math
+from collections.abc import Sequence
+
+import numpy as np
+
+from obliq_colmap.adjustment import Stage3, Verdicts, judge
+from obliq_colmap.pipeline.options import PipelineOptions
+from obliq_colmap.state import BlockState, ImageOutcome
+
+__all__ = ["block_verdicts", "leave_out_rejected"]
+
+logger = logging.getLogger(__name__)
+
+
+def block_verdicts(stage3: Stage3, options: PipelineOptions) -> Verdicts:
+    """The images the bundle disagrees with (too many of their constraints
+    rejected), those it determines too poorly (precision) and those it left
+    at a wrong height (their edges' ends), by id: stage 3's verdicts
+    (:func:`~obliq_colmap.adjustment.judge`) with the run's limits."""
+    return judge(
+        stage3,
+        options.min_constraints_kept,
+        options.max_precision_ratio,
+        options.max_end_offset_ratio,
+    )
+
+
+def leave_out_rejected(
+    state: BlockState,
+    stage3: Stage3 | None,
+    outcomes: dict[int, ImageOutcome],
+    rejected: Sequence[int],
+    imprecise: Sequence[int] = (),
+    misplaced: Sequence[int] = (),
+) -> BlockState:
+    """The block without the images the (last) bundle disagrees with
+    (``rejected``), determines too poorly (``imprecise``) or left at a wrong
+    height (``misplaced``); their outcomes become failures that say why."""
+    out = sorted({i for i in [*rejected, *imprecise, *misplaced] if i in state.poses})
+    if not out or stage3 is None:
+        return state
+    sd = [v for v in stage3.bundle_precision.values() if math.isfinite(v)]
+    median_sd = float(np.median(sd)) if sd else math.nan
+    for i in out:
+        reasons = []
+        if i in rejected:
+            reasons.append(
+                f"the bundle rejected {1 - stage3.constraints_kept[i]:.0%} of its"
+                " map-corner and facade constraints (its pose disagrees with the"
+                " block's)"
+            )
+        if i in imprecise:
+            reasons.append(
+                "the bundle determines its pose poorly (predicted sd"
+                f" {stage3.bundle_precision[i]:.2f} px against the block's median"
+                f" {median_sd:.2f} px: too few constraints tie it to the"
+                " others)"
+            )
+        if i in misplaced:
+            reasons.append(
+                "its corners' vertical edges end {:+.1f} px (feet) and {:+.1f}"
+                " px (tops) along its verticals from where the other images'"
+                " end (it sits at a wrong height, e.g. facade edges matched a"
+                " floor off)".format(*stage3.end_offset_px[i])
+            )
+        o = outcomes[i]
+        o.status = "failed"
+        o.message = "left out: " + "; ".join(reasons)
+        logger.warning("%s: %s", o.name, o.message)
+    keep = set(state.poses) - set(out)
+    return dataclasses.replace(
+        state,
+        poses={i: p for i, p in state.poses.items() if i in keep},
+        cameras={i: c for i, c in state.cameras.items() if i in keep},
+        planes={i: p for i, p in state.planes.items() if i in keep},
+        solved=state.solved & keep,
+    )
