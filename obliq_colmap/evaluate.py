@@ -1,9 +1,12 @@
 """Evaluation against ground truth: the measuring instrument for every accuracy figure.
 
 A result model (our output: a LOCAL frame with ``georef.json`` beside it) is
-compared image by image with the exact model of a synthetic scene (``gt/``,
-absolute coordinates) and with the scene's true 3D building corners
-(``gt_buildings.json``). Per image:
+compared image by image with the exact model of a scene (``gt/``, absolute
+coordinates) and with the scene's true 3D building corners
+(``gt_buildings.json``). Two scene formats are read as they are, told apart
+by content (:func:`read_ground_truth`): ``obliq-colmap synth`` output, and the
+external format of ``../shared/data/external_oblique`` (visibility in
+``gt_visibility.json``). Per image:
 
 1. the rotation error (deg) of ``cam_from_world``;
 2. the camera-centre error (m, total, horizontal and vertical) after removing
@@ -17,7 +20,10 @@ absolute coordinates) and with the scene's true 3D building corners
    raised and pitched to image the scene alike (the bundle's weak mode along
    its viewing ray) keeps its scene datum but not its centre height, and the
    median of those missed the datum by 0.4-1.3 m after the bundle, i.e. 1-3
-   px on every image of the sample (docs/BENCHMARKS.md, issue 5);
+   px on every image of the sample (docs/BENCHMARKS.md, issue 5). Or
+   (``"search"``, the measure of issue 25) the ONE offset that minimises the
+   median over the images of their mean deviation (3. below; missing images
+   infinite), searched within +-20 m of the camera-height offset;
 3. the reprojection deviation (mean and max, px) of the true corners visible in
    the image, projected by the ESTIMATED camera (its own intrinsics and
    distortion, its centre lowered by the vertical offset) versus by the TRUE
@@ -30,7 +36,8 @@ of the world vertical through each corner is measured, for the output of
 per-image stages, which cannot observe camera height, terrain height or the
 tilt/focal trade-off: those all move points along the projected verticals.
 
-Images of the ground truth missing from the result count as failures. Images
+Images of the ground truth missing from the result count as failures (and as
+infinite in ``deviation_median_all_px`` / ``deviation_p95_all_px``). Images
 of the ground truth with no visible corner cannot be measured: they are listed
 (status ``"no_corners"``) but are not part of the total.
 
@@ -57,6 +64,11 @@ logger = logging.getLogger(__name__)
 GT_MODEL_DIR = "gt"
 PRIORS_MODEL_DIR = "priors"
 GT_BUILDINGS_FILE = "gt_buildings.json"
+GT_VISIBILITY_FILE = "gt_visibility.json"  # the external format's visibility
+
+#: The two scene formats :func:`read_ground_truth` tells apart by content.
+GT_FORMAT_SYNTHETIC = "synthetic"  # obliq-colmap synth: visibility in gt_buildings
+GT_FORMAT_EXTERNAL = "external"  # ../shared/data/external_oblique: gt_visibility.json
 
 #: Per-image status values. Only ``"registered"`` is a success.
 STATUS_REGISTERED = "registered"
@@ -66,11 +78,20 @@ STATUS_MISSING = "missing"  # in the ground truth, not in the result
 STATUS_NO_CORNERS = "no_corners"  # no visible corner: not measurable
 
 #: The choices of ``EvaluateOptions.vertical_offset``.
-VERTICAL_OFFSETS = ("corners", "cameras")
+VERTICAL_OFFSETS = ("corners", "cameras", "search")
 
 #: Gauss-Newton steps of an image's own vertical offset (the projections are
 #: nearly linear in it over the metres in question: 3 steps reach ~1e-9 m).
 _OFFSET_STEPS = 3
+
+#: The block offset search (``vertical_offset="search"``): coarse grid step
+#: (m), local minima refined, zooms of x20 each. An image's mean deviation
+#: changes by ~5 px per metre of height at 45 deg and 650 m (4,450 px focal),
+#: so 0.1 m keeps a dip from hiding between grid points and three zooms reach
+#: ~1e-5 m (~5e-5 px).
+_SEARCH_STEP_M = 0.1
+_SEARCH_CANDIDATES = 5
+_SEARCH_ZOOMS = 3
 
 #: Step (m) along the world vertical for the image direction of the vertical,
 #: central difference. The projected vertical is a straight line for pinhole
@@ -100,12 +121,21 @@ class EvaluateOptions:
         true corners to fit those of the true camera best (least squares;
         the centre-height difference where it sees no corner in front);
         ``"cameras"``, its estimated minus true camera-centre height.
+        Or no median of the images' own: ``"search"``, the ONE offset that
+        minimises the median over the images of their mean deviation
+        (missing images infinite), searched within ``search_range_m`` of the
+        camera-height offset (the measure of issue 25 and of the external
+        scenes' README).
+    search_range_m : float
+        Half-width (m) of the ``"search"`` interval around the median of the
+        estimated minus true camera heights.
     """
 
     registered_threshold_px: float = 2.0
     across_vertical: bool = False
     remove_vertical_offset: bool = True
     vertical_offset: str = "corners"
+    search_range_m: float = 20.0
 
     def __post_init__(self) -> None:
         if not (
@@ -115,6 +145,10 @@ class EvaluateOptions:
             raise ValueError(
                 "registered_threshold_px must be a positive number, got "
                 f"{self.registered_threshold_px!r}"
+            )
+        if not (self.search_range_m > 0 and math.isfinite(self.search_range_m)):
+            raise ValueError(
+                f"search_range_m must be a positive number, got {self.search_range_m!r}"
             )
         if self.vertical_offset not in VERTICAL_OFFSETS:
             raise ValueError(
@@ -183,6 +217,12 @@ class EvaluationSummary:
     horizontal_error_median_m, vertical_error_median_m : float, medians over
         the images of the ground truth present in the result (vertical: of the
         absolute value).
+    camera_offset_m : float, median over the matched images of the estimated
+        minus true camera-centre height (m), before any offset is removed.
+    deviation_median_all_px, deviation_p95_all_px : float, over the per-image
+        MEAN deviations of ALL measurable images, the missing ones and those
+        with a corner behind the estimated camera counted as infinite (the
+        judged figures of issue 25; ``null`` in JSON when infinite).
     """
 
     num_total: int
@@ -200,6 +240,9 @@ class EvaluationSummary:
     center_error_median_m: float
     horizontal_error_median_m: float
     vertical_error_median_m: float
+    camera_offset_m: float = math.nan
+    deviation_median_all_px: float = math.nan
+    deviation_p95_all_px: float = math.nan
 
     @property
     def registered_fraction(self) -> float:
@@ -218,6 +261,8 @@ class Evaluation:
     extra_images : names in the result but not in the ground truth.
     result_path, gt_path : str or None, the evaluated folders (set by
         :func:`evaluate_model`).
+    gt_format : str or None, the scene's format (``GroundTruth.format``; set
+        by :func:`evaluate_model`).
     """
 
     images: list[ImageEvaluation]
@@ -226,6 +271,7 @@ class Evaluation:
     extra_images: list[str] = field(default_factory=list)
     result_path: str | None = None
     gt_path: str | None = None
+    gt_format: str | None = None
 
     def image(self, name: str) -> ImageEvaluation:
         """The evaluation of the image called ``name``."""
@@ -242,6 +288,7 @@ class Evaluation:
             {
                 "result_path": self.result_path,
                 "gt_path": self.gt_path,
+                "gt_format": self.gt_format,
                 "options": asdict(self.options),
                 "summary": summary,
                 "extra_images": list(self.extra_images),
@@ -296,16 +343,156 @@ def corner_deviations_px(
     diff = xy_est - xy_true  # (K, 2)
     if not across_vertical:
         return np.linalg.norm(diff, axis=1), behind
+    direction, degenerate = _vertical_direction(true_camera, true_pose, X)
+    return _across(diff, direction, degenerate), behind
+
+
+def _vertical_direction(
+    camera: Camera, pose: Pose, X: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """The unit image direction (K, 2) of the world vertical through each of
+    the points ``X`` (K, 3) in ``camera``, and where it is a point (K,) bool."""
     dz = np.array([0.0, 0.0, 0.5 * _VERTICAL_STEP_M])
-    up = true_camera.img_from_cam(true_pose.transform(X + dz))  # (K, 2)
-    down = true_camera.img_from_cam(true_pose.transform(X - dz))  # (K, 2)
+    up = camera.img_from_cam(pose.transform(X + dz))  # (K, 2)
+    down = camera.img_from_cam(pose.transform(X - dz))  # (K, 2)
     direction = up - down  # (K, 2), image direction of the vertical
     length = np.linalg.norm(direction, axis=1)
     degenerate = ~(length > 1e-9)
-    direction = direction / np.where(degenerate, 1.0, length)[:, None]
+    return direction / np.where(degenerate, 1.0, length)[:, None], degenerate
+
+
+def _across(diff: np.ndarray, direction: np.ndarray, degenerate: np.ndarray):
+    """Length of ``diff`` (..., K, 2) across ``direction`` (K, 2); its full
+    length where the direction is ``degenerate`` (K,)."""
     # |2D cross product| = distance from the line through xy_true along direction.
-    across = np.abs(direction[:, 0] * diff[:, 1] - direction[:, 1] * diff[:, 0])
-    return np.where(degenerate, np.linalg.norm(diff, axis=1), across), behind
+    across = np.abs(direction[:, 0] * diff[..., 1] - direction[:, 1] * diff[..., 0])
+    return np.where(degenerate, np.linalg.norm(diff, axis=-1), across)
+
+
+def mean_deviation_by_offset(
+    est_camera: Camera,
+    est_pose: Pose,
+    true_camera: Camera,
+    true_pose: Pose,
+    corners_world: np.ndarray,
+    across_vertical: bool = False,
+):
+    """A function of the height offsets ``d`` (D,) giving an image's mean
+    corner deviation (D,) px with its estimated camera lowered by each ``d``
+    (as :func:`corner_deviations_px`, vectorised over the offsets); infinite
+    where a corner is behind the lowered camera. Corners that do not project
+    into the true camera are left out (bad ground truth, warned about there).
+    """
+    X = np.asarray(corners_world, float).reshape(-1, 3)
+    xy_true = true_camera.img_from_cam(true_pose.transform(X))  # (K, 2)
+    ok = np.isfinite(xy_true).all(axis=1)
+    X, xy_true = X[ok], xy_true[ok]
+    X_cam = est_pose.transform(X)  # (K, 3)
+    # Lowering the camera by d is raising the corners by d: + d * R e_z.
+    up = est_pose.rotation[:, 2]  # (3,)
+    if across_vertical:
+        direction, degenerate = _vertical_direction(true_camera, true_pose, X)
+
+    def mean_deviation(offsets: np.ndarray) -> np.ndarray:
+        d = np.asarray(offsets, float).reshape(-1)
+        if len(X) == 0:
+            return np.full(len(d), math.inf)
+        pts = X_cam[None] + d[:, None, None] * up  # (D, K, 3)
+        xy = est_camera.img_from_cam(pts.reshape(-1, 3)).reshape(len(d), len(X), 2)
+        diff = xy - xy_true  # (D, K, 2)
+        if across_vertical:
+            dev = _across(diff, direction, degenerate)
+        else:
+            dev = np.linalg.norm(diff, axis=-1)
+        behind = ~(pts[..., 2] > 0).all(axis=1)  # (D,)
+        return np.where(behind, math.inf, dev.mean(axis=1))
+
+    return mean_deviation
+
+
+def search_block_offset(
+    profiles: list,
+    num_missing: int,
+    center: float,
+    half_range: float,
+) -> tuple[float, float]:
+    """The ONE vertical offset (m) of a block minimising the median over its
+    images of their mean corner deviation, in ``center +- half_range``.
+
+    Parameters
+    ----------
+    profiles : functions of the offsets (D,) -> (D,) mean deviation px, one
+        per measured image present in the result
+        (:func:`mean_deviation_by_offset`).
+    num_missing : images missing from the result, infinite at every offset.
+    center, half_range : float, m; the camera-height offset and the span.
+
+    Returns
+    -------
+    offset : float, m; ``center`` when every offset gives an infinite median
+        even over the present images alone (too few images in front).
+    median : float, px, the minimised median (missing images infinite).
+
+    The median of per-image V-shaped curves is not convex: a grid of
+    ``_SEARCH_STEP_M`` over the whole range, then its lowest
+    ``_SEARCH_CANDIDATES`` local minima zoomed into (grids of 41 points over
+    +-1 step, ``_SEARCH_ZOOMS`` times). ``center`` is a grid point and is kept
+    on ties, so a model equal to the truth gets exactly its offset.
+    """
+    if not profiles:
+        return center, math.inf
+    n = int(round(half_range / _SEARCH_STEP_M))
+    grid = center + _SEARCH_STEP_M * np.arange(-n, n + 1)
+    lo, hi = center - half_range, center + half_range
+
+    def cost(d, missing):
+        m = np.column_stack(
+            [f(d) for f in profiles] + [np.full(len(d), math.inf)] * missing
+        )
+        return np.median(m, axis=1) if m.shape[1] else np.full(len(d), math.inf)
+
+    missing = num_missing
+    values = cost(grid, missing)
+    if not np.isfinite(values).any() and missing:
+        # More than half of the images missing: the median over the images
+        # present picks the offset; the judged median stays infinite.
+        logger.warning(
+            "vertical offset search: %d of %d images missing; the offset "
+            "minimises the median over the %d present",
+            missing,
+            missing + len(profiles),
+            len(profiles),
+        )
+        missing = 0
+        values = cost(grid, missing)
+    if not np.isfinite(values).any():
+        logger.warning(
+            "vertical offset search: no offset puts half of the images' corners "
+            "in front of their cameras; the camera-height offset %.3f m is used",
+            center,
+        )
+        return center, math.inf
+    i_best = int(np.argmin(values))
+    best, best_value = float(grid[i_best]), float(values[i_best])
+    padded = np.concatenate([[math.inf], values, [math.inf]])
+    local = (values <= padded[:-2]) & (values <= padded[2:]) & np.isfinite(values)
+    order = np.argsort(np.where(local, values, math.inf), kind="stable")
+    candidates = grid[order[: min(_SEARCH_CANDIDATES, int(local.sum()))]]
+    step = _SEARCH_STEP_M
+    offsets = np.linspace(-1.0, 1.0, 41)
+    for _ in range(_SEARCH_ZOOMS):
+        d = np.clip((candidates[:, None] + step * offsets).reshape(-1), lo, hi)
+        v = cost(d, missing).reshape(len(candidates), -1)
+        candidates = d.reshape(len(candidates), -1)[
+            np.arange(len(candidates)), np.argmin(v, axis=1)
+        ]
+        step /= 20.0
+        if v.min() < best_value:
+            best_value = float(v.min())
+            best = float(d[int(np.argmin(v))])
+    if missing != num_missing:
+        best_value = float(cost(np.array([best]), num_missing)[0])
+    return best, best_value
 
 
 def scene_height_offset(
@@ -367,6 +554,76 @@ def _image_offset(
         dz,
     )
     return d if math.isfinite(d) else float(dz)
+
+
+def _searched_offset(
+    est: Block,
+    gt: Block,
+    est_by_name: dict,
+    gt_by_name: dict,
+    corners: np.ndarray,
+    visible_idx: dict[str, np.ndarray],
+    camera_offset: float,
+    options: EvaluateOptions,
+) -> float:
+    """``vertical_offset="search"``: :func:`search_block_offset` over the
+    images with visible corners, in the common frame of ``est`` and ``gt``."""
+    profiles, missing = [], 0
+    for name in sorted(gt_by_name):
+        idx = visible_idx.get(name, np.zeros(0, int))
+        if idx.size == 0:
+            continue  # not measurable, not in the median
+        if name not in est_by_name:
+            missing += 1
+            continue
+        e = est.images[est_by_name[name].image_id]
+        g = gt.images[gt_by_name[name].image_id]
+        profiles.append(
+            mean_deviation_by_offset(
+                est.cameras[e.camera_id],
+                e.cam_from_world,
+                gt.cameras[g.camera_id],
+                g.cam_from_world,
+                corners[idx],
+                options.across_vertical,
+            )
+        )
+    if not profiles:
+        return camera_offset
+    offset, _ = search_block_offset(
+        profiles, missing, camera_offset, options.search_range_m
+    )
+    return offset
+
+
+def _percentile_inf(values: list[float], q: float) -> float:
+    """The q-th percentile (linear, as numpy's) of values that may be
+    infinite: infinite where it would interpolate towards an infinite one;
+    NaN values are left out."""
+    v = np.sort(np.asarray(values, float))
+    v = v[~np.isnan(v)]
+    if v.size == 0:
+        return math.nan
+    pos = q / 100.0 * (v.size - 1)
+    i = int(math.floor(pos))
+    frac = pos - i
+    if frac == 0.0 or i + 1 >= v.size:
+        return float(v[i])
+    if math.isinf(v[i + 1]):
+        return math.inf
+    return float(v[i] + frac * (v[i + 1] - v[i]))
+
+
+def _offset_label(options: EvaluateOptions) -> str:
+    """How the removed vertical offset was chosen, for the report."""
+    if not options.remove_vertical_offset:
+        return "kept"
+    if options.vertical_offset == "search":
+        return (
+            "search: minimises the median deviation within "
+            f"+-{options.search_range_m:g} m of the camera-height offset"
+        )
+    return f"{options.vertical_offset}: median of the images' own"
 
 
 def _nanstat(values: list[float], fn) -> float:
@@ -442,8 +699,28 @@ def evaluate_block(
     #    own (EvaluateOptions.vertical_offset).
     est_ref = est.shifted(ref)
     gt_local = gt.shifted(ref)
+    camera_offset = float(
+        np.median(
+            [
+                est_by_name[n].cam_from_world.center[2]
+                - gt_by_name[n].cam_from_world.center[2]
+                for n in common
+            ]
+        )
+    )
     offset = 0.0
-    if options.remove_vertical_offset:
+    if options.remove_vertical_offset and options.vertical_offset == "search":
+        offset = _searched_offset(
+            est_ref,
+            gt_local,
+            est_by_name,
+            gt_by_name,
+            corners_local,
+            visible_idx,
+            camera_offset,
+            options,
+        )
+    elif options.remove_vertical_offset:
         offset = float(
             np.median(
                 [
@@ -558,6 +835,13 @@ def evaluate_block(
         )
     }
     means = [r.mean_deviation_px for r in measured]
+    # Missing and behind: infinite (failures that the median must count).
+    means_all = [
+        r.mean_deviation_px
+        if r.status in (STATUS_REGISTERED, STATUS_FAILED)
+        else math.inf
+        for r in measured
+    ]
     summary = EvaluationSummary(
         num_total=len(measured),
         num_registered=count[STATUS_REGISTERED],
@@ -580,15 +864,19 @@ def evaluate_block(
         vertical_error_median_m=_nanstat(
             [abs(r.vertical_error_m) for r in present], np.median
         ),
+        camera_offset_m=camera_offset,
+        deviation_median_all_px=_percentile_inf(means_all, 50.0),
+        deviation_p95_all_px=_percentile_inf(means_all, 95.0),
     )
     logger.info(
         "registered %d / %d images "
-        "(median deviation %.3g px%s, vertical offset %.3f m)",
+        "(median deviation %.3g px%s, vertical offset %.3f m, %s)",
         summary.num_registered,
         summary.num_total,
         summary.deviation_median_px,
         " across verticals" if options.across_vertical else "",
         offset,
+        _offset_label(options),
     )
     if extra:
         logger.warning(
@@ -606,7 +894,7 @@ def evaluate_block(
 
 @dataclass
 class GroundTruth:
-    """The ground truth of a synthetic scene folder.
+    """The ground truth of a scene folder.
 
     Attributes
     ----------
@@ -614,21 +902,63 @@ class GroundTruth:
     corners_world : (K, 3) array, true 3D building corners, absolute, metres.
     visible : dict image name -> (M,) int array of corner indices.
     crs : str or None.
+    format : str, ``"synthetic"`` (``obliq-colmap synth``) or ``"external"``.
     """
 
     block: Block
     corners_world: np.ndarray
     visible: dict[str, np.ndarray]
     crs: str | None = None
+    format: str = GT_FORMAT_SYNTHETIC
+
+
+def _read_json_object(path: Path, expected: str) -> dict:
+    """A JSON file holding an object; InputError otherwise."""
+    try:
+        data = json.loads(path.read_text())
+    except (OSError, ValueError) as exc:
+        raise InputError(path, f"cannot read JSON: {exc}") from None
+    if not isinstance(data, dict):
+        raise InputError(path, f"expected a JSON object with {expected}")
+    return data
+
+
+def _parse_visible(path: Path, key: str, mapping, num_corners: int) -> dict:
+    """``mapping`` (image name -> corner indices) as int arrays, checked."""
+    if not isinstance(mapping, dict):
+        raise InputError(path, f"{key!r} must map image names to index lists")
+    visible = {}
+    for name, idx in mapping.items():
+        try:
+            arr = np.asarray(idx)
+            if arr.size == 0:
+                arr = arr.astype(int)
+            if arr.ndim != 1 or not np.issubdtype(arr.dtype, np.integer):
+                raise ValueError("not a list of integers")
+        except (TypeError, ValueError) as exc:
+            raise InputError(path, f"{key}[{name!r}]: {exc}") from None
+        if arr.size and (arr.min() < 0 or arr.max() >= num_corners):
+            raise InputError(
+                path,
+                f"{key}[{name!r}]: index out of range [0, {num_corners})",
+            )
+        visible[name] = arr.astype(int)
+    return visible
 
 
 def read_ground_truth(scene_path: str | Path) -> GroundTruth:
-    """Read ``gt/`` and ``gt_buildings.json`` of a synthetic scene folder.
+    """Read the ground truth of a scene folder, in either format.
+
+    The format is told by content: a ``gt_buildings.json`` with
+    ``visible_corners`` is a scene of ``obliq-colmap synth`` (CRS in its
+    ``crs``); one without, beside a ``gt_visibility.json`` (``images``: image
+    name -> corner indices), is the external format (CRS in ``frame.crs``).
+    Both have ``gt/`` and the absolute ``corners`` [x, y, z].
 
     Raises
     ------
     InputError
-        Missing folder, model or file; malformed ``gt_buildings.json``.
+        Missing folder, model or file; malformed JSON.
     """
     scene_path = Path(scene_path)
     if not scene_path.is_dir():
@@ -637,17 +967,17 @@ def read_ground_truth(scene_path: str | Path) -> GroundTruth:
     path = scene_path / GT_BUILDINGS_FILE
     if not path.is_file():
         raise InputError(path, "missing: the scene has no true building corners")
-    try:
-        data = json.loads(path.read_text())
-    except (OSError, ValueError) as exc:
-        raise InputError(path, f"cannot read JSON: {exc}") from None
-    if not isinstance(data, dict):
-        raise InputError(
-            path, "expected a JSON object with 'corners' and 'visible_corners'"
-        )
-    for key in ("corners", "visible_corners"):
+    data = _read_json_object(path, "'corners' and 'visible_corners'")
+    vis_path = scene_path / GT_VISIBILITY_FILE
+    external = "visible_corners" not in data and vis_path.is_file()
+    keys = ("corners",) if external else ("corners", "visible_corners")
+    for key in keys:
         if key not in data:
-            raise InputError(path, f"missing key {key!r}")
+            raise InputError(
+                path,
+                f"missing key {key!r}"
+                + ("" if key == "corners" else f" (and no {GT_VISIBILITY_FILE})"),
+            )
     try:
         corners = np.asarray(data["corners"], dtype=float)
     except (TypeError, ValueError) as exc:
@@ -660,35 +990,32 @@ def read_ground_truth(scene_path: str | Path) -> GroundTruth:
         )
     if not np.isfinite(corners).all():
         raise InputError(path, "'corners' contains non-finite values")
-    if not isinstance(data["visible_corners"], dict):
-        raise InputError(path, "'visible_corners' must map image names to index lists")
-    visible = {}
-    for name, idx in data["visible_corners"].items():
-        try:
-            arr = np.asarray(idx)
-            if arr.size == 0:
-                arr = arr.astype(int)
-            if arr.ndim != 1 or not np.issubdtype(arr.dtype, np.integer):
-                raise ValueError("not a list of integers")
-        except (TypeError, ValueError) as exc:
-            raise InputError(path, f"visible_corners[{name!r}]: {exc}") from None
-        if arr.size and (arr.min() < 0 or arr.max() >= len(corners)):
-            raise InputError(
-                path,
-                f"visible_corners[{name!r}]: index out of range [0, {len(corners)})",
-            )
-        visible[name] = arr.astype(int)
+    if external:
+        vis_data = _read_json_object(vis_path, "'images'")
+        if "images" not in vis_data:
+            raise InputError(vis_path, "missing key 'images'")
+        visible = _parse_visible(vis_path, "images", vis_data["images"], len(corners))
+        frame = data.get("frame")
+        crs = frame.get("crs") if isinstance(frame, dict) else None
+        unknown_path = vis_path
+    else:
+        visible = _parse_visible(
+            path, "visible_corners", data["visible_corners"], len(corners)
+        )
+        crs = data.get("crs")
+        unknown_path = path
     gt_names = {im.name for im in block.images.values()}
     unknown = sorted(set(visible) - gt_names)
     if unknown:
         logger.warning(
             "%s: %d image(s) not in %s, ignored: %s",
-            path,
+            unknown_path,
             len(unknown),
             GT_MODEL_DIR,
             ", ".join(unknown[:5]),
         )
-    return GroundTruth(block, corners, visible, data.get("crs"))
+    fmt = GT_FORMAT_EXTERNAL if external else GT_FORMAT_SYNTHETIC
+    return GroundTruth(block, corners, visible, crs, fmt)
 
 
 def read_absolute_block(model_path: str | Path) -> tuple[Block, str | None]:
@@ -712,13 +1039,15 @@ def evaluate_model(
     *,
     baseline: bool = False,
 ) -> Evaluation:
-    """Evaluate a result model folder against a synthetic scene folder.
+    """Evaluate a result model folder against a scene folder (either format).
 
     Parameters
     ----------
     result_path : the result model (with ``georef.json`` if local; absolute
         without); ignored (may be None) with ``baseline``.
-    gt_path : the scene folder (``gt/``, ``gt_buildings.json``, ``priors/``).
+    gt_path : the scene folder (``gt/``, ``gt_buildings.json``, ``priors/``;
+        ``gt_visibility.json`` in the external format, see
+        :func:`read_ground_truth`).
     options : EvaluateOptions, defaults if None.
     baseline : evaluate ``gt_path/priors`` instead of ``result_path``.
 
@@ -757,6 +1086,7 @@ def evaluate_model(
     )
     evaluation.result_path = str(result_path)
     evaluation.gt_path = str(gt_path)
+    evaluation.gt_format = truth.format
     return evaluation
 
 
@@ -786,6 +1116,10 @@ def _json_safe(obj):
 
 def _fmt(value: float, digits: int) -> str:
     return "-" if not math.isfinite(value) else f"{value:.{digits}f}"
+
+
+def _fmt_inf(value: float, digits: int) -> str:
+    return "inf" if value == math.inf else _fmt(value, digits)
 
 
 def format_table(evaluation: Evaluation) -> str:
@@ -822,10 +1156,15 @@ def format_table(evaluation: Evaluation) -> str:
         f"no corners {s.num_no_corners}, extra {s.num_extra}",
         f"mean deviation per image: median {_fmt(s.deviation_median_px, 3)} px, "
         f"p95 {_fmt(s.deviation_p95_px, 3)} px, max {_fmt(s.deviation_max_px, 3)} px",
+        "  with missing and behind images as infinite: median "
+        f"{_fmt_inf(s.deviation_median_all_px, 3)} px, "
+        f"p95 {_fmt_inf(s.deviation_p95_all_px, 3)} px",
         f"median rotation error {_fmt(s.rotation_error_median_deg, 4)} deg, "
         f"centre error {_fmt(s.center_error_median_m, 3)} m "
         f"(horizontal {_fmt(s.horizontal_error_median_m, 3)} m, "
         f"vertical {_fmt(s.vertical_error_median_m, 3)} m) after a vertical offset of "
         f"{_fmt(s.vertical_offset_m, 3)} m",
+        f"vertical offset: {_offset_label(evaluation.options)}; camera-height "
+        f"offset {_fmt(s.camera_offset_m, 3)} m",
     ]
     return "\n".join(lines)
