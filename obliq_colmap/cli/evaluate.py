@@ -73,8 +73,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         default=EvaluateOptions().vertical_offset,
         help="the model's vertical offset is the median over the images of "
         "the height that best fits each image's projections of its true "
-        "corners (corners) or of its camera-centre height error (cameras, "
-        "the measure before 2026-12-02), or the one offset that minimises the "
+        "corners (corners) or of its camera-centre height error (cameras), "
+        "or the one offset that minimises the "
         "median over the images of their mean deviation, missing images "
         "infinite (search, within --search_range_m of the median camera-height "
         "error); default %(default)s",
