@@ -2,6 +2,7 @@
 
 import json
 from dataclasses import replace
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -14,6 +15,8 @@ from obliq_colmap.evaluate import (
     evaluate_baseline,
     evaluate_block,
     evaluate_model,
+    read_ground_truth,
+    search_block_offset,
 )
 from obliq_colmap.geometry import (
     Camera,
@@ -472,3 +475,267 @@ def test_cli_errors(files, tmp_path, capsys):
         ]
     )
     assert rc == 2 and "no_dir" in capsys.readouterr().err
+
+
+# --------------------------------------------------------------------------
+# The external format (../shared/data/external_oblique) and the searched offset
+# --------------------------------------------------------------------------
+
+FRAME = {"x0": 512300.0, "y0": 5612400.0, "z0": 100.0, "crs": CRS}
+KNOWN_OFFSET_M = 12.3  # the datum of the estimated model above the truth's
+HEIGHT_NOISE_M = (0.04, -0.03, 0.02, 0.0)  # per image, on top of the offset
+SIDE_SHIFT_M = 1.5  # image 4 moved sideways: fails at every offset
+
+
+def write_external_scene(folder, gt, corners, visible):
+    """A scene folder in the external format: gt/, gt_buildings.json without
+    visibility (corner_info, corner_kinds, frame), gt_visibility.json."""
+    folder.mkdir()
+    io.write_absolute_model(folder / "gt", gt)
+    (folder / "gt_buildings.json").write_text(
+        json.dumps(
+            {
+                "frame": FRAME,
+                "buildings": [],
+                "map_only": [],
+                "corners": corners.tolist(),
+                "corner_info": [
+                    [0, 0 if z < ORIGIN[2] + 1 else 1] for z in corners[:, 2]
+                ],
+                "corner_kinds": {"0": "ground", "1": "eave", "2": "ridge"},
+                "trees": [],
+            }
+        )
+    )
+    (folder / "gt_visibility.json").write_text(
+        json.dumps(
+            {
+                "tolerance": "all corners in the image (no occlusion)",
+                "images": {k: v.tolist() for k, v in visible.items()},
+            }
+        )
+    )
+    return folder
+
+
+def make_estimate(gt):
+    """The truth raised by KNOWN_OFFSET_M, each image by HEIGHT_NOISE_M more,
+    the last one also moved SIDE_SHIFT_M sideways."""
+    est = copy_block(gt)
+    for i, im in est.images.items():
+        c = im.cam_from_world.center + [
+            0.0,
+            0.0,
+            KNOWN_OFFSET_M + HEIGHT_NOISE_M[i - 1],
+        ]
+        set_center(est, i, c)
+    x_cam_world = est.images[4].cam_from_world.rotation[0]
+    set_center(est, 4, est.images[4].cam_from_world.center + SIDE_SHIFT_M * x_cam_world)
+    return est
+
+
+def independent_means(est, gt, corners, visible, offset):
+    """Per image, the mean distance between the projections of its visible
+    corners by the estimated camera lowered by ``offset`` and by the true one
+    (geometry.project, no code of evaluate)."""
+    out = {}
+    for i, im in gt.images.items():
+        idx = visible[im.name]
+        e = est.images[i]
+        lowered = Pose.from_center(
+            e.cam_from_world.rotation, e.cam_from_world.center - [0.0, 0.0, offset]
+        )
+        xy_est, _ = project(est.cameras[e.camera_id], lowered, corners[idx])
+        xy_true, _ = project(gt.cameras[im.camera_id], im.cam_from_world, corners[idx])
+        out[im.name] = float(np.linalg.norm(xy_est - xy_true, axis=1).mean())
+    return out
+
+
+def test_external_scene_searched_offset(tmp_path, scene):
+    gt, corners, visible = scene
+    scene_path = write_external_scene(tmp_path / "ext", gt, corners, visible)
+    est = make_estimate(gt)
+    origin = ORIGIN + [10.0, -20.0, 30.0]
+    result = io.write_result(
+        tmp_path / "result", est.shifted(origin), io.Georef(origin, CRS)
+    )
+
+    ev = evaluate_model(result, scene_path, EvaluateOptions(vertical_offset="search"))
+    assert ev.gt_format == "external"
+    s = ev.summary
+    # Images 1-3 fit exactly at KNOWN_OFFSET_M + their own height noise, and
+    # every one's deviation grows away from it; image 4 is the largest
+    # everywhere near: the median (of 4: the mean of the 2nd and 3rd) is least
+    # within the spread of the three images' own offsets.
+    noise = np.asarray(HEIGHT_NOISE_M[:3])
+    assert KNOWN_OFFSET_M + noise.min() - 1e-6 <= s.vertical_offset_m
+    assert s.vertical_offset_m <= KNOWN_OFFSET_M + noise.max() + 1e-6
+    assert s.camera_offset_m == pytest.approx(
+        KNOWN_OFFSET_M + np.median(HEIGHT_NOISE_M)
+    )
+
+    # The deviations are those of an independent projection at that offset.
+    want = independent_means(est, gt, corners, visible, s.vertical_offset_m)
+    for name, mean in want.items():
+        assert ev.image(name).mean_deviation_px == pytest.approx(mean, abs=1e-6)
+    # ... and no other offset gives a lower median (a dense brute-force scan).
+    scan = np.linspace(KNOWN_OFFSET_M - 1.0, KNOWN_OFFSET_M + 1.0, 2001)
+    medians = [
+        np.median(list(independent_means(est, gt, corners, visible, d).values()))
+        for d in scan
+    ]
+    assert s.deviation_median_all_px <= min(medians) + 1e-6
+    # 1.5 m sideways at ~420 m: ~7 px; the others: cm of height, < 1 px.
+    assert ev.image(image_name(3)).status == "failed"
+    assert s.num_registered == 3 and s.deviation_median_all_px < 1.0
+
+    # The other offsets read the same format; "cameras" takes the heights'
+    # median, off the best fit by the spread of the height noise.
+    cams = evaluate_model(
+        result, scene_path, EvaluateOptions(vertical_offset="cameras")
+    )
+    assert cams.summary.vertical_offset_m == pytest.approx(s.camera_offset_m)
+    assert cams.summary.deviation_median_px >= s.deviation_median_px - 1e-9
+
+
+def test_external_scene_missing_images_count_as_infinite(tmp_path, scene):
+    gt, corners, visible = scene
+    scene_path = write_external_scene(tmp_path / "ext", gt, corners, visible)
+    est = copy_block(gt)
+    for i, im in est.images.items():
+        set_center(est, i, im.cam_from_world.center + [0.0, 0.0, KNOWN_OFFSET_M])
+    del est.images[1], est.images[2]
+    io.write_absolute_model(tmp_path / "half", est)
+    ev = evaluate_model(
+        tmp_path / "half", scene_path, EvaluateOptions(vertical_offset="search")
+    )
+    s = ev.summary
+    # Half missing: the median over the 4 is infinite at every offset; the
+    # offset comes from the images present.
+    assert s.vertical_offset_m == pytest.approx(KNOWN_OFFSET_M, abs=1e-9)
+    assert s.num_registered == 2 and s.num_missing == 2
+    assert s.deviation_median_all_px == np.inf and s.deviation_p95_all_px == np.inf
+    assert s.deviation_median_px < EXACT_PX  # over the measured images only
+    assert ev.to_json()["summary"]["deviation_median_all_px"] is None
+    del est.images[3]
+    io.write_absolute_model(tmp_path / "one", est)
+    s = evaluate_model(
+        tmp_path / "one", scene_path, EvaluateOptions(vertical_offset="search")
+    ).summary
+    assert s.deviation_median_all_px == np.inf
+    assert s.deviation_p95_all_px == np.inf
+
+
+def test_search_finds_the_global_minimum_of_a_non_convex_median():
+    """Per-image V-shapes in two clusters: the median has a local minimum at
+    the camera-height offset (the centre) and its global one 9 m away."""
+    lows = [0.0, 0.1, 9.0, 9.05, 9.1]
+    slopes = [5.0, 4.0, 6.0, 3.0, 5.0]
+    profiles = [
+        (lambda d, a=a, s=s: s * np.abs(np.asarray(d) - a))
+        for a, s in zip(lows, slopes, strict=True)
+    ]
+    offset, median = search_block_offset(profiles, 0, center=0.05, half_range=20.0)
+    scan = np.linspace(-19.95, 20.05, 400001)
+    brute = np.median(np.column_stack([f(scan) for f in profiles]), axis=1)
+    assert median <= brute.min() + 1e-9
+    assert offset == pytest.approx(scan[np.argmin(brute)], abs=1e-4)
+    assert 9.0 <= offset <= 9.1
+    # Within +-5 m of the centre: the least median of that range, between the
+    # clusters (3rd smallest of five: one of the pair, or of the three).
+    offset, median = search_block_offset(profiles, 0, center=0.05, half_range=5.0)
+    near = np.abs(scan - 0.05) <= 5.0
+    assert median <= brute[near].min() + 1e-9
+    assert offset == pytest.approx(scan[near][np.argmin(brute[near])], abs=1e-4)
+    # A missing image (infinite) makes the median of 6 the mean of the 3rd
+    # and 4th: the global minimum stays in the cluster of three.
+    offset, median = search_block_offset(profiles, 1, center=0.05, half_range=20.0)
+    assert 9.0 <= offset <= 9.1 and np.isfinite(median)
+
+
+def test_format_is_told_by_content(tmp_path, scene):
+    gt, corners, visible = scene
+    ext = write_external_scene(tmp_path / "ext", gt, corners, visible)
+    truth = read_ground_truth(ext)
+    assert truth.format == "external" and truth.crs == CRS
+    assert set(truth.visible) == {im.name for im in gt.images.values()}
+    syn = write_scene(tmp_path / "syn", gt, corners, visible)
+    assert read_ground_truth(syn).format == "synthetic"
+    # A synthetic file's visible_corners win over a stray gt_visibility.json.
+    (syn / "gt_visibility.json").write_text('{"images": {}}')
+    assert read_ground_truth(syn).format == "synthetic"
+    # Neither: named as missing.
+    (ext / "gt_visibility.json").unlink()
+    with pytest.raises(InputError, match="visible_corners.*gt_visibility.json"):
+        read_ground_truth(ext)
+    (ext / "gt_visibility.json").write_text(
+        '{"images": {"cam_0/img_000.jpg": [0, 999]}}'
+    )
+    with pytest.raises(InputError, match="out of range"):
+        read_ground_truth(ext)
+    (ext / "gt_visibility.json").write_text('{"imgs": {}}')
+    with pytest.raises(InputError, match="'images'"):
+        read_ground_truth(ext)
+
+
+def test_cli_search(tmp_path, scene, capsys):
+    gt, corners, visible = scene
+    scene_path = write_external_scene(tmp_path / "ext", gt, corners, visible)
+    io.write_absolute_model(tmp_path / "est", make_estimate(gt))
+    report = tmp_path / "r.json"
+    rc = _evaluate_cli(
+        "--input_path",
+        tmp_path / "est",
+        "--gt_path",
+        scene_path,
+        "--vertical_offset",
+        "search",
+        "--output_path",
+        report,
+    )
+    assert rc == 0
+    out = capsys.readouterr().out
+    assert "registered 3 / 4 images" in out and "vertical offset: search" in out
+    data = json.loads(report.read_text())
+    assert data["options"]["vertical_offset"] == "search"
+    assert data["gt_format"] == "external"
+    assert data["summary"]["vertical_offset_m"] == pytest.approx(
+        KNOWN_OFFSET_M, abs=0.05
+    )
+    rc = _evaluate_cli(
+        "--input_path",
+        tmp_path / "est",
+        "--gt_path",
+        scene_path,
+        "--vertical_offset",
+        "search",
+        "--search_range_m",
+        5,
+    )
+    assert rc == 0  # the camera-height offset is 12.3 m: within +-5 m
+    assert "+-5 m" in capsys.readouterr().out
+
+
+def _external_scene(name):
+    """``<repo>/../shared/data/external_oblique/<name>``, looked for from the
+    repository up (worktrees sit deeper than the main checkout)."""
+    here = Path(__file__).resolve().parent
+    for parent in here.parents:
+        path = parent / "shared" / "data" / "external_oblique" / name
+        if path.is_dir():
+            return path
+    pytest.skip(
+        f"external scene {name} not found in any ../shared/data/external_oblique"
+    )
+
+
+def test_real_external_truth_against_itself():
+    scene_path = _external_scene("urban-101")
+    ev = evaluate_model(
+        scene_path / "gt", scene_path, EvaluateOptions(vertical_offset="search")
+    )
+    s = ev.summary
+    assert ev.gt_format == "external"
+    assert (s.num_registered, s.num_total) == (36, 36)
+    assert s.vertical_offset_m == 0.0 and s.camera_offset_m == 0.0
+    assert s.deviation_max_px == 0.0 and s.deviation_median_all_px == 0.0

@@ -1,9 +1,16 @@
-"""``obliq-colmap evaluate``: measure a result model against a synthetic scene's truth.
+"""``obliq-colmap evaluate``: measure a result model against a scene's truth.
 
     obliq-colmap evaluate --input_path RESULT_MODEL --gt_path SCENE
                           [--baseline] [--across_vertical]
-                          [--registered_threshold_px 2] [--vertical_offset corners]
+                          [--registered_threshold_px 2]
+                          [--vertical_offset corners|cameras|search]
                           [--output_path report.json]
+
+SCENE is an ``obliq-colmap synth`` scene or an external one
+(``../shared/data/external_oblique/*``: ``gt/``, ``gt_buildings.json``,
+``gt_visibility.json``), told apart by content. ``--vertical_offset search``
+is the measure of issue 25: the ONE vertical offset minimising the median of
+the images' mean deviations, within +-20 m of the camera-height offset.
 
 With ``--baseline`` the scene's ``priors/`` model is evaluated; ``--input_path``
 is then optional, and when given both are evaluated (the JSON report holds the
@@ -34,7 +41,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--gt_path",
         required=True,
-        help="synthetic scene folder with gt/, priors/ and gt_buildings.json",
+        help="scene folder with gt/, priors/ and gt_buildings.json (synthetic) "
+        "or also gt_visibility.json (external format)",
     )
     parser.add_argument(
         "--baseline",
@@ -65,8 +73,18 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         default=EvaluateOptions().vertical_offset,
         help="the model's vertical offset is the median over the images of "
         "the height that best fits each image's projections of its true "
-        "corners (corners) or of its camera-centre height error (cameras, "
-        "the measure before 2026-12-02); default %(default)s",
+        "corners (corners) or of its camera-centre height error (cameras), "
+        "or the one offset that minimises the "
+        "median over the images of their mean deviation, missing images "
+        "infinite (search, within --search_range_m of the median camera-height "
+        "error); default %(default)s",
+    )
+    parser.add_argument(
+        "--search_range_m",
+        type=float,
+        default=EvaluateOptions().search_range_m,
+        help="half-width of the interval of --vertical_offset search "
+        "(m, default %(default)s)",
     )
     parser.add_argument("--output_path", help="write the report as JSON to this file")
 
@@ -88,6 +106,7 @@ def run(args: argparse.Namespace) -> int:
             across_vertical=args.across_vertical,
             remove_vertical_offset=not args.keep_vertical_offset,
             vertical_offset=args.vertical_offset,
+            search_range_m=args.search_range_m,
         )
     except ValueError as exc:
         raise InputError(None, str(exc)) from None
