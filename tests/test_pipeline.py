@@ -135,6 +135,7 @@ def test_initial_registration_is_within_the_per_image_target(initial_run):
     assert np.nanmedian(dev) < 0.6, dev
 
 
+@pytest.mark.slow
 def test_head_focal_pass_gives_each_head_one_focal_near_the_truth(tmp_path):
     """``head_focal_min_images``: each head's focal length from the consensus
     of all its images, its images refined again with it (the sample: 4 heads
@@ -227,6 +228,7 @@ def test_bundle_output_has_facade_points_seen_by_several_images(bundle_run):
         assert image.num_points3D > 0
 
 
+@pytest.mark.slow
 def test_cli_keeps_calibrated_focal_lengths(tmp_path):
     """``--refine_focal_length 0``: the priors' focal lengths (a calibrated
     camera per head) come out unchanged, also from the per-image stage,
@@ -246,6 +248,7 @@ def test_cli_keeps_calibrated_focal_lengths(tmp_path):
         np.testing.assert_array_equal(focal, prior.params[:1])
 
 
+@pytest.mark.slow
 def test_cli_refits_the_facade_segments_on_request(tmp_path, initial_run):
     """``--refine_facade_segments 1`` runs the refit in the per-image stage
     (off by default)."""
@@ -279,6 +282,7 @@ def test_cli_names_a_missing_map(tmp_path, capsys):
     assert not (tmp_path / "out").exists()
 
 
+@pytest.mark.slow
 def test_a_corrupt_image_is_left_out_and_the_rest_written(tmp_path, caplog):
     scene = tmp_path / "scene"
     shutil.copytree(SAMPLE, scene, ignore=shutil.ignore_patterns("gt*"))
