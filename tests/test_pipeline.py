@@ -181,7 +181,7 @@ def test_bundle_makes_the_images_agree_in_height(initial_run, bundle_run):
     assert full["bundle"].num_missing == full["initial"].num_missing == 0
     # measured 16 / 16 below 2 px, median 0.43 px (stage 2 alone: 12.8 px); with
     # the priors' own noise as the options (bench_register) 16 / 16, 0.47 px;
-    # over 8 stage-2 RANSAC seeds 0.27-0.53 px (docs/BENCHMARKS.md, issue 5)
+    # over 8 stage-2 RANSAC seeds 0.27-0.53 px (docs/journal/stage3-bundle.md)
     assert full["bundle"].num_registered >= 0.8 * full["bundle"].num_total
     assert full["bundle"].deviation_median_px < 1.0
     assert full["bundle"].deviation_median_px < full["initial"].deviation_median_px / 3
@@ -859,7 +859,7 @@ def test_a_reregistration_that_spoils_the_block_is_undone(
     outcome back: left out when it had failed, its first pose when it was
     registered but weak; its message names the image it spoiled. (The
     re-registration and the verdicts are stubbed: this is the bookkeeping;
-    the measured case is `hard` s2 / seed 0, docs/BENCHMARKS.md.)"""
+    the measured case is `hard` s2 / seed 0, docs/journal/stage3-bundle.md.)"""
     import copy
 
     from obliq_colmap import pipeline as pl

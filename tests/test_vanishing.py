@@ -699,7 +699,7 @@ def test_without_a_cone_a_restart_replaces_a_first_start_on_the_wrong_pencil(
     RANSAC draws. Two pencils 6 deg apart, the true one with the longer
     verticals; the first start is made to land on the other (the near-ties
     of `paper` seed 2 S_01, seed 5 W_11 / N_21, seed 7 W_20, 8.6-17 deg off:
-    docs/bench_vanishing.md), and the restarts' VP, whose second pass is
+    docs/journal/stage1-vanishing.md), and the restarts' VP, whose second pass is
     longer, is returned."""
     from obliq_colmap.vanishing import detect as vmod
 

@@ -14,7 +14,7 @@ plain arrays the registration stages need:
 Entry: :func:`load_cadastre` (path, :class:`CadastreOptions`, optional origin)
 -> :class:`Cadastre`.
 
-Data in (see DESIGN.md): a GeoJSON FeatureCollection of Polygon /
+Data in (see docs/DESIGN.md): a GeoJSON FeatureCollection of Polygon /
 MultiPolygon footprints (holes allowed) in a projected metric CRS, an optional
 ``"crs"`` member and optional ``id`` / ``height`` properties. Longitude /
 latitude input is rejected: reprojection is not supported yet.

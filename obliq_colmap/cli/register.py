@@ -157,7 +157,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         metavar="{0,1}",
         help="refit the facade segments to sub-pixel edges on the full-resolution "
         "image (less noise; better on the paper preset, worse with unknown "
-        "lenses: docs/BENCHMARKS.md; default 0)",
+        "lenses: docs/STATUS.md; default 0)",
     )
     bundle.add_argument(
         "--bundle_rotation_sigma",

@@ -11,7 +11,7 @@ external format of ``../shared/data/external_oblique`` (visibility in
 1. the rotation error (deg) of ``cam_from_world``;
 2. the camera-centre error (m, total, horizontal and vertical) after removing
    ONE vertical offset for the whole model: the vertical datum of a result is
-   only as good as that of its priors (see DESIGN.md, "COLMAP interface"), so
+   only as good as that of its priors (see docs/DESIGN.md, "COLMAP interface"), so
    a constant height offset is not an error of ours. The offset is the median
    over the matched images of the height by which each image's estimated
    camera must be lowered for its projections of the true corners to fit

@@ -28,7 +28,7 @@ class EvaluateOptions:
     ----------
     registered_threshold_px : float
         An image is registered when its mean corner deviation (px) is below
-        this (DESIGN.md: 2 px).
+        this (docs/DESIGN.md: 2 px).
     across_vertical : bool
         Measure only the deviation across the TRUE image direction of the
         world vertical through each corner (for per-image stages).

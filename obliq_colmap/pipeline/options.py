@@ -26,7 +26,7 @@ def default_head_focal_min_images(stop_after: str) -> int:
     when the run stops after stage 2 (its per-image poses are the product, and
     the heads' pooled focal makes them agree across the verticals), else 0
     (the bundle estimates the focal lengths itself and measured no better
-    from the pooled start: docs/BENCHMARKS.md, stage 2)."""
+    from the pooled start: docs/journal/stage2-registration.md)."""
     return 3 if stop_after == "initial" else 0
 
 

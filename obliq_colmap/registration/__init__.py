@@ -3,7 +3,7 @@
 Habbecke & Kobbelt, section 2.2: with the vertical vanishing point known, the
 pose has four unknowns, ``T(alpha, c) = R_vanish R_z(alpha) (I | -c)`` (eq. 1),
 found from correspondences between map corners and vertical image segments.
-Here the camera height is held at the prior (DESIGN.md, "height gauge"): a
+Here the camera height is held at the prior (docs/DESIGN.md, "height gauge"): a
 vertical-line constraint cannot see it, so three unknowns (alpha, c_x, c_y)
 remain and a sample of three pairs determines them in closed form
 (:mod:`~obliq_colmap.registration.ransac_core`).

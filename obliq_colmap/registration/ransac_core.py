@@ -8,7 +8,7 @@ line ``l`` through the vertical vanishing point and a map corner ``(x, y)``,
     l^T K R0 R_z(alpha) (X - c) = 0
 
 is LINEAR and homogeneous in ``w = (cos alpha, sin alpha, u_x, u_y)`` with
-``u = R_z(alpha) c`` (DESIGN.md, "Conventions"): with ``m = R0^T K^T l``
+``u = R_z(alpha) c`` (docs/DESIGN.md, "Conventions"): with ``m = R0^T K^T l``
 (``m_z = 0`` because ``l`` passes through the VP ``K n``),
 
     [m_x x + m_y y,  m_y x - m_x y,  -m_x,  -m_y] . w = 0.
@@ -20,7 +20,7 @@ constraints give a 1-D null space (the generalised cross product of the three
 rows), scaled so that ``cos^2 + sin^2 = 1``; its two signs are ``alpha`` and
 ``alpha + pi`` with the same centre, and cheirality picks one. The camera
 height is held (at the prior) instead of the paper's perpendicular auxiliary
-constraint, which fixes it arbitrarily; see DESIGN.md.
+constraint, which fixes it arbitrarily; see docs/DESIGN.md.
 
 Everything is vectorised over a batch of samples: thousands of hypotheses cost
 a few milliseconds. The algebraic residual is for generating hypotheses only;

@@ -38,7 +38,7 @@ Everything is homogeneous (a VP at infinity, ``w = 0``, is legal); internally
 pixel coordinates are centred and scaled (``T``) for conditioning. The
 vertical direction ``n = +-normalise(K^-1 v)`` is oriented down the world:
 ``n . d_prior > 0`` with the INS prior's predicted down direction, otherwise
-``n_y > 0`` (DESIGN.md, conventions).
+``n_y > 0`` (docs/DESIGN.md, conventions).
 
 Significance: the best hypothesis is judged a contrario: the number of
 segments consistent with it is compared with the number expected if the
