@@ -51,12 +51,12 @@ centre errors m, mean and max deviation px, status; the block's summary).
 
 Modules, in reading order:
 
-- ``results``: the options (:class:`EvaluateOptions`) and the result types;
+- ``results``: the options (:class:`EvaluateOptions`), the result types, their
+  JSON-safe values and the printed table;
 - ``measure``: one image's corner deviations, its own vertical offset, and
   the search of the block's one offset (``vertical_offset="search"``);
 - ``block``: :func:`evaluate_block`, the evaluation of a block;
-- ``scene``: the files: the two scene formats, result models, :func:`evaluate_model`;
-- ``report``: JSON-safe values and the printed table.
+- ``scene``: the files: the two scene formats, result models, :func:`evaluate_model`.
 """
 
 from obliq_colmap.evaluate.block import evaluate_block
@@ -66,7 +66,6 @@ from obliq_colmap.evaluate.measure import (
     scene_height_offset,
     search_block_offset,
 )
-from obliq_colmap.evaluate.report import format_table
 from obliq_colmap.evaluate.results import (
     STATUS_BEHIND,
     STATUS_FAILED,
@@ -78,6 +77,7 @@ from obliq_colmap.evaluate.results import (
     Evaluation,
     EvaluationSummary,
     ImageEvaluation,
+    format_table,
 )
 from obliq_colmap.evaluate.scene import (
     GT_BUILDINGS_FILE,

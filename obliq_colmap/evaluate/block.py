@@ -16,7 +16,6 @@ from obliq_colmap.evaluate.measure import (
     scene_height_offset,
     search_block_offset,
 )
-from obliq_colmap.evaluate.report import offset_label
 from obliq_colmap.evaluate.results import (
     STATUS_BEHIND,
     STATUS_FAILED,
@@ -27,6 +26,7 @@ from obliq_colmap.evaluate.results import (
     Evaluation,
     EvaluationSummary,
     ImageEvaluation,
+    offset_label,
 )
 from obliq_colmap.geometry import rotation_angle_deg
 
