@@ -59,10 +59,11 @@ Settings with the same prior rotations, focal lengths and VP cone (e.g. a
 position or map sweep) detect the same VPs: the VP of an image is computed
 once per such key (image, camera, prior, cone, options) and reused; its time
 is the one measured when it was computed. For that the script replaces
-``pipeline.detect_vertical_vp`` (where the pipeline's per-image stage looks
-it up) and runs ``initial_stage`` in the pipeline's private pool
-(``pipeline._workers``, one worker): both follow the pipeline's internals
-and must move with them.
+``detect_vertical_vp`` in ``obliq_colmap.pipeline.workers`` (where the
+pipeline's per-image stage, ``initial_image``, looks it up) and runs
+``initial_stage`` in the pipeline's pool (``pipeline.worker_pool``, one
+worker: in this process, so that the replacement takes effect): both follow
+the pipeline's internals and must move with them.
 """
 
 from __future__ import annotations
@@ -85,7 +86,6 @@ import scipy.ndimage  # noqa: E402, F401  (imported once, as in a worker,
 import scipy.optimize  # noqa: E402, F401  not timed with the first image)
 from shapely import affinity  # noqa: E402
 
-from obliq_colmap import pipeline  # noqa: E402
 from obliq_colmap.cadastre import load_cadastre, write_geojson  # noqa: E402
 from obliq_colmap.colmap_io import Block, ImageRecord, write_absolute_model  # noqa: E402
 from obliq_colmap.evaluate import EvaluateOptions, evaluate_block  # noqa: E402
@@ -95,7 +95,9 @@ from obliq_colmap.pipeline import (  # noqa: E402
     image_tasks,
     initial_stage,
     load_inputs,
+    worker_pool,
 )
+from obliq_colmap.pipeline import workers as pipeline_workers  # noqa: E402
 from obliq_colmap.registration import (  # noqa: E402
     RegistrationOptions,
     RegistrationResult,
@@ -191,7 +193,7 @@ def make_map(scene, rate, seed, folder: Path) -> Path:
 # --------------------------------------------------------------------------
 
 _VP_CACHE: dict[tuple, object] = {}
-_detect_vertical_vp = pipeline.detect_vertical_vp
+_detect_vertical_vp = pipeline_workers.detect_vertical_vp
 
 
 def _cached_detect_vertical_vp(img, options, camera, prior, rng=None):
@@ -238,7 +240,7 @@ def run_pipeline(
     origin3 = np.r_[inputs.cadastre.origin[:2], 0.0]
     init_args = (inputs.cadastre_path, options.cadastre, origin3)
     tc = time.process_time()
-    with pipeline._workers(1, init_args, inputs.cadastre, False) as pool:
+    with worker_pool(1, init_args, inputs.cadastre, False) as pool:
         outcomes, first, _ = initial_stage(pool, tasks, options, timings)
     return inputs, tasks, outcomes, first, timings, time.process_time() - tc
 
@@ -404,7 +406,8 @@ def main(argv=None) -> int:
     )
     ap.add_argument("--output", help="JSON file for the rows (rewritten per row)")
     args = ap.parse_args(argv)
-    pipeline.detect_vertical_vp = _cached_detect_vertical_vp
+    # where initial_image looks it up (one worker: in this process)
+    pipeline_workers.detect_vertical_vp = _cached_detect_vertical_vp
     rows = []
     tmp = Path(os.environ.get("TMPDIR", "/tmp")) / "bench_registration_inputs"
     tmp.mkdir(parents=True, exist_ok=True)

@@ -42,8 +42,8 @@ from pathlib import Path
 import numpy as np
 
 from obliq_colmap import adjustment as adj
+from obliq_colmap.adjustment import triangulate_tracks
 from obliq_colmap.bundle import residuals as res
-from obliq_colmap.matching import triangulate_tracks
 
 # The helpers shared by the scripts live in scripts/bench/, which is not a
 # package: put it first on the path (scripts/README.md).
@@ -148,18 +148,19 @@ def stage3_report(
     state = adj.BlockState.from_outcomes(reg)
     timings: dict[str, float] = {}
     log = _Capture()
-    loggers = [
-        logging.getLogger(f"obliq_colmap.{m}") for m in ("adjustment", "matching")
-    ]
+    # Stage 3's log: its modules' loggers (obliq_colmap.adjustment.matching,
+    # .problem, .rounds ...) pass their records up to the package's.
+    loggers = [logging.getLogger("obliq_colmap.adjustment")]
     for lg in loggers:
         lg.addHandler(log)
         lg.setLevel(logging.INFO)
         lg.propagate = False
     try:
         t0 = time.perf_counter()
-        new, result, stage3 = adj.bundle_stage(
+        adjusted = adj.bundle_stage(
             inputs, outcomes, state, options.adjustment, timings
         )
+        new, result, stage3 = adjusted.state, adjusted.bundle, adjusted.stage3
         wall = time.perf_counter() - t0
     finally:
         for lg in loggers:

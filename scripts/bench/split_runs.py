@@ -176,7 +176,7 @@ def evaluate_state(inputs, state: adj.BlockState, gt) -> tuple:
     """The block's evaluations: full deviation, across the vertical, and full
     with the camera-height offset (``evaluate --vertical_offset cameras``)."""
     cad = inputs.cadastre
-    block = pl._result_block(inputs, state).shifted(
+    block = pl.result_block(inputs, state).shifted(
         -np.array([cad.origin[0], cad.origin[1], 0.0])
     )
     out = []
@@ -218,13 +218,14 @@ def run_once(scene: Path, seed: int, args) -> dict:
     gt, _, _ = truth_local(scene, inputs)
     registered = {i for i, o in outcomes.items() if o.registered}
     if args.bundle_only:
-        state, result, stage3 = adj.bundle_stage(
+        adjusted = adj.bundle_stage(
             inputs,
             outcomes,
             adj.BlockState.from_outcomes([outcomes[i] for i in registered]),
             options.adjustment,
             {},
         )
+        state, result, stage3 = adjusted.state, adjusted.bundle, adjusted.stage3
         again: list[str] = []
     else:
         # What ``register`` does after stage 2: the bundle, the failed images

@@ -48,9 +48,10 @@ said otherwise):
 * ``real, from truth``: the final problem as it is, started at the true
   cameras.
 
-The bundle's last problem is caught by replacing ``adjustment.solve_bundle``
-(where ``bundle_stage`` looks it up) with a spy: it follows stage 3's
-internals and must move with them.
+The bundle's last problem is caught by replacing ``solve_bundle`` in
+``obliq_colmap.adjustment.rounds`` (the module of ``bundle_stage``, where it
+looks the name up) with a spy: it follows stage 3's internals and must move
+with them.
 """
 
 from __future__ import annotations
@@ -66,9 +67,9 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from obliq_colmap import adjustment as adj
+from obliq_colmap.adjustment import rounds, triangulate_tracks
 from obliq_colmap.bundle import BundleProblem, solve_bundle
 from obliq_colmap.geometry import Pose, lines_through
-from obliq_colmap.matching import triangulate_tracks
 
 # The helpers shared by the scripts live in scripts/bench/, which is not a
 # package: put it first on the path (scripts/README.md).
@@ -85,20 +86,18 @@ def _final_problem(inputs, outcomes, options):
         calls.append((problem, opts, result))
         return result
 
-    saved = adj.solve_bundle
-    adj.solve_bundle = spy
+    saved = rounds.solve_bundle
+    rounds.solve_bundle = spy  # where bundle_stage looks it up
     try:
         state = adj.BlockState.from_outcomes(
             [o for o in outcomes.values() if o.registered]
         )
-        new, _, stage3 = adj.bundle_stage(
-            inputs, outcomes, state, options.adjustment, {}
-        )
+        adjusted = adj.bundle_stage(inputs, outcomes, state, options.adjustment, {})
     finally:
-        adj.solve_bundle = saved
+        rounds.solve_bundle = saved
     if not calls:
         raise SystemExit("error: the bundle did not run (no facade constraints)")
-    return state, new, stage3, calls[-1]
+    return state, adjusted.state, adjusted.stage3, calls[-1]
 
 
 def _exact_lines(problem: BundleProblem, inputs, stage3, gt, gtb, by_name):

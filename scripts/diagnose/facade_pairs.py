@@ -28,10 +28,11 @@ The wall-plane height of a segment off the wall (a roof rim's overhang, a
 recessed window) differs between viewing directions by its offset times the
 difference of the cotangents, a few tenths of a metre: hence the 1 m limit.
 
-``--oracle`` replaces ``adjustment.facade_stage`` (where ``bundle_stage``
-looks it up) and rebuilds the tracks with the matching module's private
-``_anchor_xy`` and ``_tracks``: it follows stage 3's internals and must move
-with them.
+``--oracle`` replaces ``facade_stage`` in ``obliq_colmap.adjustment.rounds``
+(the module of ``bundle_stage``, where it looks the name up) and rebuilds
+the tracks as the matching does (``adjustment.points_along_edges``,
+``datum_corrections``, ``chain_tracks``): it follows stage 3's internals and
+must move with them.
 """
 
 from __future__ import annotations
@@ -42,7 +43,7 @@ from pathlib import Path
 import numpy as np
 
 from obliq_colmap import adjustment as adj
-from obliq_colmap import matching
+from obliq_colmap.adjustment import rounds
 
 # The helpers shared by the scripts live in scripts/bench/, which is not a
 # package: put it first on the path (scripts/README.md).
@@ -57,7 +58,7 @@ from split_runs import (  # noqa: E402
     truth_local,
 )
 
-_FACADE_STAGE = adj.facade_stage
+_FACADE_STAGE = rounds.facade_stage
 #: The run's truth (block, images by name) and the wrong-pair limit (m).
 _TRUTH: dict = {}
 
@@ -101,12 +102,12 @@ def _oracle_facade_stage(inputs, state, outcomes, options):
     ]
     cad = inputs.cadastre
     anchors = [
-        matching._anchor_xy(cad.edge_xy[f.edge], cad.edge_length[f.edge], f.s)
+        adj.points_along_edges(cad.edge_xy[f.edge], cad.edge_length[f.edge], f.s)
         for f in s3.facades
     ]
     grounds = np.array([state.planes[i] for i in s3.ids]).reshape(-1, 3)
-    correction = matching.datum_corrections(keep, len(s3.ids))
-    tracks = matching._tracks(
+    correction = adj.datum_corrections(keep, len(s3.ids))
+    tracks = adj.chain_tracks(
         s3.facades, anchors, grounds, correction, keep, options.matching
     )
     return adj.Stage3(s3.ids, s3.facades, tracks)
@@ -144,11 +145,11 @@ def main(argv: list[str] | None = None) -> int:
                 f" ({n[wrong].sum()} of {n.sum()} matches)"
             )
             if args.oracle:
-                adj.facade_stage = _oracle_facade_stage
+                rounds.facade_stage = _oracle_facade_stage  # bundle_stage's
                 try:
                     r = run_once(scene, seed, args)
                 finally:
-                    adj.facade_stage = _FACADE_STAGE
+                    rounds.facade_stage = _FACADE_STAGE
                 rows.append(r)
                 line += (
                     f"; without them: {r['registered']}/{r['total']} < 2 px, median"
