@@ -31,6 +31,7 @@ machine, which this script does):
     python scripts/bench/external.py [--data_path ../shared/data/external_oblique]
         [--scene urban-101 --scene houses-102] [--work_path DIR]
         [--output_path bench_external.json]
+        [--register_args "--refine_principal_point 0"]
 
 Its figures go to docs/STATUS.md (the table per scene class) and to
 docs/journal/end-to-end.md (dated, with the command and the machine).
@@ -44,12 +45,14 @@ import json
 import math
 import os
 import platform
+import shlex
 import shutil
 import subprocess
 import sys
 import tempfile
 import threading
 import time
+from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
@@ -142,7 +145,11 @@ class TreeMemory(threading.Thread):
 
 
 def run_register(
-    scene: Path, out: Path, stop_after: str, camera_model: str | None
+    scene: Path,
+    out: Path,
+    stop_after: str,
+    camera_model: str | None,
+    extra: Sequence[str] = (),
 ) -> dict:
     """One ``obliq-colmap register`` run; its command, time, memory and exit code."""
     cmd = register_command() + [
@@ -157,6 +164,7 @@ def run_register(
         cmd += ["--stop_after", stop_after]
     if camera_model:
         cmd += ["--camera_model", camera_model]
+    cmd += list(extra)
     log = out.with_suffix(".log")
     print("$ " + " ".join(cmd), flush=True)
     t0 = time.perf_counter()
@@ -408,6 +416,13 @@ def main(argv: list[str] | None = None) -> int:
         help="register's --stop_after (default both, one after the other)",
     )
     parser.add_argument(
+        "--register_args",
+        default="",
+        help="more options for every register run, as one string (a variant "
+        "of the defaults, e.g. '--refine_principal_point 0'); recorded in the "
+        "output",
+    )
+    parser.add_argument(
         "--work_path",
         type=Path,
         help="keep the models and logs here (default a temporary folder)",
@@ -439,7 +454,9 @@ def main(argv: list[str] | None = None) -> int:
                 out = work / f"{name}_{run}"
                 if out.exists():
                     shutil.rmtree(out)
-                r = run_register(scene, out, run, model)
+                r = run_register(
+                    scene, out, run, model, shlex.split(args.register_args)
+                )
                 if r["returncode"] != 0:
                     tail = Path(r["log"]).read_text().strip().splitlines()[-1:]
                     print(f"register exited {r['returncode']}: {tail}")
