@@ -19,9 +19,13 @@ class AdjustmentOptions:
     matching: MatchingOptions = field(default_factory=MatchingOptions)
     #: The bundle (its corner points are always fixed: vertical_constraints).
     #: Cauchy at 1 px: the facade tracks fit to ~0.15 px, so a wrong match is
-    #: many scales out and must lose its pull.
+    #: many scales out and must lose its pull. The distortion terms of a model
+    #: that has them are refined (a lens the priors do not describe bends every
+    #: vertical); ``refine_extra_params=False`` holds a calibrated lens.
     bundle: BundleOptions = field(
-        default_factory=lambda: BundleOptions(loss="cauchy", loss_scale_px=1.0)
+        default_factory=lambda: BundleOptions(
+            loss="cauchy", loss_scale_px=1.0, refine_extra_params=True
+        )
     )
     #: Bundle rounds after the first that drop the constraints whose residual
     #: exceeds ``outlier_factor`` robust standard deviations (of their kind)

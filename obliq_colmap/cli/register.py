@@ -146,9 +146,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         type=_bool01,
         default=bdefaults.refine_extra_params,
         metavar="{0,1}",
-        help="refine the distortion: the radial k1 per image in stage 2 (models "
-        "with a radial term), then every distortion parameter per camera in the "
-        "bundle, from the median of its images' k1 (default 0)",
+        help="refine the distortion of a camera model that has distortion terms "
+        "(--camera_model SIMPLE_RADIAL, ...): the radial k1 per image in stage 2, "
+        "then every distortion parameter per camera in the bundle, from the "
+        "median of its images' k1; 0 holds the priors' (calibrated) distortion "
+        "(default 1)",
     )
     bundle.add_argument(
         "--refine_facade_segments",

@@ -25,7 +25,7 @@ from obliq_colmap.pipeline.workers import (
     reregister,
     set_registration,
 )
-from obliq_colmap.registration import RegistrationResult
+from obliq_colmap.registration import RegistrationResult, radial_index
 from obliq_colmap.state import ImageOutcome
 
 __all__ = ["initial_stage", "rescue_heights"]
@@ -57,7 +57,9 @@ def initial_stage(
     timings["initial"] = time.perf_counter() - t0
     # set_registration replaces, never mutates: these stay the first pass's.
     first_pass = [o.registration for o in outcomes]
-    if options.registration.refine_distortion:
+    if options.registration.refine_distortion and any(
+        radial_index(t.result_camera.model) is not None for t in tasks
+    ):
         t0 = time.perf_counter()
         head_pass(pool, tasks, outcomes, options)
         timings["head_pass"] = time.perf_counter() - t0

@@ -108,6 +108,7 @@ from obliq_colmap.registration.overlay import (
     draw_registration_overlay,
 )
 from obliq_colmap.registration.reassociate import refine_with_camera
+from obliq_colmap.registration.refine import radial_index
 from obliq_colmap.registration.register import (
     block_ground_height,
     chance_counts,
@@ -126,6 +127,7 @@ __all__ = [
     "draw_registration_overlay",
     "focal_profile",
     "inlier_threshold_px",
+    "radial_index",
     "refine_with_camera",
     "register_image",
 ]

@@ -211,7 +211,7 @@ class RegistrationOptions:
     refine_focal: bool = True
     focal_sigma_min: float = 0.05
     min_inliers_intrinsics: int = 15
-    refine_distortion: bool = False
+    refine_distortion: bool = True
     distortion_sigma_px: float = 20.0
     allow_vp_in_frame: bool = False
     chance_trials: int = 3
