@@ -332,4 +332,8 @@ def build_bundle_problem(
             i: inputs.priors.images[i].cam_from_world.rotation for i in ids
         },
         prior_centers={i: inputs.priors.images[i].cam_from_world.center for i in ids},
+        # The priors' principal points (BundleOptions.principal_point_prior_sigma).
+        prior_principal_points={
+            c: inputs.priors.cameras[c].K[:2, 2].copy() for c in cameras
+        },
     )

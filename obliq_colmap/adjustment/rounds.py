@@ -338,6 +338,7 @@ def without_outliers(
         ),
         prior_rotations=p.prior_rotations,
         prior_centers=p.prior_centers,
+        prior_principal_points=p.prior_principal_points,
     )
     logger.info(
         "bundle: %d of %d vertical and %d of %d horizontal constraints rejected",

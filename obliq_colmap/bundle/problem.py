@@ -61,6 +61,11 @@ class BundleOptions:
     #: (``BundleProblem.prior_rotations``, a calibrated INS); None: no prior. It
     #: holds the rotation, which an image's map constraints determine worst.
     rotation_prior_sigma_deg: float | None = None
+    #: Standard deviation of each refined camera's principal point about the
+    #: priors' (``BundleProblem.prior_principal_points``), as a fraction of
+    #: the camera's larger image side; None: free. An uncalibrated camera's
+    #: principal point lies within about 1 % of the image size of its centre.
+    principal_point_prior_sigma: float | None = None
     #: Standard deviation (m) of each image's camera centre about its prior
     #: (``BundleProblem.prior_centers``: survey-grade GNSS with the lever arm
     #: applied, in the priors' frame and datum); None: no prior. Centres known
@@ -121,6 +126,11 @@ class BundleOptions:
             and not self.position_prior_sigma_m > 0
         ):
             raise ValueError("position_prior_sigma_m must be > 0 or None")
+        if (
+            self.principal_point_prior_sigma is not None
+            and not self.principal_point_prior_sigma > 0
+        ):
+            raise ValueError("principal_point_prior_sigma must be > 0 or None")
         if self.horizontal_offset_sigma_m <= 0:
             raise ValueError("horizontal_offset_sigma_m must be > 0")
 
@@ -175,6 +185,10 @@ class BundleProblem:
     prior_centers : dict image_id -> (3,) array, optional
         Prior camera centre of each image (GNSS), same frame as ``poses``,
         used with ``BundleOptions.position_prior_sigma_m``.
+    prior_principal_points : dict camera_id -> (2,) array, optional
+        The priors' principal point (px) of each camera, used with
+        ``BundleOptions.principal_point_prior_sigma`` (None: the start
+        cameras').
     """
 
     cameras: dict[int, Camera]
@@ -194,6 +208,7 @@ class BundleProblem:
     horizontal_offset_normal: np.ndarray | None = None
     prior_rotations: dict[int, np.ndarray] | None = None
     prior_centers: dict[int, np.ndarray] | None = None
+    prior_principal_points: dict[int, np.ndarray] | None = None
 
     def __post_init__(self) -> None:
         if self.image_ids is None:

@@ -41,7 +41,7 @@ import numpy as np
 
 from ..geometry import Camera, Pose, rotation_exp
 from . import covariance
-from .priors import AttitudePrior, CentrePrior, PosePrior
+from .priors import AttitudePrior, CentrePrior, PosePrior, PrincipalPointPrior
 from .problem import BundleOptions, BundleProblem, BundleResult, BundleSummary
 from .schur import Schur, damped_step, normal_equations
 from .setup import Setup, State, evaluate
@@ -109,10 +109,15 @@ def _solve(problem: BundleProblem, opts: BundleOptions) -> BundleResult:
     prior_mask = np.zeros(S.n_heights, bool)
     prior_mask[nJ:] = prior_w > 0
 
-    # Observed poses (INS attitude, GNSS centres): 3 rows per active image.
+    # Observed poses (INS attitude, GNSS centres): 3 rows per active image;
+    # the uncalibrated cameras' principal points: 2 rows per camera.
     pose_priors = [
         p
-        for p in (AttitudePrior.of(P, S, opts), CentrePrior.of(P, S, opts))
+        for p in (
+            AttitudePrior.of(P, S, opts),
+            CentrePrior.of(P, S, opts),
+            PrincipalPointPrior.of(P, S, opts),
+        )
         if p is not None
     ]
 
@@ -365,7 +370,7 @@ def _precision(
     redundancy = (
         len(r) + int(prior_mask.sum()) + len(S.A) - S.n_red - S.n_heights - S.n_offsets
     )
-    redundancy += 3 * len(S.active_images) * len(pose_priors)
+    redundancy += sum(p.n_rows for p in pose_priors)
     if redundancy > 0:
         variance_factor = float(np.sum(w * r * r)) / redundancy
         variance_factor += 2.0 * sum(p.cost(st) for p in pose_priors) / redundancy

@@ -195,6 +195,16 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "agree to centimetres (default %(default)s)",
     )
     bundle.add_argument(
+        "--bundle_principal_point_sigma",
+        type=float,
+        default=bdefaults.principal_point_prior_sigma or 0.0,
+        metavar="F",
+        help="hold each refined principal point near the priors' with this "
+        "1-sigma, a fraction of the larger image side (an uncalibrated camera's "
+        "principal point lies within about 1 %% of the image size of its "
+        "centre); 0: free (default %(default)s)",
+    )
+    bundle.add_argument(
         "--loss_scale",
         type=float,
         default=bdefaults.loss_scale_px,
@@ -247,6 +257,9 @@ def run(args: argparse.Namespace) -> int:
                     rotation_prior_sigma_deg=args.bundle_rotation_sigma,
                     position_prior_sigma_m=args.bundle_position_sigma,
                     estimate_prior_offset=bool(args.bundle_position_offset),
+                    principal_point_prior_sigma=(
+                        args.bundle_principal_point_sigma or None
+                    ),
                     loss_scale_px=args.loss_scale,
                 )
             ),
