@@ -74,13 +74,9 @@ def rotation_exp(omega: np.ndarray) -> np.ndarray:
 
 
 def rotation_from_axis_angle(rotvec: np.ndarray) -> np.ndarray:
-    """Rodrigues' formula: (3,) axis * angle (radians) to a (3, 3) rotation."""
-    rotvec = np.asarray(rotvec, dtype=float)
-    theta = float(np.linalg.norm(rotvec))
-    if theta < 1e-15:
-        return np.eye(3)
-    Kx = skew(rotvec / theta)
-    return np.eye(3) + np.sin(theta) * Kx + (1.0 - np.cos(theta)) * (Kx @ Kx)
+    """Rodrigues' formula: (3,) axis * angle (radians) to a (3, 3) rotation
+    (:func:`rotation_exp` of one vector)."""
+    return rotation_exp(np.asarray(rotvec, dtype=float)[None])[0]
 
 
 def axis_angle_from_rotation(R: np.ndarray) -> np.ndarray:
