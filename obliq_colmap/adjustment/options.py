@@ -21,10 +21,16 @@ class AdjustmentOptions:
     #: Cauchy at 1 px: the facade tracks fit to ~0.15 px, so a wrong match is
     #: many scales out and must lose its pull. The distortion terms of a model
     #: that has them are refined (a lens the priors do not describe bends every
-    #: vertical); ``refine_extra_params=False`` holds a calibrated lens.
+    #: vertical); ``refine_extra_params=False`` holds a calibrated lens. Each
+    #: principal point is held near the priors' with 1 % of the image size (an
+    #: uncalibrated camera's tolerance): free, it followed the weak vertical
+    #: mode of whole heads by up to 250 px on scenes of another renderer.
     bundle: BundleOptions = field(
         default_factory=lambda: BundleOptions(
-            loss="cauchy", loss_scale_px=1.0, refine_extra_params=True
+            loss="cauchy",
+            loss_scale_px=1.0,
+            refine_extra_params=True,
+            principal_point_prior_sigma=0.01,
         )
     )
     #: Bundle rounds after the first that drop the constraints whose residual
