@@ -45,6 +45,12 @@ _OVERRIDES: dict[str, tuple[str, type, str]] = {
     ),
     "slope_deg": ("slope_deg", float, "terrain slope (deg)"),
     "tilt_deg": ("tilt_deg", float, "camera tilt from nadir (deg)"),
+    "horizontal_fov_deg": (
+        "horizontal_fov_deg",
+        float,
+        "horizontal field of view (deg); the GSD is kept, so a narrower lens "
+        "flies higher",
+    ),
     "vertex_noise_m": ("cadastre_vertex_noise_m", float, "cadastre vertex noise (m)"),
 }
 
