@@ -1158,9 +1158,7 @@ def test_vp_observation_gradient_matches_its_cost():
 
     syn = make_synthetic_problem(seed=4, buildings=(3, 3), stations=(2, 1))
     vps, covs = _true_vps(syn, 0.05)
-    P = dataclasses.replace(
-        syn.problem, vertical_vps=vps, vertical_vp_covariances=covs
-    )
+    P = dataclasses.replace(syn.problem, vertical_vps=vps, vertical_vp_covariances=covs)
     opts = BundleOptions(vp_observations=True)
     S = Setup(P, opts)
     st = State.start(P, S)  # perturbed: the VP rows are several sd off
@@ -1189,9 +1187,7 @@ def test_vp_observation_gradient_matches_its_cost():
             out.params[s] = st.params[s] + basis[:, c] * step
             costs.append(obs.cost(out))
         numeric = (costs[0] - costs[1]) / 2e-4
-        np.testing.assert_allclose(
-            g[S.intr_col[s] + c], numeric, rtol=1e-5, atol=1e-9
-        )
+        np.testing.assert_allclose(g[S.intr_col[s] + c], numeric, rtol=1e-5, atol=1e-9)
 
 
 def test_exact_vps_pin_the_tilt_the_map_leaves_loose(noisy):

@@ -282,9 +282,7 @@ class VanishingPointObservation(PosePrior):
         ids.sort(key=lambda i: index[i])
         slots = np.array([index[i] for i in ids], int)
         vps = np.array([np.asarray(P.vertical_vps[i], float) for i in ids])
-        covs = np.array(
-            [np.asarray(P.vertical_vp_covariances[i], float) for i in ids]
-        )
+        covs = np.array([np.asarray(P.vertical_vp_covariances[i], float) for i in ids])
         params = [np.asarray(P.cameras[c].params, float) for c in S.camera_ids]
         obs = cls(S, slots, vps, covs, params, opts.vp_sigma_scale, opts.vp_loss_scale)
         return obs if len(obs.k) else None

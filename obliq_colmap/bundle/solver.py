@@ -1,8 +1,9 @@
 """The solve: :func:`solve_bundle`, the robust loss and the Levenberg-Marquardt loop.
 
 Robust loss by IRLS weights ``rho'(r^2)`` (Huber or Cauchy, scale in pixels);
-the cost is ``1/2 sum rho(r^2)`` (plus the optional corner-height prior),
-the same as Ceres' with the same loss.
+the cost is ``1/2 sum rho(r^2)`` (plus the optional corner-height prior and
+the observed camera parameters of :mod:`.priors`: attitude, centres,
+principal points, vertical VPs), the same as Ceres' with the same loss.
 
 Algorithm (Levenberg-Marquardt with the heights eliminated):
 
