@@ -1237,3 +1237,30 @@ def test_a_vp_on_a_wrong_pencil_does_not_pull_its_image(noisy):
     err = {i: _rotation_error_deg(out.poses[i].rotation, truth[i]) for i in truth}
     assert err[wrong] < 0.15, err
     assert out.vp_angle_deg[wrong] > 9.5
+
+
+def test_the_rounds_estimate_the_vp_sd_factor_and_keep_the_vps(noisy):
+    """Between rounds the VPs' sd factor is the one that makes the median
+    whitened squared VP residual that of a chi-square with 2 degrees of
+    freedom (robust to a wrong pencil), never below 1; the outlier round
+    keeps the VP observations."""
+    from obliq_colmap.adjustment import with_variance_components, without_outliers
+
+    sigma_stated = 0.005  # deg: 4x too optimistic for VPs 0.02 deg off
+    vps, covs = _true_vps(noisy, sigma_stated)
+    P = dataclasses.replace(
+        noisy.problem, vertical_vps=vps, vertical_vp_covariances=covs
+    )
+    opts = BundleOptions(vp_observations=True)
+    out = solve_bundle(P, opts)
+    out.vp_chi2 = {i: 2.0 * np.log(2.0) * 16.0 for i in out.vp_chi2}
+    out.vp_chi2[P.image_ids[0]] = 1e6  # a wrong pencil
+    kept = np.ones(len(P.horizontal_image), bool)
+    _, scaled = with_variance_components(P, out, opts, kept, 1)
+    assert scaled.vp_sigma_scale == pytest.approx(4.0)
+    out.vp_chi2 = {i: 0.01 for i in out.vp_chi2}
+    _, floor = with_variance_components(P, out, opts, kept, 1)
+    assert floor.vp_sigma_scale == 1.0
+    reduced, _, _ = without_outliers(P, out, 3.0, 1.0)
+    assert reduced.vertical_vps is P.vertical_vps
+    assert reduced.vertical_vp_covariances is P.vertical_vp_covariances
