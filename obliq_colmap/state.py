@@ -51,6 +51,10 @@ class ImageOutcome:
     message : why, in words ("" when registered without remark).
     vp_status : the vanishing stage's status ("ok", "low_confidence", "no_vp").
     vertical_direction : (3,) array or None, detected, camera frame, down.
+    vp, vp_covariance : (3,) and (3, 3) arrays or None: stage 1's vertical
+        VP (homogeneous, unit, UNDISTORTED pixels of the priors' camera, the
+        frame stage 1 measured it in) and its covariance; only where the
+        vanishing stage's status is "ok" (the bundle observes them).
     segments : (N, 2, 2) array, the VP-constrained vertical segments in
         UNDISTORTED pixels (the registration's input).
     line_segments : Segments, all first-pass segments (undistorted pixels,
@@ -71,6 +75,8 @@ class ImageOutcome:
     message: str = ""
     vp_status: str = ""
     vertical_direction: np.ndarray | None = None
+    vp: np.ndarray | None = None
+    vp_covariance: np.ndarray | None = None
     segments: np.ndarray = field(default_factory=lambda: np.zeros((0, 2, 2)))
     line_segments: Segments = field(default_factory=Segments)
     registration: RegistrationResult | None = None

@@ -18,7 +18,12 @@ from obliq_colmap.bundle import (
     residuals as res,
 )
 from obliq_colmap.bundle.covariance import camera_covariance
-from obliq_colmap.bundle.priors import AttitudePrior, CentrePrior, PrincipalPointPrior
+from obliq_colmap.bundle.priors import (
+    AttitudePrior,
+    CentrePrior,
+    PrincipalPointPrior,
+    VanishingPointObservation,
+)
 from obliq_colmap.bundle.schur import normal_equations
 from obliq_colmap.bundle.setup import Setup, State, evaluate
 from obliq_colmap.synthetic.bundle_problem import concatenate, make_synthetic_problem
@@ -1116,3 +1121,146 @@ def test_a_principal_point_prior_holds_a_principal_point_started_far_off(noisy):
     assert held.variance_factor == pytest.approx(free.variance_factor, rel=0.2)
     with pytest.raises(ValueError, match="principal_point_prior_sigma"):
         BundleOptions(principal_point_prior_sigma=0.0)
+
+
+# --------------------------------------------------------------------------
+# Vertical vanishing points observed (stage 1's VP with its covariance)
+# --------------------------------------------------------------------------
+
+
+def _true_vps(syn, sigma_deg, tilted_deg=None):
+    """Each image's exact vertical VP (undistorted pixels of its true
+    camera) with an isotropic covariance of ``sigma_deg`` per axis of its
+    direction; ``tilted_deg``: image id -> a VP that many degrees off."""
+    from scipy.spatial.transform import Rotation
+
+    vps, covs = {}, {}
+    for i in syn.problem.image_ids:
+        K = syn.cameras[syn.problem.image_camera[i]].K
+        m = syn.poses[i].rotation @ [0.0, 0.0, -1.0]
+        if tilted_deg and i in tilted_deg:
+            axis = np.deg2rad(tilted_deg[i]) * np.array([1.0, 0.0, 0.0])
+            m = Rotation.from_rotvec(axis).as_matrix() @ m
+        u = K @ m
+        v = u / np.linalg.norm(u)
+        G = (np.eye(3) - np.outer(v, v)) / np.linalg.norm(u) @ K  # d v / d m
+        s = np.deg2rad(sigma_deg)
+        vps[i], covs[i] = v, G @ (s * s * (np.eye(3) - np.outer(m, m))) @ G.T
+    return vps, covs
+
+
+def test_vp_observation_gradient_matches_its_cost():
+    """The VP rows' J^T W r (add_to, with the Cauchy IRLS weight) is the
+    derivative of their cost, by central differences, under the solver's
+    increments: R <- Exp(omega) R and params += basis @ d (the VP's
+    direction moves with the focal length and the principal point)."""
+    from scipy.spatial.transform import Rotation
+
+    syn = make_synthetic_problem(seed=4, buildings=(3, 3), stations=(2, 1))
+    vps, covs = _true_vps(syn, 0.05)
+    P = dataclasses.replace(syn.problem, vertical_vps=vps, vertical_vp_covariances=covs)
+    opts = BundleOptions(vp_observations=True)
+    S = Setup(P, opts)
+    st = State.start(P, S)  # perturbed: the VP rows are several sd off
+    obs = VanishingPointObservation.of(P, S, opts)
+    assert obs.n_rows == 2 * len(S.active_images)
+    assert np.abs(obs.errors(st)).max() > 3.0  # in the loss's curved part
+    g = np.zeros(S.n_red)
+    obs.add_to(np.zeros((S.n_red, S.n_red)), g, st)
+    k, s = int(obs.k[1]), int(obs.slot[1])
+    for c in range(3):
+        costs = []
+        for step in (1e-6, -1e-6):
+            out = st.copy()
+            omega = np.zeros(3)
+            omega[c] = step
+            out.R[k] = Rotation.from_rotvec(omega).as_matrix() @ st.R[k]
+            costs.append(obs.cost(out))
+        numeric = (costs[0] - costs[1]) / 2e-6
+        np.testing.assert_allclose(g[S.pose_col[k] + c], numeric, rtol=1e-5)
+    basis = S.refined[s]
+    assert basis.shape[1] >= 3  # focal, principal point, distortion
+    for c in range(basis.shape[1]):
+        costs = []
+        for step in (1e-4, -1e-4):
+            out = st.copy()
+            out.params[s] = st.params[s] + basis[:, c] * step
+            costs.append(obs.cost(out))
+        numeric = (costs[0] - costs[1]) / 2e-4
+        np.testing.assert_allclose(g[S.intr_col[s] + c], numeric, rtol=1e-5, atol=1e-9)
+
+
+def test_exact_vps_pin_the_tilt_the_map_leaves_loose(noisy):
+    """With each image's exact VP (0.02 deg), the solved rotations end much
+    nearer the truth than with the map's constraints alone (the tilt is the
+    images' weakest direction); the VPs cost nothing at the truth, so the
+    variance factor stays that of the noise and the solved angles are tiny.
+    The rows count in the redundancy; the option's scales are validated."""
+    truth = {i: noisy.poses[i].rotation for i in noisy.problem.image_ids}
+    vps, covs = _true_vps(noisy, 0.02)
+    P = dataclasses.replace(
+        noisy.problem, vertical_vps=vps, vertical_vp_covariances=covs
+    )
+    free = solve_bundle(P, BundleOptions())
+    held = solve_bundle(P, BundleOptions(vp_observations=True))
+    err = {
+        name: np.median(
+            [_rotation_error_deg(out.poses[i].rotation, truth[i]) for i in truth]
+        )
+        for name, out in (("free", free), ("held", held))
+    }
+    assert err["held"] < 0.5 * err["free"], err
+    assert not free.vp_angle_deg
+    assert max(held.vp_angle_deg.values()) < 0.05
+    assert held.variance_factor == pytest.approx(free.variance_factor, rel=0.2)
+    for bad in (0.0, -1.0, np.inf):
+        with pytest.raises(ValueError, match="vp_sigma_scale"):
+            BundleOptions(vp_sigma_scale=bad)
+    with pytest.raises(ValueError, match="vp_loss_scale"):
+        BundleOptions(vp_loss_scale=0.0)
+    with pytest.raises(ValueError, match="covariance"):
+        dataclasses.replace(noisy.problem, vertical_vps=vps)
+
+
+def test_a_vp_on_a_wrong_pencil_does_not_pull_its_image(noisy):
+    """One image's VP 10 deg off (a wrong pencil), the others exact: the
+    robust loss leaves that image where its map constraints put it (its
+    rotation error stays near the others', far below the 10 deg), and its
+    solved angle to the VP reports the 10 deg."""
+    truth = {i: noisy.poses[i].rotation for i in noisy.problem.image_ids}
+    wrong = noisy.problem.image_ids[0]
+    vps, covs = _true_vps(noisy, 0.02, tilted_deg={wrong: 10.0})
+    P = dataclasses.replace(
+        noisy.problem, vertical_vps=vps, vertical_vp_covariances=covs
+    )
+    out = solve_bundle(P, BundleOptions(vp_observations=True))
+    err = {i: _rotation_error_deg(out.poses[i].rotation, truth[i]) for i in truth}
+    assert err[wrong] < 0.15, err
+    assert out.vp_angle_deg[wrong] > 9.5
+
+
+def test_the_rounds_estimate_the_vp_sd_factor_and_keep_the_vps(noisy):
+    """Between rounds the VPs' sd factor is the one that makes the median
+    whitened squared VP residual that of a chi-square with 2 degrees of
+    freedom (robust to a wrong pencil), never below 1; the outlier round
+    keeps the VP observations."""
+    from obliq_colmap.adjustment import with_variance_components, without_outliers
+
+    sigma_stated = 0.005  # deg: 4x too optimistic for VPs 0.02 deg off
+    vps, covs = _true_vps(noisy, sigma_stated)
+    P = dataclasses.replace(
+        noisy.problem, vertical_vps=vps, vertical_vp_covariances=covs
+    )
+    opts = BundleOptions(vp_observations=True)
+    out = solve_bundle(P, opts)
+    out.vp_chi2 = {i: 2.0 * np.log(2.0) * 16.0 for i in out.vp_chi2}
+    out.vp_chi2[P.image_ids[0]] = 1e6  # a wrong pencil
+    kept = np.ones(len(P.horizontal_image), bool)
+    _, scaled = with_variance_components(P, out, opts, kept, 1)
+    assert scaled.vp_sigma_scale == pytest.approx(4.0)
+    out.vp_chi2 = {i: 0.01 for i in out.vp_chi2}
+    _, floor = with_variance_components(P, out, opts, kept, 1)
+    assert floor.vp_sigma_scale == 1.0
+    reduced, _, _ = without_outliers(P, out, 3.0, 1.0)
+    assert reduced.vertical_vps is P.vertical_vps
+    assert reduced.vertical_vp_covariances is P.vertical_vp_covariances

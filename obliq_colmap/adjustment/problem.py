@@ -310,6 +310,9 @@ def build_bundle_problem(
     lines = lines_through(ends[:, 0], ends[:, 1])
     stage3.row_obs = np.arange(t.num_observations)
     cameras = _group_cameras(inputs, state, outcomes)
+    # Stage 1's vertical VPs where its status is "ok" (ImageOutcome.vp),
+    # observations where BundleOptions.vp_observations.
+    with_vp = [i for i in ids if outcomes[i].vp is not None]
     return BundleProblem(
         cameras=cameras,
         poses={i: state.poses[i] for i in ids},
@@ -336,4 +339,6 @@ def build_bundle_problem(
         prior_principal_points={
             c: inputs.priors.cameras[c].K[:2, 2].copy() for c in cameras
         },
+        vertical_vps={i: outcomes[i].vp for i in with_vp},
+        vertical_vp_covariances={i: outcomes[i].vp_covariance for i in with_vp},
     )

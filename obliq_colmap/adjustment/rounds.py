@@ -198,6 +198,23 @@ def _robust_sigma(r: np.ndarray, default: float) -> float:
     return float(max(1.4826 * np.median(np.abs(r)), 0.05)) if len(r) else default
 
 
+#: Median of a chi-square variable with 2 degrees of freedom (2 ln 2).
+_CHI2_2_MEDIAN = 2.0 * math.log(2.0)
+
+
+def _vp_sigma_scale(result: BundleResult, default: float) -> float:
+    """The factor on stage 1's stated VP standard deviations that makes the
+    median whitened squared VP residual of ``result`` that of a chi-square
+    with 2 degrees of freedom (robust: wrong pencils do not count), never
+    below 1 (no more weight than stage 1 states; residuals shrink where the
+    VPs hold the fit). ``default`` without VP observations."""
+    chi2 = np.array(list(result.vp_chi2.values()), float)
+    chi2 = chi2[np.isfinite(chi2)]
+    if len(chi2) == 0:
+        return default
+    return float(max(1.0, math.sqrt(np.median(chi2) / _CHI2_2_MEDIAN)))
+
+
 def with_variance_components(
     problem: BundleProblem,
     result: BundleResult,
@@ -206,7 +223,9 @@ def with_variance_components(
     unknowns_per_track: int,
 ) -> tuple[BundleProblem, BundleOptions]:
     """Both residual kinds weighted by their robust standard deviation in
-    the last solve: vertical (map corners) and horizontal (facade tracks).
+    the last solve: vertical (map corners) and horizontal (facade tracks);
+    with VP observations, stage 1's stated VP covariance scaled by the
+    factor the last solve's VP residuals show (:func:`_vp_sigma_scale`).
     ``kept``: the horizontal rows of the last solve still in ``problem``.
 
     A track of n observations fits ``unknowns_per_track`` of them exactly
@@ -227,11 +246,13 @@ def with_variance_components(
             result.vertical_residuals_px, options.vertical_sigma_px
         ),
         horizontal_sigma_px=_robust_sigma(scaled[n > u], options.horizontal_sigma_px),
+        vp_sigma_scale=_vp_sigma_scale(result, options.vp_sigma_scale),
     )
     logger.info(
-        "bundle: sigma px: map corners %.3f, facade lines %.3f",
+        "bundle: sigma px: map corners %.3f, facade lines %.3f; VP sd x %.2f",
         options.vertical_sigma_px,
         options.horizontal_sigma_px,
+        options.vp_sigma_scale,
     )
     return problem, options
 
@@ -339,6 +360,8 @@ def without_outliers(
         prior_rotations=p.prior_rotations,
         prior_centers=p.prior_centers,
         prior_principal_points=p.prior_principal_points,
+        vertical_vps=p.vertical_vps,
+        vertical_vp_covariances=p.vertical_vp_covariances,
     )
     logger.info(
         "bundle: %d of %d vertical and %d of %d horizontal constraints rejected",

@@ -19,6 +19,12 @@ camera model):
   ``(x_j, y_j, h_j)`` to the detected horizontal line, measured along the
   projected vertical.
 
+Observed camera parameters (``priors``; each optional): INS attitude, GNSS
+centres, the principal points, and each image's vertical vanishing point
+(stage 1's VP with its covariance, ``BundleOptions.vp_observations``: 2 rows,
+the angle between the world's vertical as the camera sees it and the VP's
+direction through the camera's current intrinsics, robust).
+
 Data in (:class:`BundleProblem`, local map frame, metres, x east, y north):
 cameras (camera_id -> Camera) and initial ``cam_from_world`` poses (image_id
 -> Pose); (C, 2) map corners with (C,) initial heights; M vertical
@@ -48,7 +54,8 @@ Modules, in reading order:
   evaluation of residuals and Jacobians.
 - ``schur``: normal equations, the Schur complement on the heights and the
   damped step.
-- ``priors``: the observed poses (INS attitude, GNSS centres).
+- ``priors``: the observed poses (INS attitude, GNSS centres), principal
+  points and vertical vanishing points.
 - ``covariance``: the camera block's a-posteriori covariance and each
   image's precision.
 - ``solver``: :func:`solve_bundle`, the robust loss and the

@@ -1,6 +1,6 @@
 """Observed camera parameters: an INS attitude and GNSS centres (3 residual
 rows per image), the principal points of uncalibrated cameras (2 rows per
-camera).
+camera), the vertical vanishing points of stage 1 (2 rows per image).
 
 Each prior adds its terms to the camera block of the normal equations
 (:meth:`add_to`) and its exact cost (:meth:`cost`); the solver builds them
@@ -13,6 +13,7 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from ..geometry import calibration_matrix, skew
 from . import residuals as res
 from .problem import BundleOptions, BundleProblem
 from .setup import Setup, State
@@ -181,3 +182,184 @@ class PrincipalPointPrior(PosePrior):
         ):
             H_cc[np.ix_(cols, cols)] += w * (B.T @ B)
             g_c[cols] += w * (B.T @ e)
+
+
+#: World down (z up) in the world frame.
+_DOWN = np.array([0.0, 0.0, -1.0])
+
+
+def _tangent_basis(m: np.ndarray) -> np.ndarray:
+    """(2, 3) orthonormal rows perpendicular to the unit vector ``m``."""
+    a = np.eye(3)[int(np.argmin(np.abs(m)))]
+    t1 = np.cross(m, a)
+    t1 /= np.linalg.norm(t1)
+    return np.stack([t1, np.cross(m, t1)])
+
+
+class VanishingPointObservation(PosePrior):
+    """Each observed image's vertical vanishing point (stage 1): 2 rows.
+
+    With ``d = R (0, 0, -1)`` the world's down direction as the camera sees
+    it and ``m = +-normalise(K^-1 v)`` the VP's direction through the
+    camera's CURRENT pinhole part (the VP moves with the focal length and the
+    principal point), the error is ``e = T (m x d)``: the rotation vector
+    from ``m`` to ``d`` (its length the sine of their angle) in a tangent
+    basis ``T`` (2, 3) of the observation's direction at the start. It is
+    whitened by stage 1's covariance of ``v`` propagated to that tangent
+    plane (at the start; times ``BundleOptions.vp_sigma_scale``): ``z = L e``,
+    ``L^T L = C_e^-1``. Robust: Cauchy on ``|z|^2`` (scale
+    ``BundleOptions.vp_loss_scale``), so that a VP on a wrong pencil loses
+    its pull; IRLS weights as the solver's map rows.
+
+    Jacobians: rotation, analytic (``R <- Exp(omega) R``: ``dd = -[d]x
+    omega``); intrinsics, exact through ``K`` (linear in fx, fy, cx, cy; the
+    distortion terms do not move the pinhole direction): ``dm = -P K^-1 dK
+    m / |K^-1 v|``, P the projector across ``m``.
+    """
+
+    def __init__(
+        self,
+        S: Setup,
+        slots: np.ndarray,
+        vps: np.ndarray,
+        covariances: np.ndarray,
+        params: list[np.ndarray],
+        sigma_scale: float,
+        loss_scale: float,
+    ) -> None:
+        vps = vps / np.linalg.norm(vps, axis=1, keepdims=True)
+        keep, V, T, L = [], [], [], []
+        for k, v, C in zip(slots, vps, covariances, strict=True):
+            s = int(S.img_cam[k])
+            Kinv = np.linalg.inv(calibration_matrix(S.camera_model[s], params[s]))
+            u = Kinv @ v
+            nu = np.linalg.norm(u)
+            m = u / nu
+            Jm = (np.eye(3) - np.outer(m, m)) / nu @ Kinv
+            Cm = Jm @ C @ Jm.T
+            Tk = _tangent_basis(m)
+            A = -Tk @ skew(m)  # d e / d m at d = m
+            Ce = A @ Cm @ A.T * sigma_scale**2
+            try:
+                Lk = np.linalg.cholesky(np.linalg.inv(Ce)).T  # L^T L = Ce^-1
+            except np.linalg.LinAlgError:
+                continue  # a degenerate covariance: no observation
+            if not np.all(np.isfinite(Lk)):
+                continue
+            keep.append(int(k))
+            V.append(v)
+            T.append(Tk)
+            L.append(Lk)
+        self.k = np.array(keep, int)
+        self.v = np.array(V).reshape(-1, 3)
+        self.T = np.array(T).reshape(-1, 2, 3)
+        self.L = np.array(L).reshape(-1, 2, 2)
+        self.slot = S.img_cam[self.k]
+        self.model = [S.camera_model[s] for s in self.slot]
+        self.rot_cols = S.pose_col[self.k][:, None] + np.arange(3)
+        self.basis = [S.refined[s] for s in self.slot]
+        self.intr_cols = [
+            S.intr_col[s] + np.arange(S.refined[s].shape[1])
+            if S.intr_col[s] >= 0
+            else np.zeros(0, int)
+            for s in self.slot
+        ]
+        self.sigma_scale = sigma_scale
+        self.c2 = loss_scale**2
+        self.w = 1.0
+
+    @classmethod
+    def of(cls, P: BundleProblem, S: Setup, opts: BundleOptions):
+        if not opts.vp_observations or not P.vertical_vps:
+            return None
+        index = {iid: k for k, iid in enumerate(P.image_ids)}
+        active = set(S.active_images.tolist())
+        ids = [
+            i for i in P.vertical_vps if i in index and index[i] in active
+        ]  # images with map rows only: the others have no columns
+        if not ids:
+            return None
+        ids.sort(key=lambda i: index[i])
+        slots = np.array([index[i] for i in ids], int)
+        vps = np.array([np.asarray(P.vertical_vps[i], float) for i in ids])
+        covs = np.array([np.asarray(P.vertical_vp_covariances[i], float) for i in ids])
+        params = [np.asarray(P.cameras[c].params, float) for c in S.camera_ids]
+        obs = cls(S, slots, vps, covs, params, opts.vp_sigma_scale, opts.vp_loss_scale)
+        return obs if len(obs.k) else None
+
+    @property
+    def n_rows(self) -> int:
+        return 2 * len(self.k)
+
+    def _directions(self, st: State, k: int):
+        """(m, K^-1) of observation ``k``: the VP's unit direction through
+        the current intrinsics (either orientation)."""
+        Kinv = np.linalg.inv(
+            calibration_matrix(self.model[k], st.params[int(self.slot[k])])
+        )
+        u = Kinv @ self.v[k]
+        return u / np.linalg.norm(u), Kinv
+
+    def angles(self, st: State) -> tuple[np.ndarray, np.ndarray]:
+        """(K', 2) errors ``e`` (radians, tangent) and (K', 3) down
+        directions ``d`` at ``st``."""
+        d = st.R[self.k] @ _DOWN  # (K', 3)
+        e = np.zeros((len(self.k), 2))
+        for j in range(len(self.k)):
+            m, _ = self._directions(st, j)
+            if m @ d[j] < 0:
+                m = -m
+            e[j] = self.T[j] @ np.cross(m, d[j])
+        return e, d
+
+    def errors(self, st: State) -> np.ndarray:
+        """(K', 2) whitened errors ``z = L e`` (scaled standard deviations)."""
+        e, _ = self.angles(st)
+        return np.einsum("kij,kj->ki", self.L, e)
+
+    def chi2_stated(self, st: State) -> np.ndarray:
+        """(K',) ``|z|^2`` against stage 1's stated covariance (scale 1)."""
+        z = self.errors(st)
+        return np.sum(z * z, axis=1) * self.sigma_scale**2
+
+    def cost(self, st: State) -> float:
+        z = self.errors(st)
+        s = np.sum(z * z, axis=1)
+        return 0.5 * float(np.sum(self.c2 * np.log1p(s / self.c2)))
+
+    def jacobians(self, st: State):
+        """Per observation: (z (2,), J_rot (2, 3), J_intr (2, q)), whitened."""
+        d_all = st.R[self.k] @ _DOWN
+        for j in range(len(self.k)):
+            d = d_all[j]
+            m, Kinv = self._directions(st, j)
+            if m @ d < 0:
+                m = -m
+            T, L = self.T[j], self.L[j]
+            z = L @ (T @ np.cross(m, d))
+            # e = T [m]x d; d d = -[d]x omega
+            J_rot = L @ (-T @ skew(m) @ skew(d))
+            basis = self.basis[j]
+            q = basis.shape[1]
+            J_intr = np.zeros((2, q))
+            if q:
+                P = np.eye(3) - np.outer(m, m)
+                params = st.params[int(self.slot[j])]
+                for c in range(q):
+                    # K is linear in its parameters; d(K^-1 v) = -K^-1 dK K^-1 v,
+                    # so d m = -P K^-1 dK m per unit step (either orientation).
+                    dK = calibration_matrix(self.model[j], params + basis[:, c])
+                    dK -= calibration_matrix(self.model[j], params)
+                    dm = -P @ (Kinv @ dK @ m)
+                    J_intr[:, c] = L @ (-T @ skew(d) @ dm)
+            yield j, z, J_rot, J_intr
+
+    def add_to(self, H_cc: np.ndarray, g_c: np.ndarray, st: State) -> None:
+        """Its terms of ``J^T W J`` and ``J^T W r`` (IRLS weight of the
+        Cauchy loss), in place."""
+        for j, z, J_rot, J_intr in self.jacobians(st):
+            w = 1.0 / (1.0 + float(z @ z) / self.c2)
+            J = np.concatenate([J_rot, J_intr], axis=1)
+            cols = np.concatenate([self.rot_cols[j], self.intr_cols[j]])
+            H_cc[np.ix_(cols, cols)] += w * (J.T @ J)
+            g_c[cols] += w * (J.T @ z)

@@ -99,6 +99,21 @@ class BundleOptions:
     #: Prior standard deviation (m) of the anchor offsets counted in the
     #: precision (``BundleProblem.horizontal_offset_normal``).
     horizontal_offset_sigma_m: float = 10.0
+    #: Observe each image's vertical vanishing point
+    #: (``BundleProblem.vertical_vps``, stage 1's VP with its covariance): 2
+    #: rows per image, the angle between the world's vertical as the camera
+    #: sees it and the VP's direction through the camera's current intrinsics.
+    #: It holds each image's tilt, which the map's constraints leave loose
+    #: along the block's weak vertical mode (tilt, height, focal).
+    vp_observations: bool = False
+    #: Factor on stage 1's stated standard deviation of each VP (its
+    #: covariance times the square): estimated between the rounds
+    #: (:func:`~obliq_colmap.adjustment.with_variance_components`), since the
+    #: stated covariance can be several times too optimistic.
+    vp_sigma_scale: float = 1.0
+    #: Cauchy scale of the VP rows, in (scaled) standard deviations of the
+    #: whitened 2-vector: a VP on a wrong pencil (degrees off) loses its pull.
+    vp_loss_scale: float = 3.0
 
     def __post_init__(self) -> None:
         for name, value, allowed in (
@@ -133,6 +148,10 @@ class BundleOptions:
             raise ValueError("principal_point_prior_sigma must be > 0 or None")
         if self.horizontal_offset_sigma_m <= 0:
             raise ValueError("horizontal_offset_sigma_m must be > 0")
+        if not (self.vp_sigma_scale > 0 and np.isfinite(self.vp_sigma_scale)):
+            raise ValueError("vp_sigma_scale must be a finite number > 0")
+        if not (self.vp_loss_scale > 0):
+            raise ValueError("vp_loss_scale must be > 0")
 
 
 def _as(a, shape_tail: tuple[int, ...], name: str, dtype=float) -> np.ndarray:
@@ -189,6 +208,19 @@ class BundleProblem:
         The priors' principal point (px) of each camera, used with
         ``BundleOptions.principal_point_prior_sigma`` (None: the start
         cameras').
+    vertical_vps : dict image_id -> (3,) array, optional
+        Each observed image's vertical vanishing point, homogeneous, in
+        UNDISTORTED pixels (stage 1's frame: the priors' camera with its
+        distortion removed), used with ``BundleOptions.vp_observations``.
+        Its direction is taken through the current camera's pinhole part
+        (``K^-1 v``): exact for models without distortion, and where the
+        solved distortion equals the one the pixels were undistorted with;
+        otherwise it neglects the change of distortion (the VP of an
+        oblique view lies far outside the image, where a radial model does
+        not extrapolate anyway).
+    vertical_vp_covariances : dict image_id -> (3, 3) array, optional
+        Stage 1's covariance of each VP of ``vertical_vps`` (rank 2, of the
+        unit homogeneous vector); required with it.
     """
 
     cameras: dict[int, Camera]
@@ -209,6 +241,8 @@ class BundleProblem:
     prior_rotations: dict[int, np.ndarray] | None = None
     prior_centers: dict[int, np.ndarray] | None = None
     prior_principal_points: dict[int, np.ndarray] | None = None
+    vertical_vps: dict[int, np.ndarray] | None = None
+    vertical_vp_covariances: dict[int, np.ndarray] | None = None
 
     def __post_init__(self) -> None:
         if self.image_ids is None:
@@ -231,6 +265,16 @@ class BundleProblem:
                 raise ValueError(f"image_ids without a prior {name}: {missing[:10]}")
         if bad:
             raise ValueError(f"images without a known camera: {bad[:10]}")
+        if self.vertical_vps is not None:
+            covs = self.vertical_vp_covariances or {}
+            missing = [i for i in self.vertical_vps if i not in covs]
+            if missing:
+                raise ValueError(f"vertical VPs without a covariance: {missing[:10]}")
+            for i, v in self.vertical_vps.items():
+                if np.shape(v) != (3,) or np.shape(covs[i]) != (3, 3):
+                    raise ValueError(
+                        f"vertical VP of image {i}: want (3,) and (3, 3) arrays"
+                    )
         self.corner_xy = _as(self.corner_xy, (2,), "corner_xy")
         self.corner_heights = _as(self.corner_heights, (), "corner_heights")
         self.vertical_image = _as(self.vertical_image, (), "vertical_image", np.int64)
@@ -355,6 +399,13 @@ class BundleResult:
     prior_offset_m : (2,) array or None
         The priors' centres' horizontal offset against the map (m, priors
         minus solved), where estimated (``BundleOptions.estimate_prior_offset``).
+    vp_angle_deg : dict image_id -> float
+        With VP observations: the final angle (deg) between each observed
+        image's solved vertical and its VP's direction.
+    vp_chi2 : dict image_id -> float
+        The same residual whitened by stage 1's STATED covariance (scale 1):
+        chi-square with 2 degrees of freedom where that covariance is right
+        (the rounds estimate ``BundleOptions.vp_sigma_scale`` from it).
     """
 
     cameras: dict[int, Camera]
@@ -367,6 +418,8 @@ class BundleResult:
     image_precision_px: dict[int, float] = field(default_factory=dict)
     variance_factor: float = float("nan")
     prior_offset_m: np.ndarray | None = None
+    vp_angle_deg: dict[int, float] = field(default_factory=dict)
+    vp_chi2: dict[int, float] = field(default_factory=dict)
 
 
 def image_components(

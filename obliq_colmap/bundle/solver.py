@@ -1,8 +1,9 @@
 """The solve: :func:`solve_bundle`, the robust loss and the Levenberg-Marquardt loop.
 
 Robust loss by IRLS weights ``rho'(r^2)`` (Huber or Cauchy, scale in pixels);
-the cost is ``1/2 sum rho(r^2)`` (plus the optional corner-height prior),
-the same as Ceres' with the same loss.
+the cost is ``1/2 sum rho(r^2)`` (plus the optional corner-height prior and
+the observed camera parameters of :mod:`.priors`: attitude, centres,
+principal points, vertical VPs), the same as Ceres' with the same loss.
 
 Algorithm (Levenberg-Marquardt with the heights eliminated):
 
@@ -41,7 +42,13 @@ import numpy as np
 
 from ..geometry import Camera, Pose, rotation_exp
 from . import covariance
-from .priors import AttitudePrior, CentrePrior, PosePrior, PrincipalPointPrior
+from .priors import (
+    AttitudePrior,
+    CentrePrior,
+    PosePrior,
+    PrincipalPointPrior,
+    VanishingPointObservation,
+)
 from .problem import BundleOptions, BundleProblem, BundleResult, BundleSummary
 from .schur import Schur, damped_step, normal_equations
 from .setup import Setup, State, evaluate
@@ -110,13 +117,16 @@ def _solve(problem: BundleProblem, opts: BundleOptions) -> BundleResult:
     prior_mask[nJ:] = prior_w > 0
 
     # Observed poses (INS attitude, GNSS centres): 3 rows per active image;
-    # the uncalibrated cameras' principal points: 2 rows per camera.
+    # the uncalibrated cameras' principal points: 2 rows per camera; stage
+    # 1's vertical VPs: 2 rows per observed image.
+    vp_obs = VanishingPointObservation.of(P, S, opts)
     pose_priors = [
         p
         for p in (
             AttitudePrior.of(P, S, opts),
             CentrePrior.of(P, S, opts),
             PrincipalPointPrior.of(P, S, opts),
+            vp_obs,
         )
         if p is not None
     ]
@@ -204,6 +214,22 @@ def _solve(problem: BundleProblem, opts: BundleOptions) -> BundleResult:
     poses = {
         iid: Pose.from_center(st.R[k], st.c[k]) for k, iid in enumerate(P.image_ids)
     }
+    vp_angle, vp_chi2 = {}, {}
+    if vp_obs is not None:
+        e, _ = vp_obs.angles(st)
+        ang = np.degrees(np.arcsin(np.clip(np.linalg.norm(e, axis=1), 0.0, 1.0)))
+        chi2 = vp_obs.chi2_stated(st)
+        for j, k in enumerate(vp_obs.k):
+            vp_angle[P.image_ids[k]] = float(ang[j])
+            vp_chi2[P.image_ids[k]] = float(chi2[j])
+        logger.info(
+            "bundle: %d VP observations (sd x %.2f): angle median %.3f deg, max"
+            " %.3f deg",
+            len(vp_obs.k),
+            opts.vp_sigma_scale,
+            float(np.median(ang)),
+            float(np.max(ang)),
+        )
     summary = BundleSummary(
         initial_cost=initial_cost,
         final_cost=cost,
@@ -243,6 +269,8 @@ def _solve(problem: BundleProblem, opts: BundleOptions) -> BundleResult:
         },
         variance_factor=variance_factor,
         prior_offset_m=-st.shift.copy() if S.shift_col >= 0 else None,
+        vp_angle_deg=vp_angle,
+        vp_chi2=vp_chi2,
     )
 
 

@@ -205,6 +205,16 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "centre); 0: free (default %(default)s)",
     )
     bundle.add_argument(
+        "--bundle_vp_observations",
+        type=_bool01,
+        default=int(bdefaults.vp_observations),
+        metavar="{0,1}",
+        help="observe each image's vertical vanishing point in the bundle (stage "
+        "1's VP where its status is ok, weighted by its covariance times a factor "
+        "estimated between the rounds, robust to a wrong pencil): it holds each "
+        "image's tilt (default %(default)s)",
+    )
+    bundle.add_argument(
         "--loss_scale",
         type=float,
         default=bdefaults.loss_scale_px,
@@ -260,6 +270,7 @@ def run(args: argparse.Namespace) -> int:
                     principal_point_prior_sigma=(
                         args.bundle_principal_point_sigma or None
                     ),
+                    vp_observations=bool(args.bundle_vp_observations),
                     loss_scale_px=args.loss_scale,
                 )
             ),

@@ -168,6 +168,8 @@ def initial_image(task: ImageTask) -> ImageOutcome:
     if vp.status == "ok" and vp.vertical_segments is not None:
         out.segments = vp.vertical_segments.endpoints
         out.vertical_direction = vp.vertical_direction
+        if vp.vp is not None and vp.covariance is not None:
+            out.vp, out.vp_covariance = vp.vp.copy(), vp.covariance.copy()
     else:
         # A missing or doubtful VP: all first-pass segments, filtered by the
         # prior rotation's vertical (within its uncertainty), which the
