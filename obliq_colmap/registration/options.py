@@ -92,7 +92,9 @@ class RegistrationOptions:
     num_candidates_verified : int
         Strongest peaks of the coarse vote that are each tried with a fine
         vote and a short RANSAC (``verify_trials`` samples); the one with the
-        most inlier corners is kept.
+        most inlier corners is kept. With fewer candidate heights (a given
+        ``ground_height``) the next strongest poses are tried too, up to this
+        number of starts.
     verify_trials : int
         RANSAC samples per candidate ground height.
     batch_size : int
