@@ -472,7 +472,7 @@ def test_register_with_known_ground_height(block):
     assert_pose_close(result, block.pose, prior, TOL_EXACT_DEG, TOL_EXACT_M)
 
 
-def test_known_ground_height_verifies_more_poses_than_heights(block, monkeypatch):
+def test_known_ground_height_verifies_more_poses_than_heights(block):
     """A weak image with a given ground height (the rescue's and the
     re-registration's case): the ground band has only a few height cells, so
     the strongest pose of each leaves 2-3 starts, and a weak image's true
@@ -480,7 +480,6 @@ def test_known_ground_height_verifies_more_poses_than_heights(block, monkeypatch
     alignments of clutter compete with it). The next strongest poses fill
     the starts up to ``num_candidates_verified``. 12 true segments among 60
     chance verticals: the true pose is found only with the extra starts."""
-    from obliq_colmap.registration import search as search_module
 
     true_segments = sorted({s for _, s in block.pairs})
     keep = np.random.default_rng(5).choice(true_segments, 12, replace=False)
@@ -490,14 +489,14 @@ def test_known_ground_height_verifies_more_poses_than_heights(block, monkeypatch
     prior = perturbed_prior(block.pose, 9)
     dz = prior.center[2] - block.pose.center[2]
     args = (segments, vertical_of(block.pose), block.camera, prior, block.cadastre)
-    opts = RegistrationOptions(ground_height=3.0 + dz)
+    opts = RegistrationOptions(ground_height=3.0 + dz, fill_starts_with_poses=True)
     result = register_image(*args, opts, segments_undistorted=True)
     assert_pose_close(result, block.pose, prior, 0.2, 1.0)
     assert result.num_inliers > opts.chance_factor * result.chance_inliers
 
-    # One start per height, as before: the weak image is lost.
-    monkeypatch.setattr(search_module, "_more_poses", lambda *a: [])
-    single = register_image(*args, opts, segments_undistorted=True)
+    # One start per height (the default): the weak image is lost.
+    plain = RegistrationOptions(ground_height=3.0 + dz)
+    single = register_image(*args, plain, segments_undistorted=True)
     assert not single.success
 
 

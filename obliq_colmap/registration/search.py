@@ -369,7 +369,7 @@ def _coarse_vote(
     )
     num = options.num_candidates_verified
     starts = coarse.peaks_by_height(num, separation[3])
-    if len(starts) < num:
+    if options.fill_starts_with_poses and len(starts) < num:
         # Few candidate heights (a given ground height: its band of a few
         # cells): the remaining starts are the next strongest poses, so that
         # a weak image's true pose need not be the strongest coarse cell of
