@@ -472,6 +472,49 @@ def test_register_with_known_ground_height(block):
     assert_pose_close(result, block.pose, prior, TOL_EXACT_DEG, TOL_EXACT_M)
 
 
+def test_known_ground_height_verifies_more_poses_than_heights(block):
+    """A weak image with a given ground height (the rescue's and the
+    re-registration's case): the ground band has only a few height cells, so
+    the strongest pose of each leaves 2-3 starts, and a weak image's true
+    pose need not be the strongest coarse cell of its height (chance
+    alignments of clutter compete with it). The next strongest poses fill
+    the starts up to ``num_candidates_verified``. 12 true segments among 60
+    chance verticals: the true pose is found only with the extra starts."""
+
+    true_segments = sorted({s for _, s in block.pairs})
+    keep = np.random.default_rng(5).choice(true_segments, 12, replace=False)
+    segments = np.concatenate(
+        [block.segments[keep], _random_verticals(block, 60, seed=15)]
+    )
+    prior = perturbed_prior(block.pose, 9)
+    dz = prior.center[2] - block.pose.center[2]
+    args = (segments, vertical_of(block.pose), block.camera, prior, block.cadastre)
+    opts = RegistrationOptions(ground_height=3.0 + dz, fill_starts_with_poses=True)
+    result = register_image(*args, opts, segments_undistorted=True)
+    assert_pose_close(result, block.pose, prior, 0.2, 1.0)
+    assert result.num_inliers > opts.chance_factor * result.chance_inliers
+
+    # One start per height (the default): the weak image is lost.
+    plain = RegistrationOptions(ground_height=3.0 + dz)
+    single = register_image(*args, plain, segments_undistorted=True)
+    assert not single.success
+
+
+def test_more_poses_fills_the_starts_without_repeats():
+    from obliq_colmap.registration.hough import HoughPeak
+    from obliq_colmap.registration.search import _more_poses
+
+    def peak(a, h, v):
+        return HoughPeak(a, np.array([a, -a]), h, v)
+
+    starts = [peak(0.0, 1.0, 9.0), peak(0.1, 5.0, 7.0)]
+    peaks = [peak(0.0, 1.0, 9.0), peak(0.2, 1.0, 8.0), peak(0.1, 5.0, 7.0)]
+    peaks += [peak(0.3, 5.0, 6.0), peak(0.4, 1.0, 5.0)]
+    more = _more_poses(peaks, starts, 4)
+    assert [p.alpha for p in more] == [0.2, 0.3]
+    assert _more_poses(peaks, starts, 2) == []
+
+
 def test_register_distorted_segments_are_undistorted(block):
     cam = Camera("RADIAL", 1000, 667, [1000.0, 500.0, 333.5, -0.05, 0.01])
     seg = block.segments.reshape(-1, 2)

@@ -39,7 +39,9 @@ Steps of :func:`register_image`:
    c_x, c_y, height). For each alpha a pair's constraint is a straight line
    in the (c_x, c_y) plane, rasterised into the accumulator at the height of
    the segment's bottom on the corner's vertical at that pose. The best pose
-   at each of the ``num_candidates_verified`` strongest heights is a start.
+   at each of the ``num_candidates_verified`` strongest heights is a start;
+   where fewer heights compete (a given ground height), the next strongest
+   poses fill the starts up to that number.
 3. Fine pose (Hough). From each start, the pairs near its ground height vote
    over a fine grid of (alpha, c_x, c_y) a few coarse cells wide. The peak
    leaves a few pixels of error, so RANSAC runs in a small radius.

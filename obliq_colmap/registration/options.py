@@ -93,6 +93,14 @@ class RegistrationOptions:
         Strongest peaks of the coarse vote that are each tried with a fine
         vote and a short RANSAC (``verify_trials`` samples); the one with the
         most inlier corners is kept.
+    fill_starts_with_poses : bool
+        With fewer candidate heights than ``num_candidates_verified`` (a
+        given ``ground_height``: the rescue, the re-registration against the
+        block), try the next strongest coarse poses too, up to that number of
+        starts: a weak image's true pose need not be the strongest coarse
+        cell of its height. Off by default: on urban-101 it brings back
+        images at stage 2, but the larger block then lets two wrong rescued
+        images through the bundle's verdicts (docs/journal/independent-scenes.md).
     verify_trials : int
         RANSAC samples per candidate ground height.
     batch_size : int
@@ -198,6 +206,7 @@ class RegistrationOptions:
     max_trials: int = 20_000
     verify_trials: int = 768
     num_candidates_verified: int = 12
+    fill_starts_with_poses: bool = False
     batch_size: int = 256
     min_inliers: int = 6
     min_segments: int = 6

@@ -367,8 +367,29 @@ def _coarse_vote(
             )
         ),
     )
-    starts = coarse.peaks_by_height(options.num_candidates_verified, separation[3])
+    num = options.num_candidates_verified
+    starts = coarse.peaks_by_height(num, separation[3])
+    if options.fill_starts_with_poses and len(starts) < num:
+        # Few candidate heights (a given ground height: its band of a few
+        # cells): the remaining starts are the next strongest poses, so that
+        # a weak image's true pose need not be the strongest coarse cell of
+        # its height, where chance alignments of clutter compete with it.
+        starts += _more_poses(coarse.peaks(num, separation), starts, num)
     return _Coarse(coarse, starts, alpha_half, c_half, radius)
+
+
+def _more_poses(
+    peaks: list[HoughPeak], starts: list[HoughPeak], num: int
+) -> list[HoughPeak]:
+    """The ``peaks`` that are not already ``starts`` (same pose and height),
+    in their order, up to ``num`` starts in all."""
+
+    def key(p: HoughPeak) -> tuple:
+        return (p.alpha, *np.round(p.c_xy, 9), p.height)
+
+    seen = {key(p) for p in starts}
+    more = [p for p in peaks if key(p) not in seen]
+    return more[: max(0, num - len(starts))]
 
 
 def _try_starts(
