@@ -159,17 +159,7 @@ def evaluate_block(
         raise ValueError(
             f"corners_world must be (K, 3), got shape {corners_world.shape}"
         )
-    num_corners_total = len(corners_world)
-    visible_idx: dict[str, np.ndarray] = {}
-    for name, idx in visible.items():
-        idx = np.asarray(idx, dtype=int).reshape(-1)
-        if idx.size and (idx.min() < 0 or idx.max() >= num_corners_total):
-            raise ValueError(
-                f"visible corners of {name}: indices must be in "
-                f"[0, {num_corners_total}), got [{idx.min()}, {idx.max()}]"
-            )
-        visible_idx[name] = idx
-
+    visible_idx = _visible_indices(visible, len(corners_world))
     gt_by_name = {im.name: im for im in gt.images.values()}
     est_by_name = {im.name: im for im in est.images.values()}
     common = sorted(set(gt_by_name) & set(est_by_name))
@@ -186,8 +176,8 @@ def evaluate_block(
     )
     corners_local = corners_world - ref
 
-    # 2. One vertical offset for the whole model: the median of the images'
-    #    own (EvaluateOptions.vertical_offset).
+    # 2. One vertical offset for the whole model
+    #    (EvaluateOptions.vertical_offset).
     est_ref = est.shifted(ref)
     gt_local = gt.shifted(ref)
     camera_offset = float(
@@ -199,9 +189,92 @@ def evaluate_block(
             ]
         )
     )
-    offset = 0.0
+    offset = _block_offset(
+        est_ref,
+        gt_local,
+        est_by_name,
+        gt_by_name,
+        corners_local,
+        visible_idx,
+        camera_offset,
+        common,
+        options,
+    )
+    # X_new = X_old - shift: the estimated cameras, lowered by the offset, in
+    # the same local frame as the true ones.
+    est_local = est_ref.shifted(np.array([0.0, 0.0, offset]))
+    est_local_by_name = {im.name: im for im in est_local.images.values()}
+    gt_local_by_name = {im.name: im for im in gt_local.images.values()}
+
+    # 3. Rotation and centre errors, all matched images at once.
+    errors = _pose_errors(est_local_by_name, gt_local_by_name, common)
+
+    # 4. Corner deviations, image by image (vectorised over corners).
+    results = [
+        _image_evaluation(
+            name,
+            visible_idx.get(name, np.zeros(0, int)),
+            errors,
+            est_local,
+            gt_local,
+            est_local_by_name,
+            gt_local_by_name,
+            corners_local,
+            options,
+        )
+        for name in sorted(gt_by_name)
+    ]
+    summary = _summary(results, len(extra), offset, camera_offset)
+    logger.info(
+        "registered %d / %d images "
+        "(median deviation %.3g px%s, vertical offset %.3f m, %s)",
+        summary.num_registered,
+        summary.num_total,
+        summary.deviation_median_px,
+        " across verticals" if options.across_vertical else "",
+        offset,
+        offset_label(options),
+    )
+    if extra:
+        logger.warning(
+            "%d result image(s) not in the ground truth, ignored: %s",
+            len(extra),
+            ", ".join(extra[:5]) + (" ..." if len(extra) > 5 else ""),
+        )
+    return Evaluation(results, summary, options, extra)
+
+
+def _visible_indices(
+    visible: dict[str, np.ndarray | list[int]], num_corners: int
+) -> dict[str, np.ndarray]:
+    """Each image's visible corner indices as an (M,) int array, checked."""
+    visible_idx: dict[str, np.ndarray] = {}
+    for name, idx in visible.items():
+        idx = np.asarray(idx, dtype=int).reshape(-1)
+        if idx.size and (idx.min() < 0 or idx.max() >= num_corners):
+            raise ValueError(
+                f"visible corners of {name}: indices must be in "
+                f"[0, {num_corners}), got [{idx.min()}, {idx.max()}]"
+            )
+        visible_idx[name] = idx
+    return visible_idx
+
+
+def _block_offset(
+    est_ref: Block,
+    gt_local: Block,
+    est_by_name: dict,
+    gt_by_name: dict,
+    corners_local: np.ndarray,
+    visible_idx: dict[str, np.ndarray],
+    camera_offset: float,
+    common: list[str],
+    options: EvaluateOptions,
+) -> float:
+    """The block's one vertical offset (m): searched, the median of the
+    images' own, or 0 when it is kept."""
     if options.remove_vertical_offset and options.vertical_offset == "search":
-        offset = _searched_offset(
+        return _searched_offset(
             est_ref,
             gt_local,
             est_by_name,
@@ -211,8 +284,8 @@ def evaluate_block(
             camera_offset,
             options,
         )
-    elif options.remove_vertical_offset:
-        offset = float(
+    if options.remove_vertical_offset:
+        return float(
             np.median(
                 [
                     _image_offset(
@@ -227,20 +300,21 @@ def evaluate_block(
                 ]
             )
         )
-    # X_new = X_old - shift: the estimated cameras, lowered by the offset, in
-    # the same local frame as the true ones.
-    est_local = est_ref.shifted(np.array([0.0, 0.0, offset]))
-    est_local_by_name = {im.name: im for im in est_local.images.values()}
-    gt_local_by_name = {im.name: im for im in gt_local.images.values()}
+    return 0.0
 
-    # 3. Rotation and centre errors, all matched images at once.
-    R_est = np.stack([est_local_by_name[n].cam_from_world.rotation for n in common])
-    R_true = np.stack([gt_local_by_name[n].cam_from_world.rotation for n in common])
+
+def _pose_errors(
+    est_by_name: dict, gt_by_name: dict, common: list[str]
+) -> dict[str, tuple[float, float, float, float]]:
+    """Per image: rotation error (deg), centre error, its horizontal part and
+    its vertical component (m), the block's offset already removed."""
+    R_est = np.stack([est_by_name[n].cam_from_world.rotation for n in common])
+    R_true = np.stack([gt_by_name[n].cam_from_world.rotation for n in common])
     rot_err = rotation_angle_deg(R_est, R_true)  # (N,)
-    c_est = np.stack([est_local_by_name[n].cam_from_world.center for n in common])
-    c_true = np.stack([gt_local_by_name[n].cam_from_world.center for n in common])
+    c_est = np.stack([est_by_name[n].cam_from_world.center for n in common])
+    c_true = np.stack([gt_by_name[n].cam_from_world.center for n in common])
     dc = c_est - c_true  # (N, 3), offset removed
-    errors = {
+    return {
         n: (
             float(rot_err[i]),
             float(np.linalg.norm(dc[i])),
@@ -250,69 +324,72 @@ def evaluate_block(
         for i, n in enumerate(common)
     }
 
-    # 4. Corner deviations, image by image (vectorised over corners).
-    results: list[ImageEvaluation] = []
-    for name in sorted(gt_by_name):
-        idx = visible_idx.get(name, np.zeros(0, int))
-        if idx.size == 0:
-            ev = ImageEvaluation(name, STATUS_NO_CORNERS)
-            if name in errors:
-                (
-                    ev.rotation_error_deg,
-                    ev.center_error_m,
-                    ev.horizontal_error_m,
-                    ev.vertical_error_m,
-                ) = errors[name]
-            results.append(ev)
-            continue
-        if name not in errors:
-            results.append(
-                ImageEvaluation(name, STATUS_MISSING, num_corners=int(idx.size))
-            )
-            continue
-        est_im, gt_im = est_local_by_name[name], gt_local_by_name[name]
-        dev, behind = corner_deviations_px(
-            est_local.cameras[est_im.camera_id],
-            est_im.cam_from_world,
-            gt_local.cameras[gt_im.camera_id],
-            gt_im.cam_from_world,
-            corners_local[idx],
-            across_vertical=options.across_vertical,
-        )
-        unmeasurable = ~np.isfinite(dev) & ~behind
-        if unmeasurable.any():
-            # A "visible" corner behind the TRUE camera: bad ground truth.
-            logger.warning(
-                "%s: %d visible corner(s) do not project into the true camera; ignored",
-                name,
-                int(unmeasurable.sum()),
-            )
-        front = np.isfinite(dev)
-        mean_dev = float(dev[front].mean()) if front.any() else math.nan
-        max_dev = float(dev[front].max()) if front.any() else math.nan
-        n_behind = int(behind.sum())
-        if n_behind:
-            status = STATUS_BEHIND
-        elif mean_dev < options.registered_threshold_px:
-            status = STATUS_REGISTERED
-        else:
-            status = STATUS_FAILED
-        rot, cen, hor, ver = errors[name]
-        results.append(
-            ImageEvaluation(
-                name,
-                status,
-                rot,
-                cen,
-                hor,
-                ver,
-                mean_dev,
-                max_dev,
-                int(idx.size),
-                n_behind,
-            )
-        )
 
+def _image_evaluation(
+    name: str,
+    idx: np.ndarray,
+    errors: dict[str, tuple[float, float, float, float]],
+    est_local: Block,
+    gt_local: Block,
+    est_local_by_name: dict,
+    gt_local_by_name: dict,
+    corners_local: np.ndarray,
+    options: EvaluateOptions,
+) -> ImageEvaluation:
+    """One true image: its pose errors and the deviations of its ``idx``
+    visible corners, or why it has none."""
+    if idx.size == 0:
+        ev = ImageEvaluation(name, STATUS_NO_CORNERS)
+        if name in errors:
+            (
+                ev.rotation_error_deg,
+                ev.center_error_m,
+                ev.horizontal_error_m,
+                ev.vertical_error_m,
+            ) = errors[name]
+        return ev
+    if name not in errors:
+        return ImageEvaluation(name, STATUS_MISSING, num_corners=int(idx.size))
+    est_im, gt_im = est_local_by_name[name], gt_local_by_name[name]
+    dev, behind = corner_deviations_px(
+        est_local.cameras[est_im.camera_id],
+        est_im.cam_from_world,
+        gt_local.cameras[gt_im.camera_id],
+        gt_im.cam_from_world,
+        corners_local[idx],
+        across_vertical=options.across_vertical,
+    )
+    unmeasurable = ~np.isfinite(dev) & ~behind
+    if unmeasurable.any():
+        # A "visible" corner behind the TRUE camera: bad ground truth.
+        logger.warning(
+            "%s: %d visible corner(s) do not project into the true camera; ignored",
+            name,
+            int(unmeasurable.sum()),
+        )
+    front = np.isfinite(dev)
+    mean_dev = float(dev[front].mean()) if front.any() else math.nan
+    max_dev = float(dev[front].max()) if front.any() else math.nan
+    n_behind = int(behind.sum())
+    if n_behind:
+        status = STATUS_BEHIND
+    elif mean_dev < options.registered_threshold_px:
+        status = STATUS_REGISTERED
+    else:
+        status = STATUS_FAILED
+    rot, cen, hor, ver = errors[name]
+    return ImageEvaluation(
+        name, status, rot, cen, hor, ver, mean_dev, max_dev, int(idx.size), n_behind
+    )
+
+
+def _summary(
+    results: list[ImageEvaluation],
+    num_extra: int,
+    offset: float,
+    camera_offset: float,
+) -> EvaluationSummary:
+    """The block's counts and medians over its images' evaluations."""
     measured = [r for r in results if r.status != STATUS_NO_CORNERS]
     present = [r for r in results if r.status != STATUS_MISSING]
     count = {
@@ -333,14 +410,14 @@ def evaluate_block(
         else math.inf
         for r in measured
     ]
-    summary = EvaluationSummary(
+    return EvaluationSummary(
         num_total=len(measured),
         num_registered=count[STATUS_REGISTERED],
         num_failed=count[STATUS_FAILED],
         num_behind=count[STATUS_BEHIND],
         num_missing=count[STATUS_MISSING],
         num_no_corners=count[STATUS_NO_CORNERS],
-        num_extra=len(extra),
+        num_extra=num_extra,
         vertical_offset_m=offset,
         deviation_median_px=_nanstat(means, np.median),
         deviation_p95_px=_nanstat(means, lambda v: np.percentile(v, 95)),
@@ -359,20 +436,3 @@ def evaluate_block(
         deviation_median_all_px=_percentile_inf(means_all, 50.0),
         deviation_p95_all_px=_percentile_inf(means_all, 95.0),
     )
-    logger.info(
-        "registered %d / %d images "
-        "(median deviation %.3g px%s, vertical offset %.3f m, %s)",
-        summary.num_registered,
-        summary.num_total,
-        summary.deviation_median_px,
-        " across verticals" if options.across_vertical else "",
-        offset,
-        offset_label(options),
-    )
-    if extra:
-        logger.warning(
-            "%d result image(s) not in the ground truth, ignored: %s",
-            len(extra),
-            ", ".join(extra[:5]) + (" ..." if len(extra) > 5 else ""),
-        )
-    return Evaluation(results, summary, options, extra)
