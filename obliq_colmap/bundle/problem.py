@@ -406,6 +406,18 @@ class BundleResult:
         The same residual whitened by stage 1's STATED covariance (scale 1):
         chi-square with 2 degrees of freedom where that covariance is right
         (the rounds estimate ``BundleOptions.vp_sigma_scale`` from it).
+    vp_omega, vp_redundancy, vp_test : dict image_id -> float
+        With VP observations, at the current scale
+        (:meth:`~obliq_colmap.bundle.priors.VanishingPointObservation.statistics`):
+        the VP's weighted squared residual, its redundancy number (0..2) and
+        its chi-square (2 dof) test against the solution without it. Empty
+        where the cofactor matrix is not computed (more camera parameters
+        than ``BundleOptions.precision_max_camera_params``).
+    vp_loo : dict image_id -> ((2,) array, (2, 2) array)
+        With them: the VP's residual at the solution without it and the
+        others' cofactor of that direction, whitened by stage 1's STATED
+        covariance (scale 1): ``E[z0 z0^T] = s^2 I + A`` with ``s`` the
+        true factor on stage 1's sd.
     """
 
     cameras: dict[int, Camera]
@@ -420,6 +432,10 @@ class BundleResult:
     prior_offset_m: np.ndarray | None = None
     vp_angle_deg: dict[int, float] = field(default_factory=dict)
     vp_chi2: dict[int, float] = field(default_factory=dict)
+    vp_omega: dict[int, float] = field(default_factory=dict)
+    vp_redundancy: dict[int, float] = field(default_factory=dict)
+    vp_test: dict[int, float] = field(default_factory=dict)
+    vp_loo: dict[int, tuple[np.ndarray, np.ndarray]] = field(default_factory=dict)
 
 
 def image_components(
