@@ -102,7 +102,14 @@ def bundle_stage(
                 )
             # The precision (one more linearisation and a dense inverse) is
             # wanted of the last solve only, which is known before it runs.
+            # The VPs are evaluated against the map-only first solve and
+            # enter from the second, with the factor that solve shows: at
+            # stage 1's stated sd they would pull the first solve before
+            # anything says how good they are, and the outlier rounds would
+            # then drop the map's constraints that disagree with them.
             rounds = options.outlier_rounds
+            if rounds > 0:
+                first = dataclasses.replace(first, vp_in_fit=False)
             result = solve_bundle(problem, _precision_if(first, rounds == 0))
             initial = problem
             # Per horizontal row: the track observation it is (facade rows)
@@ -295,10 +302,54 @@ def vp_components(
         if not test:
             break
         now = _loo_tests(z0, A, new) > _VP_TEST_CRITICAL
+        for group in _rejected_groups(result, set(np.array(ids)[now]), new):
+            now |= np.isin(ids, group)
         if np.array_equal(now, bad):
             break
         bad = now
     return float(new), [ids[k] for k in np.flatnonzero(bad)]
+
+
+def _rejected_groups(result: BundleResult, rejected: set, scale: float) -> list:
+    """The image ids of each camera whose VPs (those not ``rejected`` one
+    by one) the block rejects TOGETHER: left out as a group, their residuals
+    at the solution without them, ``z0 = (I - M W)^-1 z``, tested against
+    the others' cofactor ``A = (I - M W)^-1 M`` and stage 1's covariance
+    times ``scale^2``: ``z0^T (scale^2 I + A)^-1 z0``, chi-square with 2n
+    degrees of freedom where the VPs' errors are independent, larger where
+    they share a systematic part (one camera's VPs off the same way, which
+    the test of one VP against the others cannot see: the others share it).
+    Critical value at ``VP_TEST_ALPHA``."""
+    from scipy.stats import chi2
+
+    out = []
+    s0 = result.vp_groups_scale
+    for ids, z, w, M in result.vp_groups.values():
+        keep = np.array([i not in rejected for i in ids])
+        if keep.sum() < 2 or not np.all(np.isfinite(M)):
+            continue
+        rows = (2 * np.flatnonzero(keep)[:, None] + np.arange(2)).ravel()
+        Ms = M[np.ix_(rows, rows)]
+        W = np.repeat(w[keep], 2)
+        R = np.eye(len(rows)) - Ms * W[None, :]
+        try:
+            z0 = np.linalg.solve(R, z[keep].ravel()) * s0
+            Ag = np.linalg.solve(R, Ms) * s0 * s0
+            Ag = 0.5 * (Ag + Ag.T)
+            t = float(z0 @ np.linalg.solve(Ag + scale * scale * np.eye(len(rows)), z0))
+        except np.linalg.LinAlgError:
+            continue
+        crit = float(chi2.isf(VP_TEST_ALPHA, len(rows)))
+        logger.debug(
+            "bundle: VPs of %s together: test %.1f (critical %.1f, %d dof)",
+            [i for i, k in zip(ids, keep, strict=True) if k][:3],
+            t,
+            crit,
+            len(rows),
+        )
+        if t > crit:
+            out.append([i for i, k in zip(ids, keep, strict=True) if k])
+    return out
 
 
 def with_variance_components(

@@ -126,7 +126,7 @@ def _solve(problem: BundleProblem, opts: BundleOptions) -> BundleResult:
             AttitudePrior.of(P, S, opts),
             CentrePrior.of(P, S, opts),
             PrincipalPointPrior.of(P, S, opts),
-            vp_obs,
+            vp_obs if opts.vp_in_fit else None,
         )
         if p is not None
     ]
@@ -223,7 +223,7 @@ def _solve(problem: BundleProblem, opts: BundleOptions) -> BundleResult:
         iid: Pose.from_center(st.R[k], st.c[k]) for k, iid in enumerate(P.image_ids)
     }
     vp_angle, vp_chi2, vp_omega, vp_red, vp_test = {}, {}, {}, {}, {}
-    vp_loo = {}
+    vp_loo, vp_groups = {}, {}
     if vp_obs is not None:
         e, _ = vp_obs.angles(st)
         ang = np.degrees(np.arcsin(np.clip(np.linalg.norm(e, axis=1), 0.0, 1.0)))
@@ -249,6 +249,36 @@ def _solve(problem: BundleProblem, opts: BundleOptions) -> BundleResult:
             float(np.median(ang)),
             float(np.max(ang)),
         )
+    if vp_stats is not None:
+        # stage 1's stated sd of each VP and the sd at which the rest of the
+        # block predicts its direction (deg; the mean over the 2 axes)
+        Ce = np.linalg.inv(np.einsum("kji,kjl->kil", vp_obs.L, vp_obs.L))
+        sd = np.degrees(np.sqrt(np.trace(Ce, axis1=1, axis2=2) / 2.0))
+        sd /= opts.vp_sigma_scale
+        A = vp_stats["loo_cofactor"]
+        rest = sd * opts.vp_sigma_scale * np.sqrt(np.trace(A, axis1=1, axis2=2) / 2)
+        logger.info(
+            "bundle: VP sd stated median %.3f deg; the rest of the block predicts"
+            " them to %.3f deg (median; per camera %s)",
+            float(np.median(sd)),
+            float(np.nanmedian(rest)),
+            ", ".join(
+                f"{S.camera_ids[int(c)]}: {np.nanmedian(rest[vp_obs.slot == c]):.3f}"
+                f" / {np.median(sd[vp_obs.slot == c]):.3f}"
+                for c in np.unique(vp_obs.slot)
+            ),
+        )
+        # per camera: its VPs' image ids, whitened residuals (current scale),
+        # IRLS weights and the block of M = J Q J^T
+        for cam in np.unique(vp_obs.slot):
+            js = np.flatnonzero(vp_obs.slot == cam)
+            rows = (2 * js[:, None] + np.arange(2)).ravel()
+            vp_groups[S.camera_ids[int(cam)]] = (
+                [P.image_ids[int(vp_obs.k[j])] for j in js],
+                vp_stats["z"][js],
+                vp_stats["w"][js],
+                vp_stats["M"][np.ix_(rows, rows)],
+            )
     summary = BundleSummary(
         initial_cost=initial_cost,
         final_cost=cost,
@@ -294,6 +324,8 @@ def _solve(problem: BundleProblem, opts: BundleOptions) -> BundleResult:
         vp_redundancy=vp_red,
         vp_test=vp_test,
         vp_loo=vp_loo,
+        vp_groups=vp_groups,
+        vp_groups_scale=opts.vp_sigma_scale,
     )
 
 
