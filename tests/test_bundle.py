@@ -1306,3 +1306,45 @@ def test_a_vp_the_block_contradicts_is_rejected_before_it_pulls(noisy):
     assert len(reduced.vertical_vps) == len(P.vertical_vps) - 1
     same, _ = with_variance_components(P, out, opts, kept, 1, test_vps=False)
     assert same.vertical_vps == P.vertical_vps
+
+
+def test_vps_evaluated_only_do_not_move_the_fit(noisy):
+    """``vp_in_fit=False``: the solve is the map-only one (the same poses),
+    and each VP's residual at the solution without it is simply its residual
+    there (weight 0: nothing to take out)."""
+    P = _noisy_vp_problem(noisy, 0.02, 0.02 / np.sqrt(2.0))
+    base = solve_bundle(P, BundleOptions(compute_precision=False))
+    out = solve_bundle(
+        P, BundleOptions(vp_observations=True, vp_in_fit=False, compute_precision=False)
+    )
+    for i in P.image_ids:
+        np.testing.assert_allclose(
+            out.poses[i].rotation, base.poses[i].rotation, atol=1e-9
+        )
+    for i in P.image_ids:
+        z0, _ = out.vp_loo[i]
+        assert z0 @ z0 == pytest.approx(out.vp_chi2[i], rel=1e-9)
+    assert out.vp_redundancy[P.image_ids[0]] == pytest.approx(2.0)
+
+
+def test_vps_a_camera_shares_a_degree_off_do_not_hide_in_the_factor(noisy):
+    """A quarter of the VPs (one camera's) 1 deg off the same way, the rest
+    right to their stated 0.02 deg: estimated from all, the factor would
+    grow until none is rejected (12x here); started robustly (the tests'
+    median) and re-estimated without the rejected, it rejects exactly that
+    camera's VPs and stays near 1."""
+    from obliq_colmap.adjustment import vp_components
+
+    P0 = noisy.problem
+    cams = sorted({P0.image_camera[i] for i in P0.image_ids})
+    shared = [i for i in P0.image_ids if P0.image_camera[i] == cams[0]]
+    rng = np.random.default_rng(1)
+    tilt = {i: float(rng.normal(0.0, 0.02 / np.sqrt(2.0))) for i in P0.image_ids}
+    for i in shared:
+        tilt[i] += 1.0
+    vps, covs = _true_vps(noisy, 0.02, tilted_deg=tilt)
+    P = dataclasses.replace(P0, vertical_vps=vps, vertical_vp_covariances=covs)
+    opts = BundleOptions(vp_observations=True, vp_in_fit=False, compute_precision=False)
+    scale, rejected = vp_components(solve_bundle(P, opts), 1.0)
+    assert sorted(rejected) == sorted(shared)
+    assert scale < 1.5

@@ -235,20 +235,31 @@ def _loo_tests(z0: np.ndarray, A: np.ndarray, scale: float) -> np.ndarray:
     return np.einsum("ki,ki->k", z0, np.linalg.solve(C, z0[..., None])[..., 0])
 
 
-def _moment_scale(z0: np.ndarray, A: np.ndarray) -> float:
-    """The factor ``s >= 1`` at which the mean of the leave-one-out tests is
-    2, their expectation (chi-square, 2 dof); 1 where it is below already.
-    The mean decreases with ``s``: bisection on log s."""
-    if np.mean(_loo_tests(z0, A, 1.0)) <= 2.0:
+def _scale_where(stat, target: float, z0: np.ndarray, A: np.ndarray) -> float:
+    """The factor ``s >= 1`` at which ``stat`` of the leave-one-out tests
+    equals ``target``; 1 where it is below already. ``stat`` of the tests
+    decreases with ``s``: bisection on log s."""
+    if stat(_loo_tests(z0, A, 1.0)) <= target:
         return 1.0
     lo, hi = 0.0, math.log(1e4)
     for _ in range(60):
         mid = 0.5 * (lo + hi)
-        if np.mean(_loo_tests(z0, A, math.exp(mid))) > 2.0:
+        if stat(_loo_tests(z0, A, math.exp(mid))) > target:
             lo = mid
         else:
             hi = mid
     return math.exp(0.5 * (lo + hi))
+
+
+def _moment_scale(z0: np.ndarray, A: np.ndarray) -> float:
+    """The factor at which the tests average 2, their expectation."""
+    return _scale_where(np.mean, 2.0, z0, A)
+
+
+def _median_scale(z0: np.ndarray, A: np.ndarray) -> float:
+    """The factor at which the tests' median is that of a chi-square with 2
+    dof (2 ln 2): robust to up to half the VPs off."""
+    return _scale_where(np.median, _CHI2_2_MEDIAN, z0, A)
 
 
 def vp_components(
@@ -274,11 +285,14 @@ def vp_components(
     better than independent observations would, and stage 1's covariance is
     the most it claims.
 
-    With ``test``, data snooping: a VP whose test at the estimated factor
-    exceeds the chi-square (2 dof) critical value at ``VP_TEST_ALPHA`` is
-    rejected, and the factor estimated again from the others, until the set
-    of rejected VPs no longer changes; rejected VPs do not enter the factor
-    (one wrong pencil would otherwise widen the sd of all).
+    With ``test``, data snooping: a VP whose test at the factor exceeds the
+    chi-square (2 dof) critical value at ``VP_TEST_ALPHA`` is rejected. The
+    first factor is the robust one (the tests' median at that of a
+    chi-square with 2 dof); then the factor is the mean's over the VPs not
+    rejected and the test is repeated with it, until the set of rejected
+    VPs no longer changes: rejected VPs do not enter the factor (estimated
+    from all, it grows with the wrong VPs until none of them is rejected).
+    Without ``test``: the robust factor alone.
 
     Without the leave-one-out quantities (no cofactor matrix): the median
     rule (:func:`_vp_median_scale`), nothing rejected.
@@ -292,64 +306,24 @@ def vp_components(
         return _vp_median_scale(result, scale), []
     z0 = np.array([result.vp_loo[i][0] for i in ids], float)
     A = np.array([result.vp_loo[i][1] for i in ids], float)
-    bad = np.zeros(len(ids), bool)
-    new = scale
+    # A robust start (the median of the tests, which up to half the VPs off
+    # cannot move), then the VPs it rejects left out of the mean: estimated
+    # from all, the factor grows with the wrong VPs and hides them (masking).
+    # Without the test (the map's own outliers still in), the robust factor
+    # alone.
+    new = _median_scale(z0, A)
+    if not test:
+        return float(new), []
+    bad = _loo_tests(z0, A, new) > _VP_TEST_CRITICAL
     for _ in range(len(ids) + 1):
         if bad.all():
-            new = scale
             break
         new = _moment_scale(z0[~bad], A[~bad])
-        if not test:
-            break
         now = _loo_tests(z0, A, new) > _VP_TEST_CRITICAL
-        for group in _rejected_groups(result, set(np.array(ids)[now]), new):
-            now |= np.isin(ids, group)
         if np.array_equal(now, bad):
             break
         bad = now
     return float(new), [ids[k] for k in np.flatnonzero(bad)]
-
-
-def _rejected_groups(result: BundleResult, rejected: set, scale: float) -> list:
-    """The image ids of each camera whose VPs (those not ``rejected`` one
-    by one) the block rejects TOGETHER: left out as a group, their residuals
-    at the solution without them, ``z0 = (I - M W)^-1 z``, tested against
-    the others' cofactor ``A = (I - M W)^-1 M`` and stage 1's covariance
-    times ``scale^2``: ``z0^T (scale^2 I + A)^-1 z0``, chi-square with 2n
-    degrees of freedom where the VPs' errors are independent, larger where
-    they share a systematic part (one camera's VPs off the same way, which
-    the test of one VP against the others cannot see: the others share it).
-    Critical value at ``VP_TEST_ALPHA``."""
-    from scipy.stats import chi2
-
-    out = []
-    s0 = result.vp_groups_scale
-    for ids, z, w, M in result.vp_groups.values():
-        keep = np.array([i not in rejected for i in ids])
-        if keep.sum() < 2 or not np.all(np.isfinite(M)):
-            continue
-        rows = (2 * np.flatnonzero(keep)[:, None] + np.arange(2)).ravel()
-        Ms = M[np.ix_(rows, rows)]
-        W = np.repeat(w[keep], 2)
-        R = np.eye(len(rows)) - Ms * W[None, :]
-        try:
-            z0 = np.linalg.solve(R, z[keep].ravel()) * s0
-            Ag = np.linalg.solve(R, Ms) * s0 * s0
-            Ag = 0.5 * (Ag + Ag.T)
-            t = float(z0 @ np.linalg.solve(Ag + scale * scale * np.eye(len(rows)), z0))
-        except np.linalg.LinAlgError:
-            continue
-        crit = float(chi2.isf(VP_TEST_ALPHA, len(rows)))
-        logger.debug(
-            "bundle: VPs of %s together: test %.1f (critical %.1f, %d dof)",
-            [i for i, k in zip(ids, keep, strict=True) if k][:3],
-            t,
-            crit,
-            len(rows),
-        )
-        if t > crit:
-            out.append([i for i, k in zip(ids, keep, strict=True) if k])
-    return out
 
 
 def with_variance_components(

@@ -400,19 +400,9 @@ class VanishingPointObservation(PosePrior):
             "loo_cofactor": np.full((n, 2, 2), np.nan),
         }
         ok = np.all(np.isfinite(cofactor))
-        n_red = cofactor.shape[0]
-        out["z"] = np.zeros((n, 2))
         out["w"] = np.zeros(n)
-        Jfull = np.zeros((2 * n, n_red))
-        for j, z, J_rot, J_intr in self.jacobians(st):
-            out["z"][j] = z
+        for j, z, _, _ in self.jacobians(st):
             out["w"][j] = 1.0 / (1.0 + float(z @ z) / self.c2) if self.in_fit else 0.0
-            cols = np.concatenate([self.rot_cols[j], self.intr_cols[j]])
-            Jfull[2 * j : 2 * j + 2, cols] = np.concatenate([J_rot, J_intr], axis=1)
-        # The whole group's M = J Q J^T (2K', 2K'): the VPs of one camera
-        # share their errors' systematic part, which one VP left out at a
-        # time cannot see (the others keep it in the fit).
-        out["M"] = Jfull @ cofactor @ Jfull.T if ok else np.full((2 * n, 2 * n), np.nan)
         for j, z, J_rot, J_intr in self.jacobians(st):
             w = out["w"][j]
             out["omega"][j] = w * float(z @ z)

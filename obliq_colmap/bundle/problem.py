@@ -422,10 +422,6 @@ class BundleResult:
         others' cofactor of that direction, whitened by stage 1's STATED
         covariance (scale 1): ``E[z0 z0^T] = s^2 I + A`` with ``s`` the
         true factor on stage 1's sd.
-    vp_groups : dict camera_id -> (ids, z (n, 2), w (n,), M (2n, 2n))
-        With them, per camera: its VPs' image ids, whitened residuals and
-        IRLS weights at the scale ``vp_groups_scale``, and the block of
-        ``J Q J^T`` (the test of the camera's VPs left out together).
     """
 
     cameras: dict[int, Camera]
@@ -444,8 +440,6 @@ class BundleResult:
     vp_redundancy: dict[int, float] = field(default_factory=dict)
     vp_test: dict[int, float] = field(default_factory=dict)
     vp_loo: dict[int, tuple[np.ndarray, np.ndarray]] = field(default_factory=dict)
-    vp_groups: dict[int, tuple] = field(default_factory=dict)
-    vp_groups_scale: float = 1.0
 
 
 def image_components(

@@ -223,7 +223,7 @@ def _solve(problem: BundleProblem, opts: BundleOptions) -> BundleResult:
         iid: Pose.from_center(st.R[k], st.c[k]) for k, iid in enumerate(P.image_ids)
     }
     vp_angle, vp_chi2, vp_omega, vp_red, vp_test = {}, {}, {}, {}, {}
-    vp_loo, vp_groups = {}, {}
+    vp_loo = {}
     if vp_obs is not None:
         e, _ = vp_obs.angles(st)
         ang = np.degrees(np.arcsin(np.clip(np.linalg.norm(e, axis=1), 0.0, 1.0)))
@@ -268,17 +268,6 @@ def _solve(problem: BundleProblem, opts: BundleOptions) -> BundleResult:
                 for c in np.unique(vp_obs.slot)
             ),
         )
-        # per camera: its VPs' image ids, whitened residuals (current scale),
-        # IRLS weights and the block of M = J Q J^T
-        for cam in np.unique(vp_obs.slot):
-            js = np.flatnonzero(vp_obs.slot == cam)
-            rows = (2 * js[:, None] + np.arange(2)).ravel()
-            vp_groups[S.camera_ids[int(cam)]] = (
-                [P.image_ids[int(vp_obs.k[j])] for j in js],
-                vp_stats["z"][js],
-                vp_stats["w"][js],
-                vp_stats["M"][np.ix_(rows, rows)],
-            )
     summary = BundleSummary(
         initial_cost=initial_cost,
         final_cost=cost,
@@ -324,8 +313,6 @@ def _solve(problem: BundleProblem, opts: BundleOptions) -> BundleResult:
         vp_redundancy=vp_red,
         vp_test=vp_test,
         vp_loo=vp_loo,
-        vp_groups=vp_groups,
-        vp_groups_scale=opts.vp_sigma_scale,
     )
 
 
