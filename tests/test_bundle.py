@@ -1239,28 +1239,112 @@ def test_a_vp_on_a_wrong_pencil_does_not_pull_its_image(noisy):
     assert out.vp_angle_deg[wrong] > 9.5
 
 
-def test_the_rounds_estimate_the_vp_sd_factor_and_keep_the_vps(noisy):
-    """Between rounds the VPs' sd factor is the one that makes the median
-    whitened squared VP residual that of a chi-square with 2 degrees of
-    freedom (robust to a wrong pencil), never below 1; the outlier round
-    keeps the VP observations."""
-    from obliq_colmap.adjustment import with_variance_components, without_outliers
-
-    sigma_stated = 0.005  # deg: 4x too optimistic for VPs 0.02 deg off
-    vps, covs = _true_vps(noisy, sigma_stated)
-    P = dataclasses.replace(
+def _noisy_vp_problem(noisy, stated_deg, true_deg, wrong=None, seed=0):
+    """``noisy``'s problem with each image's VP tilted by N(0, true_deg)
+    about one axis (``wrong``: image id -> a VP that many degrees off) and
+    stated at ``stated_deg`` per axis."""
+    rng = np.random.default_rng(seed)
+    tilt = {i: float(rng.normal(0.0, true_deg)) for i in noisy.problem.image_ids}
+    tilt.update(wrong or {})
+    vps, covs = _true_vps(noisy, stated_deg, tilted_deg=tilt)
+    return dataclasses.replace(
         noisy.problem, vertical_vps=vps, vertical_vp_covariances=covs
     )
-    opts = BundleOptions(vp_observations=True)
+
+
+def test_the_vp_factor_is_the_groups_variance_component(noisy):
+    """VPs scattered 4x wider than stage 1 states (one axis at 4 sqrt(2)
+    stated sd, so |z|^2 averages 16 x 2; the map alone holds each tilt to
+    ~0.04 deg): iterated as the rounds do, the factor (Förstner's variance
+    component: weighted squared residuals over redundancy numbers) comes out
+    near 4; each VP's redundancy number lies in (0, 2); nothing is rejected;
+    stated right, the factor stays near 1. The outlier round keeps the
+    VPs."""
+    from obliq_colmap.adjustment import vp_components, without_outliers
+
+    stated = 0.02
+    P = _noisy_vp_problem(noisy, stated, 4.0 * np.sqrt(2.0) * stated)
+    opts = BundleOptions(vp_observations=True, compute_precision=False)
     out = solve_bundle(P, opts)
-    out.vp_chi2 = {i: 2.0 * np.log(2.0) * 16.0 for i in out.vp_chi2}
-    out.vp_chi2[P.image_ids[0]] = 1e6  # a wrong pencil
-    kept = np.ones(len(P.horizontal_image), bool)
-    _, scaled = with_variance_components(P, out, opts, kept, 1)
-    assert scaled.vp_sigma_scale == pytest.approx(4.0)
-    out.vp_chi2 = {i: 0.01 for i in out.vp_chi2}
-    _, floor = with_variance_components(P, out, opts, kept, 1)
-    assert floor.vp_sigma_scale == 1.0
+    red = np.array(list(out.vp_redundancy.values()))
+    assert len(red) == len(P.image_ids)
+    assert np.all((red > 0.0) & (red < 2.0)), red
+    scale = 1.0
+    for _ in range(5):
+        scale, rejected = vp_components(out, scale)
+        assert rejected == []
+        out = solve_bundle(P, dataclasses.replace(opts, vp_sigma_scale=scale))
+    assert 3.0 < scale < 5.5, scale
+    right = _noisy_vp_problem(noisy, stated, stated / np.sqrt(2.0))
+    assert vp_components(solve_bundle(right, opts), 1.0)[0] < 1.5
     reduced, _, _ = without_outliers(P, out, 3.0, 1.0)
     assert reduced.vertical_vps is P.vertical_vps
     assert reduced.vertical_vp_covariances is P.vertical_vp_covariances
+
+
+def test_a_vp_the_block_contradicts_is_rejected_before_it_pulls(noisy):
+    """One VP 0.5 deg off among VPs right to their stated 0.02 deg: the test
+    against the solution without it (chi-square, 2 dof) rejects that one
+    only, though the fit leans towards it, and it does not widen the others'
+    factor; ``with_variance_components`` drops it from the problem (and
+    keeps all while ``test_vps`` is off)."""
+    from obliq_colmap.adjustment import vp_components, with_variance_components
+
+    wrong = noisy.problem.image_ids[2]
+    P = _noisy_vp_problem(noisy, 0.02, 0.02 / np.sqrt(2.0), wrong={wrong: 0.5})
+    opts = BundleOptions(vp_observations=True, compute_precision=False)
+    out = solve_bundle(P, opts)
+    assert out.vp_angle_deg[wrong] < 0.5  # the fit leans towards it
+    scale, rejected = vp_components(out, 1.0)
+    assert rejected == [wrong]
+    assert scale < 1.5
+    assert vp_components(out, 1.0, test=False)[1] == []
+    kept = np.ones(len(P.horizontal_image), bool)
+    reduced, _ = with_variance_components(P, out, opts, kept, 1)
+    assert wrong not in reduced.vertical_vps
+    assert wrong not in reduced.vertical_vp_covariances
+    assert len(reduced.vertical_vps) == len(P.vertical_vps) - 1
+    same, _ = with_variance_components(P, out, opts, kept, 1, test_vps=False)
+    assert same.vertical_vps == P.vertical_vps
+
+
+def test_vps_evaluated_only_do_not_move_the_fit(noisy):
+    """``vp_in_fit=False``: the solve is the map-only one (the same poses),
+    and each VP's residual at the solution without it is simply its residual
+    there (weight 0: nothing to take out)."""
+    P = _noisy_vp_problem(noisy, 0.02, 0.02 / np.sqrt(2.0))
+    base = solve_bundle(P, BundleOptions(compute_precision=False))
+    out = solve_bundle(
+        P, BundleOptions(vp_observations=True, vp_in_fit=False, compute_precision=False)
+    )
+    for i in P.image_ids:
+        np.testing.assert_allclose(
+            out.poses[i].rotation, base.poses[i].rotation, atol=1e-9
+        )
+    for i in P.image_ids:
+        z0, _ = out.vp_loo[i]
+        assert z0 @ z0 == pytest.approx(out.vp_chi2[i], rel=1e-9)
+    assert out.vp_redundancy[P.image_ids[0]] == pytest.approx(2.0)
+
+
+def test_vps_a_camera_shares_a_degree_off_do_not_hide_in_the_factor(noisy):
+    """A quarter of the VPs (one camera's) 1 deg off the same way, the rest
+    right to their stated 0.02 deg: estimated from all, the factor would
+    grow until none is rejected (12x here); started robustly (the tests'
+    median) and re-estimated without the rejected, it rejects exactly that
+    camera's VPs and stays near 1."""
+    from obliq_colmap.adjustment import vp_components
+
+    P0 = noisy.problem
+    cams = sorted({P0.image_camera[i] for i in P0.image_ids})
+    shared = [i for i in P0.image_ids if P0.image_camera[i] == cams[0]]
+    rng = np.random.default_rng(1)
+    tilt = {i: float(rng.normal(0.0, 0.02 / np.sqrt(2.0))) for i in P0.image_ids}
+    for i in shared:
+        tilt[i] += 1.0
+    vps, covs = _true_vps(noisy, 0.02, tilted_deg=tilt)
+    P = dataclasses.replace(P0, vertical_vps=vps, vertical_vp_covariances=covs)
+    opts = BundleOptions(vp_observations=True, vp_in_fit=False, compute_precision=False)
+    scale, rejected = vp_components(solve_bundle(P, opts), 1.0)
+    assert sorted(rejected) == sorted(shared)
+    assert scale < 1.5

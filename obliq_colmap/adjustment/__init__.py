@@ -59,6 +59,7 @@ from obliq_colmap.adjustment.problem import (
 from obliq_colmap.adjustment.rounds import (
     AdjustedBlock,
     bundle_stage,
+    vp_components,
     with_track_lines,
     with_variance_components,
     without_outliers,
@@ -105,6 +106,7 @@ __all__ = [
     "triangulate_tracks",
     "vertical_constraints",
     "with_track_lines",
+    "vp_components",
     "with_variance_components",
     "without_outliers",
 ]

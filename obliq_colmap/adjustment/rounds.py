@@ -102,7 +102,14 @@ def bundle_stage(
                 )
             # The precision (one more linearisation and a dense inverse) is
             # wanted of the last solve only, which is known before it runs.
+            # The VPs are evaluated against the map-only first solve and
+            # enter from the second, with the factor that solve shows: at
+            # stage 1's stated sd they would pull the first solve before
+            # anything says how good they are, and the outlier rounds would
+            # then drop the map's constraints that disagree with them.
             rounds = options.outlier_rounds
+            if rounds > 0:
+                first = dataclasses.replace(first, vp_in_fit=False)
             result = solve_bundle(problem, _precision_if(first, rounds == 0))
             initial = problem
             # Per horizontal row: the track observation it is (facade rows)
@@ -126,8 +133,10 @@ def bundle_stage(
                     # Each kind weighted by its own noise (map corners ~1 px,
                     # facade edges ~0.15 px).
                     unknowns = 2 if options.track_lines else 1
+                    # The VPs are tested from the second round on: the first
+                    # solve's map rows still held their own outliers.
                     problem, bundle_options = with_variance_components(
-                        problem, result, bundle_options, kh, unknowns
+                        problem, result, bundle_options, kh, unknowns, k > 0
                     )
                 last = (kv.all() and kh.all()) or k == rounds - 1
                 result = solve_bundle(problem, _precision_if(bundle_options, last))
@@ -201,18 +210,120 @@ def _robust_sigma(r: np.ndarray, default: float) -> float:
 #: Median of a chi-square variable with 2 degrees of freedom (2 ln 2).
 _CHI2_2_MEDIAN = 2.0 * math.log(2.0)
 
+#: Significance level of the test of each VP against the rest of the block
+#: (Baarda's alpha_0 of data snooping).
+VP_TEST_ALPHA = 0.001
+#: Its critical value: chi-square with 2 degrees of freedom, whose survival
+#: function is exp(-x / 2).
+_VP_TEST_CRITICAL = -2.0 * math.log(VP_TEST_ALPHA)
 
-def _vp_sigma_scale(result: BundleResult, default: float) -> float:
-    """The factor on stage 1's stated VP standard deviations that makes the
-    median whitened squared VP residual of ``result`` that of a chi-square
-    with 2 degrees of freedom (robust: wrong pencils do not count), never
-    below 1 (no more weight than stage 1 states; residuals shrink where the
-    VPs hold the fit). ``default`` without VP observations."""
+
+def _vp_median_scale(result: BundleResult, default: float) -> float:
+    """The factor that makes the median whitened squared VP residual that of
+    a chi-square with 2 dof, never below 1; the fallback where the solve has
+    no redundancy numbers (no cofactor matrix)."""
     chi2 = np.array(list(result.vp_chi2.values()), float)
     chi2 = chi2[np.isfinite(chi2)]
     if len(chi2) == 0:
         return default
     return float(max(1.0, math.sqrt(np.median(chi2) / _CHI2_2_MEDIAN)))
+
+
+def _loo_tests(z0: np.ndarray, A: np.ndarray, scale: float) -> np.ndarray:
+    """(n,) ``z0^T (scale^2 I + A)^-1 z0`` per VP (stated units)."""
+    C = A + scale * scale * np.eye(2)
+    return np.einsum("ki,ki->k", z0, np.linalg.solve(C, z0[..., None])[..., 0])
+
+
+def _scale_where(stat, target: float, z0: np.ndarray, A: np.ndarray) -> float:
+    """The factor ``s >= 1`` at which ``stat`` of the leave-one-out tests
+    equals ``target``; 1 where it is below already. ``stat`` of the tests
+    decreases with ``s``: bisection on log s."""
+    if stat(_loo_tests(z0, A, 1.0)) <= target:
+        return 1.0
+    lo, hi = 0.0, math.log(1e4)
+    for _ in range(60):
+        mid = 0.5 * (lo + hi)
+        if stat(_loo_tests(z0, A, math.exp(mid))) > target:
+            lo = mid
+        else:
+            hi = mid
+    return math.exp(0.5 * (lo + hi))
+
+
+def _moment_scale(z0: np.ndarray, A: np.ndarray) -> float:
+    """The factor at which the tests average 2, their expectation."""
+    return _scale_where(np.mean, 2.0, z0, A)
+
+
+def _median_scale(z0: np.ndarray, A: np.ndarray) -> float:
+    """The factor at which the tests' median is that of a chi-square with 2
+    dof (2 ln 2): robust to up to half the VPs off."""
+    return _scale_where(np.median, _CHI2_2_MEDIAN, z0, A)
+
+
+def vp_components(
+    result: BundleResult, scale: float, test: bool = True
+) -> tuple[float, list[int]]:
+    """The factor on stage 1's stated VP standard deviations, and the images
+    whose VP the block rejects, from the last solve (VP sd factor ``scale``).
+
+    Each VP is compared with the solution WITHOUT it (``BundleResult.vp_loo``:
+    its residual there ``z0`` and the others' cofactor ``A`` of that
+    direction, in stage 1's stated units), where ``E[z0 z0^T] = s^2 I + A``
+    if stage 1's covariance is right up to the factor ``s``. The factor is
+    the variance component of the VP group estimated from these predicted
+    residuals: the ``s`` at which ``z0^T (s^2 I + A)^-1 z0`` averages 2 over
+    the VPs (its expectation, chi-square with 2 dof). Unlike the VPs' own
+    residuals in the fit, the predicted ones do not shrink where a VP holds
+    its image's tilt alone (redundancy near 0), so such a VP cannot read as
+    consistent however wrong it is; unlike the one-step Förstner estimate
+    (weighted squared residuals over redundancy numbers, with the Cauchy
+    weights), it does not need many re-solves to converge when the stated
+    sd is several times too small. Never below 1: the segments the map rows
+    use were fitted through stage 1's VP, so the VPs agree with the bundle
+    better than independent observations would, and stage 1's covariance is
+    the most it claims.
+
+    With ``test``, data snooping: a VP whose test at the factor exceeds the
+    chi-square (2 dof) critical value at ``VP_TEST_ALPHA`` is rejected. The
+    first factor is the robust one (the tests' median at that of a
+    chi-square with 2 dof); then the factor is the mean's over the VPs not
+    rejected and the test is repeated with it, until the set of rejected
+    VPs no longer changes: rejected VPs do not enter the factor (estimated
+    from all, it grows with the wrong VPs until none of them is rejected).
+    Without ``test``: the robust factor alone.
+
+    Without the leave-one-out quantities (no cofactor matrix): the median
+    rule (:func:`_vp_median_scale`), nothing rejected.
+    """
+    ids = [
+        i
+        for i, (z0, A) in result.vp_loo.items()
+        if np.all(np.isfinite(z0)) and np.all(np.isfinite(A))
+    ]
+    if not ids:
+        return _vp_median_scale(result, scale), []
+    z0 = np.array([result.vp_loo[i][0] for i in ids], float)
+    A = np.array([result.vp_loo[i][1] for i in ids], float)
+    # A robust start (the median of the tests, which up to half the VPs off
+    # cannot move), then the VPs it rejects left out of the mean: estimated
+    # from all, the factor grows with the wrong VPs and hides them (masking).
+    # Without the test (the map's own outliers still in), the robust factor
+    # alone.
+    new = _median_scale(z0, A)
+    if not test:
+        return float(new), []
+    bad = _loo_tests(z0, A, new) > _VP_TEST_CRITICAL
+    for _ in range(len(ids) + 1):
+        if bad.all():
+            break
+        new = _moment_scale(z0[~bad], A[~bad])
+        now = _loo_tests(z0, A, new) > _VP_TEST_CRITICAL
+        if np.array_equal(now, bad):
+            break
+        bad = now
+    return float(new), [ids[k] for k in np.flatnonzero(bad)]
 
 
 def with_variance_components(
@@ -221,11 +332,14 @@ def with_variance_components(
     options: BundleOptions,
     kept: np.ndarray,
     unknowns_per_track: int,
+    test_vps: bool = True,
 ) -> tuple[BundleProblem, BundleOptions]:
     """Both residual kinds weighted by their robust standard deviation in
     the last solve: vertical (map corners) and horizontal (facade tracks);
     with VP observations, stage 1's stated VP covariance scaled by the
-    factor the last solve's VP residuals show (:func:`_vp_sigma_scale`).
+    group's variance component, and the VPs the block rejects dropped
+    (:func:`vp_components`; ``test_vps`` False: no test, e.g. while the map
+    rows still hold their own outliers).
     ``kept``: the horizontal rows of the last solve still in ``problem``.
 
     A track of n observations fits ``unknowns_per_track`` of them exactly
@@ -240,13 +354,16 @@ def with_variance_components(
     n = np.bincount(track, minlength=len(problem.facade_heights))[track]
     u = unknowns_per_track
     scaled = rh * np.sqrt(n / np.maximum(n - u, 1))
+    vp_scale, rejected = options.vp_sigma_scale, []
+    if result.vp_chi2:
+        vp_scale, rejected = vp_components(result, options.vp_sigma_scale, test_vps)
     options = dataclasses.replace(
         options,
         vertical_sigma_px=_robust_sigma(
             result.vertical_residuals_px, options.vertical_sigma_px
         ),
         horizontal_sigma_px=_robust_sigma(scaled[n > u], options.horizontal_sigma_px),
-        vp_sigma_scale=_vp_sigma_scale(result, options.vp_sigma_scale),
+        vp_sigma_scale=vp_scale,
     )
     logger.info(
         "bundle: sigma px: map corners %.3f, facade lines %.3f; VP sd x %.2f",
@@ -254,6 +371,27 @@ def with_variance_components(
         options.horizontal_sigma_px,
         options.vp_sigma_scale,
     )
+    if rejected:
+        logger.info(
+            "bundle: VPs rejected against the block (test > %.1f): %s",
+            _VP_TEST_CRITICAL,
+            ", ".join(
+                f"{i} ({result.vp_angle_deg.get(i, math.nan):.2f} deg)"
+                for i in rejected
+            ),
+        )
+        drop = set(rejected)
+        problem = dataclasses.replace(
+            problem,
+            vertical_vps={
+                i: v for i, v in problem.vertical_vps.items() if i not in drop
+            },
+            vertical_vp_covariances={
+                i: c
+                for i, c in problem.vertical_vp_covariances.items()
+                if i not in drop
+            },
+        )
     return problem, options
 
 

@@ -267,6 +267,8 @@ class VanishingPointObservation(PosePrior):
         self.sigma_scale = sigma_scale
         self.c2 = loss_scale**2
         self.w = 1.0
+        #: False: evaluated only (:meth:`statistics` with weight 0).
+        self.in_fit = True
 
     @classmethod
     def of(cls, P: BundleProblem, S: Setup, opts: BundleOptions):
@@ -285,6 +287,7 @@ class VanishingPointObservation(PosePrior):
         covs = np.array([np.asarray(P.vertical_vp_covariances[i], float) for i in ids])
         params = [np.asarray(P.cameras[c].params, float) for c in S.camera_ids]
         obs = cls(S, slots, vps, covs, params, opts.vp_sigma_scale, opts.vp_loss_scale)
+        obs.in_fit = opts.vp_in_fit
         return obs if len(obs.k) else None
 
     @property
@@ -363,3 +366,60 @@ class VanishingPointObservation(PosePrior):
             cols = np.concatenate([self.rot_cols[j], self.intr_cols[j]])
             H_cc[np.ix_(cols, cols)] += w * (J.T @ J)
             g_c[cols] += w * (J.T @ z)
+
+    def statistics(self, st: State, cofactor: np.ndarray) -> dict[str, np.ndarray]:
+        """Per observation its share of the redundancy and its comparison
+        with the solution without it, at ``st`` with ``cofactor`` the camera
+        block's cofactor matrix (the inverse of the normal equations with
+        these rows in, at their IRLS weights; unit variance factor).
+
+        With ``z`` the whitened 2-vector, ``w`` its IRLS weight, ``J`` its
+        whitened Jacobian and ``M = J Q J^T``:
+
+        - ``omega`` (K',) ``= w |z|^2``: its part of ``v^T P v``;
+        - ``redundancy`` (K',) ``= tr(I - w M)`` (Förstner's redundancy
+          number of the 2 rows: 0 where the block's fit rests on this VP
+          alone, 2 where the other observations fix the image's vertical);
+        - ``loo_residual`` (K', 2): its residual at the solution without it
+          (leave it out; exact for the linearised model),
+          ``z0 = (I - w M)^-1 z``, and ``loo_cofactor`` (K', 2, 2): the
+          others' cofactor of that direction, ``A = M (I - w M)^-1``;
+        - ``test`` (K',) ``= z0^T (I + A)^-1 z0``: chi-square with 2 degrees
+          of freedom where the VP and the current scale are right, whatever
+          weight the VP had in the fit.
+
+        All in the current whitened units (stage 1's covariance times
+        ``sigma_scale^2``); NaN where ``cofactor`` is not finite.
+        """
+        n = len(self.k)
+        out = {
+            "omega": np.zeros(n),
+            "redundancy": np.full(n, np.nan),
+            "test": np.full(n, np.nan),
+            "loo_residual": np.full((n, 2), np.nan),
+            "loo_cofactor": np.full((n, 2, 2), np.nan),
+        }
+        ok = np.all(np.isfinite(cofactor))
+        out["w"] = np.zeros(n)
+        for j, z, _, _ in self.jacobians(st):
+            out["w"][j] = 1.0 / (1.0 + float(z @ z) / self.c2) if self.in_fit else 0.0
+        for j, z, J_rot, J_intr in self.jacobians(st):
+            w = out["w"][j]
+            out["omega"][j] = w * float(z @ z)
+            if not ok:
+                continue
+            J = np.concatenate([J_rot, J_intr], axis=1)
+            cols = np.concatenate([self.rot_cols[j], self.intr_cols[j]])
+            M = J @ cofactor[np.ix_(cols, cols)] @ J.T
+            R = np.eye(2) - w * M
+            try:
+                z0 = np.linalg.solve(R, z)
+                A = M @ np.linalg.inv(R)
+                t = float(z0 @ np.linalg.solve(np.eye(2) + A, z0))
+            except np.linalg.LinAlgError:
+                continue
+            out["redundancy"][j] = float(np.trace(R))
+            out["loo_residual"][j] = z0
+            out["loo_cofactor"][j] = A
+            out["test"][j] = t
+        return out

@@ -114,6 +114,10 @@ class BundleOptions:
     #: Cauchy scale of the VP rows, in (scaled) standard deviations of the
     #: whitened 2-vector: a VP on a wrong pencil (degrees off) loses its pull.
     vp_loss_scale: float = 3.0
+    #: With ``vp_observations``: the VP rows enter the fit. False: they are
+    #: only evaluated against the fit without them (``BundleResult.vp_loo``,
+    #: ``vp_test``: their factor and tests before they get any weight).
+    vp_in_fit: bool = True
 
     def __post_init__(self) -> None:
         for name, value, allowed in (
@@ -406,6 +410,18 @@ class BundleResult:
         The same residual whitened by stage 1's STATED covariance (scale 1):
         chi-square with 2 degrees of freedom where that covariance is right
         (the rounds estimate ``BundleOptions.vp_sigma_scale`` from it).
+    vp_omega, vp_redundancy, vp_test : dict image_id -> float
+        With VP observations, at the current scale
+        (:meth:`~obliq_colmap.bundle.priors.VanishingPointObservation.statistics`):
+        the VP's weighted squared residual, its redundancy number (0..2) and
+        its chi-square (2 dof) test against the solution without it. Empty
+        where the cofactor matrix is not computed (more camera parameters
+        than ``BundleOptions.precision_max_camera_params``).
+    vp_loo : dict image_id -> ((2,) array, (2, 2) array)
+        With them: the VP's residual at the solution without it and the
+        others' cofactor of that direction, whitened by stage 1's STATED
+        covariance (scale 1): ``E[z0 z0^T] = s^2 I + A`` with ``s`` the
+        true factor on stage 1's sd.
     """
 
     cameras: dict[int, Camera]
@@ -420,6 +436,10 @@ class BundleResult:
     prior_offset_m: np.ndarray | None = None
     vp_angle_deg: dict[int, float] = field(default_factory=dict)
     vp_chi2: dict[int, float] = field(default_factory=dict)
+    vp_omega: dict[int, float] = field(default_factory=dict)
+    vp_redundancy: dict[int, float] = field(default_factory=dict)
+    vp_test: dict[int, float] = field(default_factory=dict)
+    vp_loo: dict[int, tuple[np.ndarray, np.ndarray]] = field(default_factory=dict)
 
 
 def image_components(

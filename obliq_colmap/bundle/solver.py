@@ -126,7 +126,7 @@ def _solve(problem: BundleProblem, opts: BundleOptions) -> BundleResult:
             AttitudePrior.of(P, S, opts),
             CentrePrior.of(P, S, opts),
             PrincipalPointPrior.of(P, S, opts),
-            vp_obs,
+            vp_obs if opts.vp_in_fit else None,
         )
         if p is not None
     ]
@@ -191,16 +191,24 @@ def _solve(problem: BundleProblem, opts: BundleOptions) -> BundleResult:
 
     final_rmse = rmse(r)
     precision, variance_factor = {}, float("nan")
-    if opts.compute_precision and S.n_red > opts.precision_max_camera_params:
+    vp_stats = None
+    # The cofactor matrix serves the precision and the VP rows' redundancy
+    # numbers and tests (which the rounds read between solves).
+    want = (opts.compute_precision or vp_obs is not None) and len(r)
+    if want and S.n_red > opts.precision_max_camera_params:
         logger.info(
             "bundle: no precision for %d camera parameters (more than %d)",
             S.n_red,
             opts.precision_max_camera_params,
         )
-    elif opts.compute_precision and len(r):
-        r, precision, variance_factor = _precision(
-            S, opts, st, pose_priors, prior_w, prior_mask, heights0
-        )
+    elif want:
+        r, w, cov = _cofactor(S, opts, st, pose_priors, prior_w, prior_mask)
+        if opts.compute_precision:
+            precision, variance_factor = _precision(
+                S, st, pose_priors, prior_w, prior_mask, heights0, r, w, cov
+            )
+        if vp_obs is not None:
+            vp_stats = vp_obs.statistics(st, cov)
     r_problem = np.empty_like(r)
     r_problem[S.order] = r
     cameras = {}
@@ -214,7 +222,8 @@ def _solve(problem: BundleProblem, opts: BundleOptions) -> BundleResult:
     poses = {
         iid: Pose.from_center(st.R[k], st.c[k]) for k, iid in enumerate(P.image_ids)
     }
-    vp_angle, vp_chi2 = {}, {}
+    vp_angle, vp_chi2, vp_omega, vp_red, vp_test = {}, {}, {}, {}, {}
+    vp_loo = {}
     if vp_obs is not None:
         e, _ = vp_obs.angles(st)
         ang = np.degrees(np.arcsin(np.clip(np.linalg.norm(e, axis=1), 0.0, 1.0)))
@@ -222,6 +231,16 @@ def _solve(problem: BundleProblem, opts: BundleOptions) -> BundleResult:
         for j, k in enumerate(vp_obs.k):
             vp_angle[P.image_ids[k]] = float(ang[j])
             vp_chi2[P.image_ids[k]] = float(chi2[j])
+            if vp_stats is not None:
+                i, sc = P.image_ids[k], opts.vp_sigma_scale
+                vp_omega[i] = float(vp_stats["omega"][j])
+                vp_red[i] = float(vp_stats["redundancy"][j])
+                vp_test[i] = float(vp_stats["test"][j])
+                # in stage 1's stated units (scale 1)
+                vp_loo[i] = (
+                    vp_stats["loo_residual"][j] * sc,
+                    vp_stats["loo_cofactor"][j] * sc * sc,
+                )
         logger.info(
             "bundle: %d VP observations (sd x %.2f): angle median %.3f deg, max"
             " %.3f deg",
@@ -229,6 +248,25 @@ def _solve(problem: BundleProblem, opts: BundleOptions) -> BundleResult:
             opts.vp_sigma_scale,
             float(np.median(ang)),
             float(np.max(ang)),
+        )
+    if vp_stats is not None:
+        # stage 1's stated sd of each VP and the sd at which the rest of the
+        # block predicts its direction (deg; the mean over the 2 axes)
+        Ce = np.linalg.inv(np.einsum("kji,kjl->kil", vp_obs.L, vp_obs.L))
+        sd = np.degrees(np.sqrt(np.trace(Ce, axis1=1, axis2=2) / 2.0))
+        sd /= opts.vp_sigma_scale
+        A = vp_stats["loo_cofactor"]
+        rest = sd * opts.vp_sigma_scale * np.sqrt(np.trace(A, axis1=1, axis2=2) / 2)
+        logger.info(
+            "bundle: VP sd stated median %.3f deg; the rest of the block predicts"
+            " them to %.3f deg (median; per camera %s)",
+            float(np.median(sd)),
+            float(np.nanmedian(rest)),
+            ", ".join(
+                f"{S.camera_ids[int(c)]}: {np.nanmedian(rest[vp_obs.slot == c]):.3f}"
+                f" / {np.median(sd[vp_obs.slot == c]):.3f}"
+                for c in np.unique(vp_obs.slot)
+            ),
         )
     summary = BundleSummary(
         initial_cost=initial_cost,
@@ -271,6 +309,10 @@ def _solve(problem: BundleProblem, opts: BundleOptions) -> BundleResult:
         prior_offset_m=-st.shift.copy() if S.shift_col >= 0 else None,
         vp_angle_deg=vp_angle,
         vp_chi2=vp_chi2,
+        vp_omega=vp_omega,
+        vp_redundancy=vp_red,
+        vp_test=vp_test,
+        vp_loo=vp_loo,
     )
 
 
@@ -366,25 +408,17 @@ def _levenberg_marquardt(
     return st, cost, r, it, n_ok, termination, converged
 
 
-def _precision(
+def _cofactor(
     S: Setup,
     opts: BundleOptions,
     st: State,
     pose_priors: list[PosePrior],
     prior_w: float,
     prior_mask: np.ndarray,
-    heights0: np.ndarray,
-) -> tuple[np.ndarray, dict[int, float], float]:
-    """Each active image's a-posteriori precision (px) at ``st``.
-
-    Returns
-    -------
-    r : (N,) residuals at ``st``, re-evaluated with the Jacobians.
-    precision : dict image slot -> px (empty where the redundancy is not
-        positive).
-    variance_factor : float, NaN where the redundancy is not positive.
-    """
-    precision, variance_factor = {}, float("nan")
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Residuals ``r`` (N,), their weights ``w`` and the camera block's
+    cofactor matrix at ``st`` (:func:`covariance.camera_covariance`, the
+    observed camera parameters' rows in)."""
     r, Jc, Jh = evaluate(S, st, jac=True)
     _, w = _loss(opts.loss, opts.loss_scale_px, r * r)
     w = w * S.weight
@@ -395,6 +429,31 @@ def _precision(
     cov = covariance.camera_covariance(
         S, H_cc, Jc, Jh, w, prior_w * prior_mask, offset_w
     )
+    return r, w, cov
+
+
+def _precision(
+    S: Setup,
+    st: State,
+    pose_priors: list[PosePrior],
+    prior_w: float,
+    prior_mask: np.ndarray,
+    heights0: np.ndarray,
+    r: np.ndarray,
+    w: np.ndarray,
+    cov: np.ndarray,
+) -> tuple[dict[int, float], float]:
+    """Each active image's a-posteriori precision (px) at ``st``, from the
+    residuals ``r``, weights ``w`` and cofactor matrix ``cov`` of
+    :func:`_cofactor`.
+
+    Returns
+    -------
+    precision : dict image slot -> px (empty where the redundancy is not
+        positive).
+    variance_factor : float, NaN where the redundancy is not positive.
+    """
+    precision, variance_factor = {}, float("nan")
     redundancy = (
         len(r) + int(prior_mask.sum()) + len(S.A) - S.n_red - S.n_heights - S.n_offsets
     )
@@ -405,7 +464,7 @@ def _precision(
         dh = (st.heights - heights0)[prior_mask]
         variance_factor += prior_w * float(dh @ dh) / redundancy
         precision = covariance.image_precision(S, st, variance_factor * cov)
-    return r, precision, variance_factor
+    return precision, variance_factor
 
 
 def _apply(S: Setup, st: State, dc: np.ndarray, dh: np.ndarray) -> State:

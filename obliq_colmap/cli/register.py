@@ -211,8 +211,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         metavar="{0,1}",
         help="observe each image's vertical vanishing point in the bundle (stage "
         "1's VP where its status is ok, weighted by its covariance times a factor "
-        "estimated between the rounds, robust to a wrong pencil): it holds each "
-        "image's tilt (default %(default)s)",
+        "estimated between the rounds from each VP against the block without it; "
+        "the VPs the block contradicts are dropped): it holds each image's tilt "
+        "(default %(default)s)",
     )
     bundle.add_argument(
         "--loss_scale",
