@@ -810,3 +810,22 @@ def test_jackknife_covariance_agrees_with_the_scatter_of_repeated_draws(tilt_sd)
         and np.linalg.matrix_rank(cb, 1e-12 * np.abs(cb).max()) == 2
     )
     assert np.all(np.isinf(grouped_jackknife_covariance(S, v, np.arange(len(S)) % 2)))
+
+
+def test_second_pass_covariance_never_below_the_first_pass_and_same_vp():
+    """The default ("max_blocks") keeps the VP of "first_pass" and states at
+    least its sd;
+    an unknown method is refused."""
+    rng = np.random.default_rng(5)
+    vp = np.array([300.0, 2600.0, 1.0])
+    img = render(vp, rng)
+    r0 = detect_vertical_vp(
+        img, VanishingOptions(second_pass_covariance="first_pass"), CAMERA
+    )
+    r1 = detect_vertical_vp(img, VanishingOptions(), CAMERA)
+    assert r0.status == r1.status == "ok"
+    assert angle_deg(r0.vp, r1.vp) < 1e-9
+    assert r1.direction_std_deg >= r0.direction_std_deg
+    assert direction_error_deg(r1.vp, vp) < 3 * r1.direction_std_deg
+    with pytest.raises(ValueError, match="second_pass_covariance"):
+        VanishingOptions(second_pass_covariance="bootstrap")
