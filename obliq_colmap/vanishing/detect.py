@@ -277,7 +277,8 @@ def _with_second_pass(
                 # errors they share (measured: docs/journal/stage1-vanishing.md,
                 # 2026-12-04 "a covariance from the chains").
                 result.covariance, result.direction_std_deg = cov_px, sd_first
-            _set_status(result, options)
+            if options.status_from_second_pass_covariance:
+                _set_status(result, options)
         result.time_s["refine_second"] = time.perf_counter() - t0
     result.vertical_segments = sp.through(result.vp, T)
     e = result.vertical_segments.endpoints
