@@ -737,3 +737,95 @@ def test_without_a_cone_a_restart_replaces_a_first_start_on_the_wrong_pencil(
     assert calls == ["aerial"] * 3
     assert res.status == "ok" and direction_error_deg(res.vp, vp_true) < 0.1
     assert np.sum(res.vertical_segments.lengths) > np.sum(one.vertical_segments.lengths)
+
+
+# --------------------------------------------------------------------------
+# The covariance of a VP from the spread over its chains (jackknife)
+# --------------------------------------------------------------------------
+
+
+def _pencil_draw(vp, rng, sigma, tilt_sd, n_chains=40, n_pts=30):
+    """Chains of points on lines through vp (normalised coordinates): white
+    noise ``sigma`` per point, plus each chain turned about its middle by
+    N(0, tilt_sd) rad (an error all points of one chain share)."""
+    from obliq_colmap.lines import scatter_matrices
+
+    pts = []
+    crng = np.random.default_rng(0)  # the same chains in every draw
+    for _ in range(n_chains):
+        q = crng.uniform(-0.9, 0.9, 2)
+        d = vp[:2] - q * vp[2]
+        d /= np.linalg.norm(d)
+        n = np.array([-d[1], d[0]])
+        t = np.linspace(-1, 1, n_pts) * crng.uniform(0.03, 0.15)
+        off = rng.normal(0, sigma, n_pts) + t * rng.normal(0, tilt_sd)
+        pts.append(q + t[:, None] * d + off[:, None] * n)
+    pts = np.array(pts)
+    G = len(pts)
+    return scatter_matrices(pts.reshape(-1, 2), np.repeat(np.arange(G), n_pts), G)
+
+
+@pytest.mark.parametrize("tilt_sd", [0.0, 3e-3], ids=["white", "per_chain"])
+def test_jackknife_covariance_agrees_with_the_scatter_of_repeated_draws(tilt_sd):
+    """With white point noise the jackknife over chains and the formal
+    covariance both match the VP's scatter over repeated draws; with an
+    error shared by the points of each chain (a chain turned as a whole)
+    the formal one is several times too small and the jackknife still
+    matches (two-sided)."""
+    from obliq_colmap.vanishing.pencil import (
+        grouped_jackknife_covariance,
+        tangent_basis,
+    )
+
+    vp = np.array([0.2, 3.0, 1.0])
+    vp /= np.linalg.norm(vp)
+    B = tangent_basis(vp)
+    rng = np.random.default_rng(1)
+    sigma = 1e-4  # ~0.1 px at a 2,000 px image
+    devs, formal, jack = [], [], []
+    for _ in range(150):
+        S = _pencil_draw(vp, rng, sigma, tilt_sd)
+        v, cov, _, _ = refine_vp(S, vp)
+        v = v * np.sign(v @ vp)
+        devs.append(B.T @ (v - vp))
+        formal.append(B.T @ cov @ B)
+        jack.append(B.T @ grouped_jackknife_covariance(S, v) @ B)
+    devs = np.array(devs)
+    emp = devs.T @ devs / len(devs)
+    # Compare the variances along the principal axes of the empirical scatter.
+    w, Q = np.linalg.eigh(emp)
+    fj = np.array([np.diag(Q.T @ c @ Q) for c in jack]).mean(axis=0) / w
+    ff = np.array([np.diag(Q.T @ c @ Q) for c in formal]).mean(axis=0) / w
+    assert np.all((fj > 0.6) & (fj < 1.6)), fj
+    if tilt_sd == 0:
+        assert np.all((ff > 0.6) & (ff < 1.6)), ff
+    else:
+        assert np.all(ff < 0.3), ff
+    # Blocks of chains: the same within the noise of fewer blocks.
+    S = _pencil_draw(vp, rng, sigma, tilt_sd)
+    v = refine_vp(S, vp)[0]
+    cb = grouped_jackknife_covariance(S, v, np.arange(len(S)) % 10)
+    assert (
+        np.all(np.isfinite(cb))
+        and np.linalg.matrix_rank(cb, 1e-12 * np.abs(cb).max()) == 2
+    )
+    assert np.all(np.isinf(grouped_jackknife_covariance(S, v, np.arange(len(S)) % 2)))
+
+
+def test_second_pass_covariance_never_below_the_first_pass_and_same_vp():
+    """The default ("max_blocks") keeps the VP of "first_pass" and states at
+    least its sd;
+    an unknown method is refused."""
+    rng = np.random.default_rng(5)
+    vp = np.array([300.0, 2600.0, 1.0])
+    img = render(vp, rng)
+    r0 = detect_vertical_vp(
+        img, VanishingOptions(second_pass_covariance="first_pass"), CAMERA
+    )
+    r1 = detect_vertical_vp(img, VanishingOptions(), CAMERA)
+    assert r0.status == r1.status == "ok"
+    assert angle_deg(r0.vp, r1.vp) < 1e-9
+    assert r1.direction_std_deg >= r0.direction_std_deg
+    assert direction_error_deg(r1.vp, vp) < 3 * r1.direction_std_deg
+    with pytest.raises(ValueError, match="second_pass_covariance"):
+        VanishingOptions(second_pass_covariance="bootstrap")

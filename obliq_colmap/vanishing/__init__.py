@@ -32,7 +32,13 @@ Stage 1b of the pipeline (Habbecke & Kobbelt, section 2.1):
    with roof or ground, left out of the fit), ends moved out to where the
    contrast halves (the end of the blurred edge). The VP is then refined once
    more on these full-resolution edge points, on the chains within a robust
-   noise bound that fit it better than any competing VP.
+   noise bound that fit it better than any competing VP. Its covariance is
+   the larger of the first pass's and a jackknife over blocks of
+   neighbouring chains (``VanishingOptions.second_pass_covariance``; the
+   status stays the first pass's unless
+   ``status_from_second_pass_covariance``):
+   the points of a chain, and the chains of one facade, share their errors,
+   so the formal ``2 sigma^2 H^-1`` over independent points is far too small.
 
 Everything is homogeneous (a VP at infinity, ``w = 0``, is legal); internally
 pixel coordinates are centred and scaled (``T``) for conditioning. The

@@ -18,8 +18,11 @@ from obliq_colmap.vanishing.options import VanishingOptions, VanishingResult, VP
 from obliq_colmap.vanishing.pencil import (
     canonical_sign,
     direction_std_deg,
+    grouped_jackknife_covariance,
     nominal_K,
     normaliser,
+    pencil_fit,
+    tangent_basis,
     vertical_direction,
 )
 from obliq_colmap.vanishing.ransac import (
@@ -244,6 +247,7 @@ def _with_second_pass(
     if result.vp is None:
         return 0.0
     H, W = img.shape
+    Knom = nominal_K(W, H)
     t0 = time.perf_counter()
     T, s_px = normaliser(W, H)
     sp = run_second_pass(img, result.vp, options.second_pass, camera, T, grads)
@@ -254,20 +258,50 @@ def _with_second_pass(
         v_n = v_n / np.linalg.norm(v_n)
         comps = result.competing_vps @ T.T
         comps /= np.linalg.norm(comps, axis=1, keepdims=True)
-        v_n, keep = refine_on_chains(sp, v_n, comps, options, s_px)
+        v_n, keep, use = refine_on_chains(sp, v_n, comps, options, s_px)
+        method = options.second_pass_covariance
+        cov_n = None
+        if method != "first_pass":
+            cov_n = _chain_covariance(sp.scatter[use], v_n, method, options)
         sp = SecondPass(sp.segments.subset(keep), sp.scatter[keep])
-        # The edge points of a chain are correlated (smoothing, optics), so
-        # their formal covariance is ~10x too optimistic; the first pass's
-        # (calibrated on independent segments) is kept as a conservative
-        # figure for the refined VP.
-        cov_px = result.covariance
+        cov_px, sd_first = result.covariance, result.direction_std_deg
         K = camera.K if camera is not None else None
-        _set_vp(result, v_n, np.zeros((3, 3)), T, K, None, prior)
-        result.covariance = cov_px
+        if cov_n is None:
+            # The first pass's covariance (on LSD segments) for the refined VP.
+            _set_vp(result, v_n, np.zeros((3, 3)), T, K, None, prior)
+            result.covariance = cov_px
+        else:
+            _set_vp(result, v_n, cov_n, T, K, K if K is not None else Knom, prior)
+            if method == "max_blocks" and not (result.direction_std_deg >= sd_first):
+                # The larger of the two statements: the chains' spread misses
+                # errors they share (measured: docs/journal/stage1-vanishing.md,
+                # 2026-12-04 "a covariance from the chains").
+                result.covariance, result.direction_std_deg = cov_px, sd_first
+            if options.status_from_second_pass_covariance:
+                _set_status(result, options)
         result.time_s["refine_second"] = time.perf_counter() - t0
     result.vertical_segments = sp.through(result.vp, T)
     e = result.vertical_segments.endpoints
     return float(np.linalg.norm(e[:, 1] - e[:, 0], axis=1).sum()) if len(e) else 0.0
+
+
+def _chain_covariance(
+    S: np.ndarray, v_n: np.ndarray, method: str, options: VanishingOptions
+) -> np.ndarray:
+    """(3, 3) covariance of the VP ``v_n`` (normalised) refined on the chains
+    of scatter ``S``: a jackknife over the chains ("chains") or over
+    ``options.covariance_blocks`` blocks of neighbouring chains in the order
+    of their angle in the pencil ("blocks", "max_blocks"; neighbours in the
+    pencil are neighbours in the image: one facade, one row of windows)."""
+    if method == "chains":
+        return grouped_jackknife_covariance(S, v_n)
+    _, lines = pencil_fit(S, v_n)
+    x = lines @ tangent_basis(v_n)
+    order = np.argsort(np.arctan2(x[:, 1], x[:, 0]) % np.pi)
+    nb = min(options.covariance_blocks, len(S))
+    groups = np.empty(len(S), int)
+    groups[order] = np.arange(len(S)) * nb // max(len(S), 1)
+    return grouped_jackknife_covariance(S, v_n, groups)
 
 
 def detect_vertical_vp(

@@ -133,6 +133,21 @@ class VanishingOptions:
     #: at most this many robust standard deviations of those RMS values (and
     #: at most ``second_pass.max_rms_px``).
     second_pass_rms_factor: float = 3.0
+    #: covariance of the VP refined on the second pass (the bundle uses it
+    #: with VP observations): "first_pass" (the first pass's, on LSD segments, as before
+    #: 2026-12-04), "chains" (a jackknife over the chains), "blocks" (a
+    #: jackknife over ``covariance_blocks`` blocks of neighbouring chains),
+    #: "max_blocks" (the larger of "first_pass" and "blocks", by the
+    #: direction's sd). Measured in docs/journal/stage1-vanishing.md
+    #: (2026-12-04, "a covariance from the chains").
+    second_pass_covariance: str = "max_blocks"
+    covariance_blocks: int = 20
+    #: set the status again with that covariance's sd (``ok_max_std_deg``);
+    #: False: the status stays the first pass's. Off: on houses-102 it sends
+    #: 13 more images (VPs ~1-15 deg off) to stage 2's fallback (all first-pass
+    #: segments), which then registers 8 instead of 18 of 36 below 2 px
+    #: across the verticals (`--stop_after initial`); urban-101 unchanged.
+    status_from_second_pass_covariance: bool = False
     #: RANSAC: largest distance of a segment endpoint to the line through the
     #: segment's midpoint and the hypothesis, pixels of the detection image.
     inlier_threshold_px: float = 1.0
@@ -204,6 +219,15 @@ class VanishingOptions:
     ok_max_std_deg: float = 1.0
 
     def __post_init__(self) -> None:
+        if self.second_pass_covariance not in (
+            "first_pass",
+            "chains",
+            "blocks",
+            "max_blocks",
+        ):
+            raise ValueError(
+                f"unknown second_pass_covariance {self.second_pass_covariance!r}"
+            )
         if not self.start_cones or min(self.start_cones) <= 0:
             raise ValueError(
                 f"start_cones needs positive factors, got {self.start_cones}"

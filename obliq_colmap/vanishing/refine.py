@@ -198,7 +198,7 @@ def refine_on_chains(
     comps: np.ndarray,
     options: VanishingOptions,
     s_px: float,
-) -> tuple[np.ndarray, np.ndarray]:
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The VP refined on the second pass's chains, and the chains to return.
 
     Parameters
@@ -211,7 +211,8 @@ def refine_on_chains(
     Returns
     -------
     v_n : (3,) the refined VP; keep : (G,) bool, the chains through it within
-    ``second_pass.max_rms_px`` that fit it better than any competing VP.
+    ``second_pass.max_rms_px`` that fit it better than any competing VP;
+    use : (G,) bool, the chains the VP was refined on.
     """
     S = sp.scatter
     n_pts = np.maximum(S[:, 2, 2], 1)
@@ -242,4 +243,4 @@ def refine_on_chains(
         if np.array_equal(new, use) or new.sum() < 3:
             break
         use = new
-    return v_n, (cost <= max_cost) & (cost < other)
+    return v_n, (cost <= max_cost) & (cost < other), use
