@@ -772,9 +772,9 @@ def test_jackknife_covariance_agrees_with_the_scatter_of_repeated_draws(tilt_sd)
     error shared by the points of each chain (a chain turned as a whole)
     the formal one is several times too small and the jackknife still
     matches (two-sided)."""
+    from obliq_colmap.geometry import tangent_basis
     from obliq_colmap.vanishing.pencil import (
         grouped_jackknife_covariance,
-        tangent_basis,
     )
 
     vp = np.array([0.2, 3.0, 1.0])

@@ -13,7 +13,7 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from ..geometry import calibration_matrix, skew
+from ..geometry import calibration_matrix, skew, tangent_basis
 from . import residuals as res
 from .problem import BundleOptions, BundleProblem
 from .setup import Setup, State
@@ -188,14 +188,6 @@ class PrincipalPointPrior(PosePrior):
 _DOWN = np.array([0.0, 0.0, -1.0])
 
 
-def _tangent_basis(m: np.ndarray) -> np.ndarray:
-    """(2, 3) orthonormal rows perpendicular to the unit vector ``m``."""
-    a = np.eye(3)[int(np.argmin(np.abs(m)))]
-    t1 = np.cross(m, a)
-    t1 /= np.linalg.norm(t1)
-    return np.stack([t1, np.cross(m, t1)])
-
-
 class VanishingPointObservation(PosePrior):
     """Each observed image's vertical vanishing point (stage 1): 2 rows.
 
@@ -237,7 +229,7 @@ class VanishingPointObservation(PosePrior):
             m = u / nu
             Jm = (np.eye(3) - np.outer(m, m)) / nu @ Kinv
             Cm = Jm @ C @ Jm.T
-            Tk = _tangent_basis(m)
+            Tk = tangent_basis(m).T  # (2, 3) rows
             A = -Tk @ skew(m)  # d e / d m at d = m
             Ce = A @ Cm @ A.T * sigma_scale**2
             try:

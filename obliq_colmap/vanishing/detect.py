@@ -12,7 +12,7 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from obliq_colmap.geometry import Camera
+from obliq_colmap.geometry import Camera, tangent_basis
 from obliq_colmap.lines import Segments, as_gray_u8, detect_segments, gradients
 from obliq_colmap.vanishing.options import VanishingOptions, VanishingResult, VPPrior
 from obliq_colmap.vanishing.pencil import (
@@ -22,7 +22,6 @@ from obliq_colmap.vanishing.pencil import (
     nominal_K,
     normaliser,
     pencil_fit,
-    tangent_basis,
     vertical_direction,
 )
 from obliq_colmap.vanishing.ransac import (

@@ -12,6 +12,7 @@ import math
 
 import numpy as np
 
+from obliq_colmap.geometry import tangent_basis
 from obliq_colmap.lines import scatter_matrices
 
 
@@ -32,51 +33,6 @@ def canonical_sign(v: np.ndarray) -> np.ndarray:
     w = v[..., 2]
     key = np.where(np.abs(w) > 1e-12 * np.linalg.norm(v, axis=-1), w, v[..., 1])
     return v * np.where(key < 0, -1.0, 1.0)[..., None]
-
-
-_EYE3 = np.eye(3)
-
-
-def tangent_basis(v: np.ndarray) -> np.ndarray:
-    """(..., 3, 2) orthonormal bases of the planes perpendicular to unit v (..., 3).
-
-    Smooth in v within each of three regions (chosen by v's smallest |component|);
-    the quantities computed from it do not depend on the choice of basis.
-    """
-    v = np.asarray(v, float)
-    if v.ndim == 1:
-        return _tangent_basis_1(v)
-    e = _EYE3[np.argmin(np.abs(v), axis=-1)]
-    u1 = cross(v, e)
-    u1 /= np.linalg.norm(u1, axis=-1, keepdims=True)
-    return np.stack([u1, cross(v, u1)], axis=-1)
-
-
-def _tangent_basis_1(v: np.ndarray) -> np.ndarray:
-    """:func:`tangent_basis` of one (3,) vector in scalar arithmetic.
-
-    Called thousands of times per image on single VPs, where numpy's per-call
-    overhead is most of the cost.
-    """
-    x, y, z = float(v[0]), float(v[1]), float(v[2])
-    ax, ay, az = abs(x), abs(y), abs(z)
-    # v x e_k for the axis k of the smallest |component| (first on ties).
-    if ax <= ay and ax <= az:
-        a, b, c = 0.0, z, -y
-    elif ay <= az:
-        a, b, c = -z, 0.0, x
-    else:
-        a, b, c = y, -x, 0.0
-    n = math.sqrt(a * a + b * b + c * c)
-    a, b, c = a / n, b / n, c / n
-    return np.array([[a, y * c - z * b], [b, z * a - x * c], [c, x * b - y * a]])
-
-
-def cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Cross product over the last axis (np.cross has a large call overhead)."""
-    a0, a1, a2 = a[..., 0], a[..., 1], a[..., 2]
-    b0, b1, b2 = b[..., 0], b[..., 1], b[..., 2]
-    return np.stack([a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0], -1)
 
 
 def _pencil_forms(S: np.ndarray, U: np.ndarray) -> tuple[np.ndarray, ...]:

@@ -6,15 +6,14 @@ from __future__ import annotations
 import numpy as np
 from scipy.special import pdtrc
 
+from obliq_colmap.geometry import cross, tangent_basis
 from obliq_colmap.lines import Segments
 from obliq_colmap.vanishing.options import VanishingOptions, VPPrior
 from obliq_colmap.vanishing.pencil import (
     canonical_sign,
-    cross,
     endpoint_scatter,
     midpoint_distance,
     pencil_costs_each,
-    tangent_basis,
 )
 
 

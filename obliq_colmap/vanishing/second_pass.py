@@ -12,7 +12,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from obliq_colmap.geometry import Camera
+from obliq_colmap.geometry import Camera, tangent_basis
 from obliq_colmap.lines import (
     EdgePoints,
     Segments,
@@ -26,7 +26,10 @@ from obliq_colmap.lines import (
     split_at_gaps,
 )
 from obliq_colmap.vanishing.options import SecondPassOptions
-from obliq_colmap.vanishing.pencil import normaliser, pencil_fit, tangent_basis
+from obliq_colmap.vanishing.pencil import (
+    normaliser,
+    pencil_fit,
+)
 
 
 @dataclass
