@@ -144,7 +144,6 @@ class PrincipalPointPrior(PosePrior):
         self.k = np.array(self.slots, int)
         #: Per camera weight 1 / sigma^2 (sigma in px of its own image).
         self.w_cam = 1.0 / np.square(np.array(scale, float))
-        self.w = 1.0
 
     @classmethod
     def of(cls, P: BundleProblem, S: Setup, opts: BundleOptions):
@@ -258,7 +257,6 @@ class VanishingPointObservation(PosePrior):
         ]
         self.sigma_scale = sigma_scale
         self.c2 = loss_scale**2
-        self.w = 1.0
         #: False: evaluated only (:meth:`statistics` with weight 0).
         self.in_fit = True
 
