@@ -384,7 +384,7 @@ def cam_from_img(
     fx, fy, cx, cy, k1, k2, p1, p2 = _split_params(model, params)
     xy = np.asarray(pixels, float).reshape(-1, 2)
     target = np.stack([(xy[:, 0] - cx) / fx, (xy[:, 1] - cy) / fy], axis=1)
-    if k1 == 0.0 and k2 == 0.0 and p1 == 0.0 and p2 == 0.0:
+    if (k1 == 0.0 and k2 == 0.0 and p1 == 0.0 and p2 == 0.0) or not len(xy):
         return target
     uv = target.copy()
     for _ in range(num_iterations):

@@ -45,6 +45,13 @@ def test_cam_from_img_inverts_distortion(model):
     np.testing.assert_allclose(und, pin[:, :2], atol=1e-8, rtol=0)
 
 
+@pytest.mark.parametrize("model", list(MODELS))
+def test_no_pixels_undistort_to_no_pixels(model):
+    # A registration with no inlier segment undistorts an empty set.
+    cam = g.Camera(model, 1000, 800, MODELS[model])
+    assert cam.undistort_pixels(np.zeros((0, 2))).shape == (0, 2)
+
+
 def test_points_behind_camera_are_nan():
     cam = g.Camera("PINHOLE", 100, 100, [50, 50, 50, 50])
     xy = cam.img_from_cam(np.array([[0.0, 0.0, -1.0], [0.0, 0.0, 1.0]]))
