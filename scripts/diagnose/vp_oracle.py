@@ -123,9 +123,13 @@ def main() -> None:
         ]
     )  # fmt: skip
     res = json.loads(ev.read_text())
-    px = sorted(im["mean_deviation_px"] for im in res["images"])
-    ok = sum(p < 2 for p in px)
-    print(f"oracle VPs at {args.sigma_deg} deg: {ok}/{len(px)} < 2 px, median {np.median(px):.2f} px")
+    # a missing image counts as infinitely far off, as in the judging measure
+    px = [im["mean_deviation_px"] for im in res["images"]]
+    px = np.array([np.inf if p is None else p for p in px])
+    print(
+        f"oracle VPs at {args.sigma_deg} deg: {int((px < 2).sum())}/{len(px)}"
+        f" < 2 px, median {np.median(px):.2f} px"
+    )
 
 
 if __name__ == "__main__":
