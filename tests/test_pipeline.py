@@ -694,12 +694,12 @@ def test_an_image_held_by_few_facade_edges_is_left_out_as_imprecise(
     keeps all its constraints (the disagreement test cannot see it), but its
     a-posteriori precision is several times the block's (measured 7.7 px
     against a median of 1.0 px), so it is left out with a message saying why;
-    no other image is."""
+    no other image is (nor warned about)."""
     import dataclasses
 
     from obliq_colmap import adjustment as adj
     from obliq_colmap.adjustment import problem
-    from obliq_colmap.pipeline import leave_out_rejected
+    from obliq_colmap.pipeline import leave_out_rejected, warn_imprecise
 
     options, inputs, outcomes = _sample_after_stage2(initial_run)
     target = next(i for i, o in outcomes.items() if o.name == "W_10.jpg")
@@ -727,6 +727,10 @@ def test_an_image_held_by_few_facade_edges_is_left_out_as_imprecise(
     assert adj.rejected_images(stage3, options.min_constraints_kept) == []
     imprecise = adj.imprecise_images(stage3, options.max_precision_ratio)
     assert imprecise == [target]
+    # Kept, it would be written with a warning naming why; the others, near
+    # the block's 1 px, would not.
+    assert warn_imprecise(state, stage3, outcomes, 2.0) == [target]
+    assert "may be more than 2 px off" in outcomes[target].message
     state = leave_out_rejected(state, stage3, outcomes, [], imprecise)
     assert target not in state.poses and len(state.poses) == len(outcomes) - 1
     o = outcomes[target]

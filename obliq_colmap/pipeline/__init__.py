@@ -76,7 +76,11 @@ from obliq_colmap.pipeline.output import (
     write_run,
 )
 from obliq_colmap.pipeline.run import run_register
-from obliq_colmap.pipeline.verdicts import block_verdicts, leave_out_rejected
+from obliq_colmap.pipeline.verdicts import (
+    block_verdicts,
+    leave_out_rejected,
+    warn_imprecise,
+)
 from obliq_colmap.pipeline.workers import (
     ImageTask,
     initial_image,
@@ -111,6 +115,7 @@ __all__ = [
     "initial_image",
     "initial_stage",
     "leave_out_rejected",
+    "warn_imprecise",
     "load_inputs",
     "overlay_name",
     "reregister_failed",

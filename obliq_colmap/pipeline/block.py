@@ -27,7 +27,11 @@ from obliq_colmap.geometry import (
 )
 from obliq_colmap.parallel import WorkerPool
 from obliq_colmap.pipeline.options import PipelineOptions
-from obliq_colmap.pipeline.verdicts import block_verdicts, leave_out_rejected
+from obliq_colmap.pipeline.verdicts import (
+    block_verdicts,
+    leave_out_rejected,
+    warn_imprecise,
+)
 from obliq_colmap.pipeline.workers import (
     ImageTask,
     reregister,
@@ -124,6 +128,7 @@ def block_stage(
                 rejected, imprecise = again, imprecise_again
                 misplaced = misplaced_again
     state = leave_out_rejected(state, stage3, by_id, rejected, imprecise, misplaced)
+    warn_imprecise(state, stage3, by_id, options.warn_predicted_sd_px)
     return state, bundle_result, stage3, reregistered
 
 

@@ -83,6 +83,14 @@ class PipelineOptions:
     #: what the two verdicts above cannot: an image whose facade edges were
     #: matched a floor off keeps its constraints and an ordinary precision.
     max_end_offset_ratio: float = 6.0
+    #: An image written with a predicted deviation (the last bundle's
+    #: a-posteriori sd of its projections, px) above this is named in a
+    #: warning and its report entry: it may be more than 2 px off (an image
+    #: is registered below 2 px; 1 px is that criterion at two sigma). The
+    #: sd comes from the bundle's own covariance, so the warning is as sharp
+    #: as that covariance is calibrated (docs/STATUS.md, issue 26); inf
+    #: turns it off.
+    warn_predicted_sd_px: float = 1.0
     #: With pose priors in the bundle (``adjustment.bundle``'s
     #: ``position_prior_sigma_m`` / ``rotation_prior_sigma_deg``): when the
     #: bundle disagrees with more than this share of the images, it is solved
@@ -121,6 +129,8 @@ class PipelineOptions:
             raise ValueError("head_focal_min_images must be >= 0")
         if not 0.0 <= self.min_constraints_kept <= 1.0:
             raise ValueError("min_constraints_kept must be in [0, 1]")
+        if not self.warn_predicted_sd_px > 0:
+            raise ValueError("warn_predicted_sd_px must be > 0")
         if not self.max_precision_ratio >= 0:
             raise ValueError("max_precision_ratio must be >= 0")
         if not self.max_end_offset_ratio >= 0:

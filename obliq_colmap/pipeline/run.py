@@ -134,6 +134,7 @@ def run_register(
         "min_constraints_kept": options.min_constraints_kept,
         "max_precision_ratio": options.max_precision_ratio,
         "max_end_offset_ratio": options.max_end_offset_ratio,
+        "warn_predicted_sd_px": options.warn_predicted_sd_px,
         "max_prior_rejected_fraction": options.max_prior_rejected_fraction,
     }
     report["num_points3D"] = len(points)

@@ -1,6 +1,7 @@
 """The leave-outs: the images stage 3's verdicts name
 (:func:`block_verdicts`) leave the block as failures that say why
-(:func:`leave_out_rejected`).
+(:func:`leave_out_rejected`); the written images the bundle determines
+worse than the registration criterion are named (:func:`warn_imprecise`).
 """
 
 from __future__ import annotations
@@ -16,7 +17,7 @@ from obliq_colmap.adjustment import Stage3, Verdicts, judge
 from obliq_colmap.pipeline.options import PipelineOptions
 from obliq_colmap.state import BlockState, ImageOutcome
 
-__all__ = ["block_verdicts", "leave_out_rejected"]
+__all__ = ["block_verdicts", "leave_out_rejected", "warn_imprecise"]
 
 logger = logging.getLogger(__name__)
 
@@ -84,3 +85,43 @@ def leave_out_rejected(
         planes={i: p for i, p in state.planes.items() if i in keep},
         solved=state.solved & keep,
     )
+
+
+def warn_imprecise(
+    state: BlockState,
+    stage3: Stage3 | None,
+    outcomes: dict[int, ImageOutcome],
+    max_sd_px: float,
+) -> list[int]:
+    """Name the written images whose predicted deviation (the last bundle's
+    sd of their projections, :attr:`Stage3.bundle_precision`) exceeds
+    ``max_sd_px``: one warning for the block, the reason in each image's
+    message. They stay in the block (the sd is a statement about the
+    block's information, not evidence that this pose is wrong). Returns
+    their ids."""
+    if stage3 is None:
+        return []
+    weak = sorted(
+        i for i in state.poses if stage3.bundle_precision.get(i, math.nan) > max_sd_px
+    )
+    for i in weak:
+        o = outcomes[i]
+        note = (
+            f"written with a warning: the bundle predicts its projections to"
+            f" {stage3.bundle_precision[i]:.2f} px (sd; above {max_sd_px:g} px),"
+            " so it may be more than 2 px off"
+        )
+        o.message = f"{o.message}; {note}" if o.message else note
+    if weak:
+        sd = [stage3.bundle_precision[i] for i in weak]
+        logger.warning(
+            "%d of %d written images are determined worse than %g px (predicted"
+            " sd %.2f-%.2f px; they may be more than 2 px off): %s",
+            len(weak),
+            len(state.poses),
+            max_sd_px,
+            min(sd),
+            max(sd),
+            ", ".join(outcomes[i].name for i in weak),
+        )
+    return weak
