@@ -13,7 +13,13 @@ from collections.abc import Sequence
 import numpy as np
 
 from obliq_colmap.geometry import Camera, tangent_basis
-from obliq_colmap.lines import Segments, as_gray_u8, detect_segments, gradients
+from obliq_colmap.lines import (
+    Segments,
+    as_gray_u8,
+    detect_segments,
+    equalize_local_contrast,
+    gradients,
+)
 from obliq_colmap.vanishing.options import VanishingOptions, VanishingResult, VPPrior
 from obliq_colmap.vanishing.pencil import (
     canonical_sign,
@@ -362,11 +368,16 @@ def detect_vertical_vp(
         result = results[0]
     else:
         t0 = time.perf_counter()
-        grads = gradients(img, options.second_pass.sigma_px)
+        img2 = img
+        if options.contrast_clip_limit > 0:
+            img2 = equalize_local_contrast(
+                img, options.contrast_clip_limit, options.contrast_tiles
+            )
+        grads = gradients(img2, options.second_pass.sigma_px)
         # One VP: its second pass as always; several: the one whose second
         # pass finds the most vertical edge length (``start_cones``).
         lengths = [
-            _with_second_pass(r, img, grads, options, camera, prior) for r in results
+            _with_second_pass(r, img2, grads, options, camera, prior) for r in results
         ]
         # Among VPs that the second pass brought together, the first start's
         # (the prior's own cone): the longest second pass picks the pencil,

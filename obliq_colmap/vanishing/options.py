@@ -123,6 +123,15 @@ class SecondPassOptions:
 class VanishingOptions:
     """Options of :func:`detect_vertical_vp`."""
 
+    #: local contrast equalisation (CLAHE, :func:`lines.equalize_local_contrast`)
+    #: of the image the second pass reads: its clip limit (0: off) and the
+    #: regions per side. Facades in shadow (a head against the sun) give few
+    #: edges above the second pass's thresholds otherwise. Not for the first
+    #: pass: its segments are stage 3's facade edges, whose positions the
+    #: nonlinear mapping moves (measured: docs/journal/independent-scenes.md,
+    #: 2026-12-04 "facades in shadow").
+    contrast_clip_limit: float = 3.0
+    contrast_tiles: int = 8
     #: segment detection (first pass).
     lines: LineOptions = field(default_factory=LineOptions)
     #: second pass (:func:`vertical_segments`); skipped when None.
@@ -227,6 +236,11 @@ class VanishingOptions:
         ):
             raise ValueError(
                 f"unknown second_pass_covariance {self.second_pass_covariance!r}"
+            )
+        if not self.contrast_clip_limit >= 0 or self.contrast_tiles < 1:
+            raise ValueError(
+                "contrast_clip_limit must be >= 0 and contrast_tiles >= 1, got"
+                f" {self.contrast_clip_limit}, {self.contrast_tiles}"
             )
         if not self.start_cones or min(self.start_cones) <= 0:
             raise ValueError(
