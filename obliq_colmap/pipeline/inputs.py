@@ -10,10 +10,10 @@ from pathlib import Path
 import numpy as np
 
 from obliq_colmap.cadastre import load_cadastre
-from obliq_colmap.colmap_io import read_priors
 from obliq_colmap.errors import InputError
 from obliq_colmap.pipeline.options import PipelineOptions
 from obliq_colmap.pipeline.workers import ImageTask
+from obliq_colmap.priors import read_priors
 from obliq_colmap.state import Inputs
 
 __all__ = ["image_tasks", "load_inputs"]
@@ -35,7 +35,7 @@ def load_inputs(
         Any user mistake (missing files, unreadable map or model, degrees).
     """
     image_path, cadastre_path = Path(image_path), Path(cadastre_path)
-    priors_abs = read_priors(input_path, image_path)
+    priors_abs = read_priors(input_path, image_path, options.priors)
     if not priors_abs.images:
         raise InputError(input_path, "the priors model has no images")
     cadastre = load_cadastre(cadastre_path, options.cadastre)
