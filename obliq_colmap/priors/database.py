@@ -114,6 +114,11 @@ def read_database(path: Path) -> DatabasePriors:
     if len(systems) > 1:
         raise InputError(path, f"priors in mixed coordinate systems {sorted(systems)}")
     xyz = np.array([np.frombuffer(r[1], dtype="<f8")[:3] for r in rows], float)
+    # COLMAP 4 writes NaN positions for priors that carry only gravity.
+    keep = np.all(np.isfinite(xyz), axis=1)
+    rows, xyz = [r for r, k in zip(rows, keep, strict=True) if k], xyz[keep]
+    if not rows:
+        raise InputError(path, "the database's pose priors hold no positions")
     crs = None
     if systems == {WGS84}:
         xyz = xyz[:, [1, 0, 2]]  # lat, lon, alt -> lon, lat, alt
