@@ -27,6 +27,7 @@ from obliq_colmap.priors import (
     read_priors,
 )
 from obliq_colmap.priors.cameras import parse_camera_params
+from obliq_colmap.priors.exif import cam_from_world_from_gimbal
 from obliq_colmap.priors.text import format_opk, read_geo, read_opk
 
 SAMPLE = Path(__file__).resolve().parents[1] / "data_samples" / "oblique_small"
@@ -344,3 +345,64 @@ def test_cli_errors_exit_2(tmp_path, capsys):
     err = capsys.readouterr().err
     assert "positions only" in err and str(geo) in err
     assert not (tmp_path / "result").exists()
+
+
+@pytest.mark.parametrize(
+    ("ypr", "expected"),
+    [
+        # looking east, 45 deg down: right = south, down = west-and-down
+        ((90, -45, 0), [[0, -1, 0], [-S, 0, -S], [S, 0, -S]]),
+        # looking north, horizontal, rolled 90 deg: right points down
+        ((0, 0, 90), [[0, 0, -1], [-1, 0, 0], [0, 1, 0]]),
+    ],
+)
+def test_gimbal_matches_hand_computed(ypr, expected):
+    R = cam_from_world_from_gimbal(np.array(ypr, float))[0]
+    np.testing.assert_allclose(R, expected, atol=1e-12)
+
+
+def test_nadir_gimbal_yaw_is_minus_kappa():
+    yaw = np.array([-102.3, 0.0, 37.0, 170.0])
+    R = cam_from_world_from_gimbal(np.column_stack([yaw, -90 + 0 * yaw, 0 * yaw]))
+    np.testing.assert_allclose(opk_from_cam_from_world(R)[:, 2], -yaw, atol=1e-9)
+
+
+def _jpeg_with_xmp(path: Path, tags: dict[str, str]) -> None:
+    """A tiny JPEG with a DJI-style XMP packet in an APP1 segment."""
+    import cv2
+
+    ok, jpeg = cv2.imencode(".jpg", np.zeros((8, 12), np.uint8))
+    attrs = " ".join(f'drone-dji:{k}="{v}"' for k, v in tags.items())
+    xmp = (
+        b"http://ns.adobe.com/xap/1.0/\x00<x:xmpmeta><rdf:Description "
+        + attrs.encode()
+        + b"/></x:xmpmeta>"
+    )
+    segment = b"\xff\xe1" + (len(xmp) + 2).to_bytes(2, "big") + xmp
+    path.write_bytes(jpeg[:2].tobytes() + segment + jpeg[2:].tobytes())
+
+
+def test_xmp_folder(tmp_path):
+    for k, yaw in enumerate([0.0, 90.0]):
+        tags = {
+            "GpsLatitude": f"+{51 + k * 0.001}",
+            "GpsLongitude": "+9.0",
+            "AbsoluteAltitude": "+350.5",
+            "GimbalYawDegree": f"{yaw}",
+            "GimbalPitchDegree": "-45.0",
+            "GimbalRollDegree": "0.0",
+        }
+        _jpeg_with_xmp(tmp_path / f"DJI_{k}.JPG", tags)
+    assert prior_format(tmp_path) == "xmp"
+    block = read_priors(tmp_path, tmp_path, PriorsOptions(camera_params="10,6,4"))
+    a, b = (block.image_by_name(f"DJI_{k}.JPG").cam_from_world for k in (0, 1))
+    np.testing.assert_allclose(a.center[0], 500_000.0, atol=1e-6)
+    assert a.center[2] == 350.5
+    np.testing.assert_allclose(b.rotation, HAND_GIMBAL_EAST, atol=1e-12)
+    assert (block.cameras[1].width, block.cameras[1].height) == (12, 8)
+    (tmp_path / "plain.jpg").write_bytes((tmp_path / "DJI_0.JPG").read_bytes()[:2])
+    with pytest.raises(InputError, match="plain.jpg"):
+        read_priors(tmp_path, tmp_path, PriorsOptions(camera_params="10,6,4"))
+
+
+HAND_GIMBAL_EAST = [[0, -1, 0], [-S, 0, -S], [S, 0, -S]]

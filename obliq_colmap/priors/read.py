@@ -19,6 +19,7 @@ from obliq_colmap.geometry import Camera, Pose
 from obliq_colmap.priors.cameras import camera_source
 from obliq_colmap.priors.crs import to_map_crs
 from obliq_colmap.priors.database import SQLITE_MAGIC, read_database
+from obliq_colmap.priors.exif import has_xmp_priors, read_xmp_folder
 from obliq_colmap.priors.opk import FLIP_YZ, cam_from_world_from_opk
 from obliq_colmap.priors.options import PriorsOptions
 from obliq_colmap.priors.text import read_geo, read_opk, sniff_text
@@ -30,15 +31,20 @@ NADIR = FLIP_YZ
 
 
 def prior_format(path: str | Path) -> str:
-    """``"model"``, ``"database"``, ``"opk"`` or ``"geo"``; InputError otherwise."""
+    """``"model"``, ``"xmp"`` (images with drone tags), ``"database"``,
+    ``"opk"`` or ``"geo"``; InputError otherwise."""
     path = Path(path)
     if not path.exists():
         raise InputError(path, "priors path does not exist")
     if path.is_dir():
         if any((path / f"{MODEL_FILES[0]}{e}").is_file() for e in (".bin", ".txt")):
             return "model"
+        if has_xmp_priors(path):
+            return "xmp"
         raise InputError(
-            path, "folder without a COLMAP model (cameras, images, points3D)"
+            path,
+            "folder holding neither a COLMAP model (cameras, images, points3D) "
+            "nor images with drone-dji GPS tags",
         )
     with path.open("rb") as f:
         head = f.read(4096)
@@ -112,7 +118,10 @@ def read_priors(
     if kind == "model":
         return read_model_priors(path, image_path)
     fallback = None
-    if kind == "database":
+    if kind == "xmp":
+        data = read_xmp_folder(path)
+        names, xyz, crs, rotations = data.names, data.xyz, "EPSG:4326", data.rotations
+    elif kind == "database":
         data = read_database(path)
         names, xyz, crs, rotations = data.names, data.xyz, data.crs, None
         fallback = data.cameras
