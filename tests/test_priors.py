@@ -42,6 +42,8 @@ HAND = [
     ((0, 0, 90), [[0, 1, 0], [1, 0, 0], [0, 0, -1]]),
     # phi -45: looking east and down 45 deg
     ((0, -45, 0), [[S, 0, S], [0, -1, 0], [S, 0, -S]]),
+    # the README's worked example: upright, looking east and 45 deg down
+    ((0, -45, -90), [[0, -1, 0], [-S, 0, -S], [S, 0, -S]]),
     # omega 45: looking north and down 45 deg
     ((45, 0, 0), [[1, 0, 0], [0, -S, -S], [0, S, -S]]),
 ]
@@ -306,7 +308,7 @@ def test_export_absolute_and_text(tmp_path, caplog):
     write_result(local, absolute.shifted(origin), Georef(origin, "EPSG:25832"))
     out = tmp_path / "abs"
     export_model(local, out, "absolute")
-    assert "float32" in caplog.text  # 0.06 m float32 spacing at 5.6e6 m
+    assert "float32" in caplog.text  # float32 steps 0.5 m at 5.6e6 m
     back = read_model(out)
     for im in absolute.images.values():
         got = back.image_by_name(im.name).cam_from_world
