@@ -79,7 +79,8 @@ def export_opk(input_path: Path, output_path: Path) -> Path:
     """``imageName X Y Z Omega Phi Kappa``: absolute centres, degrees."""
     block = read_model(input_path)
     georef = read_georef(input_path)
-    images = sorted(block.images.values(), key=lambda im: im.name)
+    # Image id order, so that reading the file back gives the same order.
+    images = sorted(block.images.values(), key=lambda im: im.image_id)
     centres = np.array([im.cam_from_world.center for im in images]) + georef.origin
     rotations = np.array([im.cam_from_world.rotation for im in images])
     text = format_opk(
