@@ -408,3 +408,21 @@ def test_xmp_folder(tmp_path):
 
 
 HAND_GIMBAL_EAST = [[0, -1, 0], [-S, 0, -S], [S, 0, -S]]
+
+
+def test_geo_txt_into_a_declared_crs_keeps_x_east(tmp_path):
+    """EPSG:31468 declares northing first; positions still come out x = east.
+
+    Gauss-Krueger zone 4 has its central meridian at 12 E with a false
+    easting of 4 500 000 m; the DHDN datum shift is ~100 m.
+    """
+    f = tmp_path / "geo.txt"
+    f.write_text("EPSG:4326\na.jpg 12.0 51.0 300\n")
+    opts = PriorsOptions(
+        camera_path=_single_camera_text(tmp_path),
+        require_rotation=False,
+        crs="EPSG:31468",
+    )
+    centre = read_priors(f, None, opts).image_by_name("a.jpg").cam_from_world.center
+    assert abs(centre[0] - 4_500_000.0) < 300.0
+    assert abs(centre[1] - 5_651_000.0) < 3_000.0
