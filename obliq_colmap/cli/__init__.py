@@ -22,6 +22,7 @@ SUBCOMMANDS: dict[str, tuple[str, str]] = {
     "evaluate": ("evaluate", "measure a result model against ground truth"),
     "vanishing": ("vanishing", "detect vertical vanishing points in images"),
     "register": ("register", "register oblique images to a cadastral map"),
+    "export": ("export", "write a result model as absolute, OPK or text"),
 }
 
 logger = logging.getLogger("obliq_colmap")

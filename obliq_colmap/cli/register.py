@@ -31,6 +31,7 @@ from obliq_colmap.pipeline import (
     summary_table,
     write_run,
 )
+from obliq_colmap.priors import PriorsOptions
 
 logger = logging.getLogger(__name__)
 
@@ -58,7 +59,18 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     io.add_argument(
         "--input_path",
         required=True,
-        help="COLMAP priors model (binary or text): rough poses in the map's frame",
+        help="priors in the map's frame: a COLMAP model folder, or an "
+        "'image_name X Y Z omega phi kappa' text file (Pix4D convention, degrees)",
+    )
+    io.add_argument(
+        "--camera_path",
+        help="intrinsics for text priors: a COLMAP model, cameras.txt/.bin or "
+        "database (a model listing the images assigns cameras by name)",
+    )
+    io.add_argument(
+        "--camera_params",
+        help="intrinsics for text priors, all images: [MODEL:]p1,p2,... in "
+        "COLMAP's order and pixels (e.g. SIMPLE_RADIAL:3000,2000,1333,0)",
     )
     io.add_argument(
         "--output_path",
@@ -243,6 +255,9 @@ def run(args: argparse.Namespace) -> int:
     try:
         options = PipelineOptions(
             stop_after=args.stop_after,
+            priors=PriorsOptions(
+                camera_path=args.camera_path, camera_params=args.camera_params
+            ),
             num_workers=args.num_workers,
             camera_model=args.camera_model,
             overlay_path=Path(args.overlay_path) if args.overlay_path else None,

@@ -4,16 +4,17 @@ checked (:func:`load_inputs`), and the per-image work (:func:`image_tasks`).
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 from pathlib import Path
 
 import numpy as np
 
 from obliq_colmap.cadastre import load_cadastre
-from obliq_colmap.colmap_io import read_priors
 from obliq_colmap.errors import InputError
 from obliq_colmap.pipeline.options import PipelineOptions
 from obliq_colmap.pipeline.workers import ImageTask
+from obliq_colmap.priors import read_priors
 from obliq_colmap.state import Inputs
 
 __all__ = ["image_tasks", "load_inputs"]
@@ -35,12 +36,17 @@ def load_inputs(
         Any user mistake (missing files, unreadable map or model, degrees).
     """
     image_path, cadastre_path = Path(image_path), Path(cadastre_path)
-    priors_abs = read_priors(input_path, image_path)
-    if not priors_abs.images:
-        raise InputError(input_path, "the priors model has no images")
     cadastre = load_cadastre(cadastre_path, options.cadastre)
     if cadastre.num_corners == 0:
         raise InputError(cadastre_path, "the map has no usable footprints")
+    # Priors in geographic or another CRS (geo.txt, XMP, databases) go into
+    # the map's CRS when the map declares one.
+    prior_options = options.priors
+    if prior_options.crs is None and cadastre.crs is not None:
+        prior_options = dataclasses.replace(prior_options, crs=cadastre.crs)
+    priors_abs = read_priors(input_path, image_path, prior_options)
+    if not priors_abs.images:
+        raise InputError(input_path, "the priors model has no images")
     origin = np.array([cadastre.origin[0], cadastre.origin[1], 0.0])
     priors = priors_abs.shifted(origin)
     centres = np.array([im.cam_from_world.center for im in priors.images.values()])

@@ -12,6 +12,7 @@ from obliq_colmap.adjustment import AdjustmentOptions
 from obliq_colmap.cadastre import CadastreOptions
 from obliq_colmap.lines import RefineOptions
 from obliq_colmap.parallel import available_cores
+from obliq_colmap.priors import PriorsOptions
 from obliq_colmap.registration import RegistrationOptions
 from obliq_colmap.vanishing import VanishingOptions
 
@@ -36,6 +37,8 @@ class PipelineOptions:
 
     #: Last stage to run: "initial" (per-image registration) or "bundle".
     stop_after: str = "bundle"
+    #: Camera source and CRS for prior formats that carry none (OPK text).
+    priors: PriorsOptions = field(default_factory=PriorsOptions)
     #: Worker processes for the per-image stages; 0 = the available cores.
     num_workers: int = 0
     #: Half-angle (deg) of the cone around the prior rotation's vertical in
