@@ -20,7 +20,7 @@ import numpy as np
 from obliq_colmap.cadastre import Cadastre, CadastreOptions, load_cadastre
 from obliq_colmap.geometry import Camera, Pose
 from obliq_colmap.lines import RefineOptions, refine_segments
-from obliq_colmap.parallel import WorkerPool
+from obliq_colmap.parallel import WorkerPool, image_seed
 from obliq_colmap.registration import (
     RegistrationOptions,
     RegistrationResult,
@@ -70,6 +70,21 @@ class ImageTask:
     model: str = ""
     #: Intrinsics stage 2 starts from (result model), None: the priors'.
     start: Camera | None = None
+
+    # Every random stream of an image is seeded from its name mixed with the
+    # user's seed, so its draws depend neither on the worker (or machine)
+    # that runs it nor on the other images or their ids in the run.
+    @property
+    def seeded_vanishing(self) -> VanishingOptions:
+        """Stage 1's options, seeded for this image (:func:`image_seed`)."""
+        seed = image_seed(self.name, self.vanishing.seed)
+        return dataclasses.replace(self.vanishing, seed=seed)
+
+    @property
+    def seeded_registration(self) -> RegistrationOptions:
+        """Stage 2's options, seeded for this image (:func:`image_seed`)."""
+        seed = image_seed(self.name, self.registration.seed)
+        return dataclasses.replace(self.registration, seed=seed)
 
     @property
     def result_camera(self) -> Camera:
@@ -154,7 +169,7 @@ def initial_image(task: ImageTask) -> ImageOutcome:
         return out
     out.time_s["read"] = time.perf_counter() - t0
     prior = VPPrior.from_rotation(task.prior.rotation, task.cone_deg)
-    vp = detect_vertical_vp(img, task.vanishing, task.camera, prior, task.image_id)
+    vp = detect_vertical_vp(img, task.seeded_vanishing, task.camera, prior)
     out.vp_status = vp.status
     out.line_segments = vp.segments
     if task.refine is not None:
@@ -164,7 +179,7 @@ def initial_image(task: ImageTask) -> ImageOutcome:
         out.line_segments = refine_segments(img, vp.segments, task.camera, task.refine)
         out.time_s["refine_segments"] = time.perf_counter() - t1
     out.time_s["vanishing"] = vp.time_s.get("total", math.nan)
-    options = task.registration
+    options = task.seeded_registration
     if vp.status == "ok" and vp.vertical_segments is not None:
         out.segments = vp.vertical_segments.endpoints
         out.vertical_direction = vp.vertical_direction
@@ -208,11 +223,9 @@ def reregister_options(
 ) -> RegistrationOptions:
     """The task's registration options with a given ground height (None: its
     own search), those for a vertical from the prior when none was detected."""
-    options = (
-        task.registration
-        if vertical is not None
-        else _fallback_options(task.registration)
-    )
+    options = task.seeded_registration
+    if vertical is None:
+        options = _fallback_options(options)
     return dataclasses.replace(options, ground_height=ground)
 
 
@@ -287,14 +300,21 @@ def refine_job(
 
 
 def worker_pool(
-    num_workers: int, init_args: tuple, cadastre: Cadastre, progress: bool
+    num_workers: int,
+    init_args: tuple,
+    cadastre: Cadastre,
+    progress: bool,
+    dask_scheduler: str | None = None,
 ) -> WorkerPool:
-    """The pool of the per-image stages; each worker loads the cadastre once
-    (one worker: the calling process uses the one already loaded)."""
+    """The pool of the per-image stages, local or on a Dask cluster
+    (``dask_scheduler``: see :class:`~obliq_colmap.parallel.WorkerPool`);
+    each worker loads the cadastre once (one local worker: the calling
+    process uses the one already loaded)."""
     return WorkerPool(
         num_workers,
         _init_worker,
         init_args,
         local_initializer=lambda: _STATE.__setitem__("cadastre", cadastre),
         progress=progress,
+        dask_scheduler=dask_scheduler,
     )
