@@ -71,20 +71,15 @@ class ImageTask:
     #: Intrinsics stage 2 starts from (result model), None: the priors'.
     start: Camera | None = None
 
-    # Every random stream of an image is seeded from its name mixed with the
-    # user's seed, so its draws depend neither on the worker (or machine)
-    # that runs it nor on the other images or their ids in the run.
+    # An image's random streams must not depend on the worker (or machine)
+    # that runs it, nor on the other images or their ids in the run: stage
+    # 1's are seeded from its name mixed with the user's seed; stage 2's
+    # RANSAC takes the user's seed itself, the same for every image.
     @property
     def seeded_vanishing(self) -> VanishingOptions:
         """Stage 1's options, seeded for this image (:func:`image_seed`)."""
         seed = image_seed(self.name, self.vanishing.seed)
         return dataclasses.replace(self.vanishing, seed=seed)
-
-    @property
-    def seeded_registration(self) -> RegistrationOptions:
-        """Stage 2's options, seeded for this image (:func:`image_seed`)."""
-        seed = image_seed(self.name, self.registration.seed)
-        return dataclasses.replace(self.registration, seed=seed)
 
     @property
     def result_camera(self) -> Camera:
@@ -179,7 +174,7 @@ def initial_image(task: ImageTask) -> ImageOutcome:
         out.line_segments = refine_segments(img, vp.segments, task.camera, task.refine)
         out.time_s["refine_segments"] = time.perf_counter() - t1
     out.time_s["vanishing"] = vp.time_s.get("total", math.nan)
-    options = task.seeded_registration
+    options = task.registration
     if vp.status == "ok" and vp.vertical_segments is not None:
         out.segments = vp.vertical_segments.endpoints
         out.vertical_direction = vp.vertical_direction
@@ -223,9 +218,11 @@ def reregister_options(
 ) -> RegistrationOptions:
     """The task's registration options with a given ground height (None: its
     own search), those for a vertical from the prior when none was detected."""
-    options = task.seeded_registration
-    if vertical is None:
-        options = _fallback_options(options)
+    options = (
+        task.registration
+        if vertical is not None
+        else _fallback_options(task.registration)
+    )
     return dataclasses.replace(options, ground_height=ground)
 
 
