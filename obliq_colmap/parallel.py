@@ -3,16 +3,23 @@
 Workers are started with ``spawn`` (they must not inherit the parent's BLAS
 and OpenCV threads) and run with one BLAS and one OpenCV thread each, so that
 N workers use N cores. With one worker the work runs in the calling process,
-which keeps tracebacks and profiles simple.
+which keeps tracebacks and profiles simple. With a Dask scheduler
+(:mod:`obliq_colmap.dask_pool`) the same work runs on a Dask cluster.
+
+Results never depend on where an item runs: the per-image work seeds its
+random streams with :func:`image_seed`.
 """
 
 from __future__ import annotations
 
+import hashlib
 import os
 from collections.abc import Callable, Sequence
 from concurrent.futures import ProcessPoolExecutor
 from multiprocessing import get_context
 from typing import Any
+
+from obliq_colmap.errors import InputError
 
 
 def available_cores() -> int:
@@ -23,12 +30,24 @@ def available_cores() -> int:
         return max(1, os.cpu_count() or 1)
 
 
-def _start_worker(initializer: Callable | None, initargs: tuple) -> None:
+def image_seed(name: str, seed: int = 0) -> int:
+    """A random seed for one image: a stable hash of its name mixed with the
+    user's ``seed`` (Python's ``hash`` differs between processes)."""
+    digest = hashlib.blake2b(f"{int(seed)}\x00{name}".encode(), digest_size=8).digest()
+    return int.from_bytes(digest, "little") >> 1  # 63 bits: a valid numpy seed
+
+
+def limit_threads() -> None:
+    """One BLAS and one OpenCV thread in this process, for its life."""
     import cv2
     from threadpoolctl import threadpool_limits
 
     cv2.setNumThreads(1)  # one process per core; no oversubscription
     _LIMITS.append(threadpool_limits(1))
+
+
+def _start_worker(initializer: Callable | None, initargs: tuple) -> None:
+    limit_threads()
     if initializer is not None:
         initializer(*initargs)
 
@@ -50,6 +69,9 @@ class WorkerPool:
         over an object already loaded instead of loading it again.
     progress : show a tqdm bar per :meth:`map`.
     unit : the bar's unit.
+    dask_scheduler : run on a Dask cluster instead: a scheduler's address,
+        or ``local`` for a LocalCluster of ``num_workers`` one-thread
+        processes (:class:`~obliq_colmap.dask_pool.DaskRunner`).
 
     Use as a context manager; leaving it shuts the workers down and cancels
     what has not started (an interrupt leaves no worker behind).
@@ -64,12 +86,18 @@ class WorkerPool:
         local_initializer: Callable[[], None] | None = None,
         progress: bool = True,
         unit: str = "img",
+        dask_scheduler: str | None = None,
     ) -> None:
         self.num_workers = max(1, int(num_workers))
         self.progress = progress
         self.unit = unit
         self.pool: ProcessPoolExecutor | None = None
-        if self.num_workers > 1:
+        self.dask: Any = None
+        if dask_scheduler:
+            self.dask = _dask_runner(
+                dask_scheduler, self.num_workers, initializer, initargs
+            )
+        elif self.num_workers > 1:
             self.pool = ProcessPoolExecutor(
                 self.num_workers,
                 mp_context=get_context("spawn"),
@@ -89,6 +117,8 @@ class WorkerPool:
             total=len(items), desc=desc, unit=self.unit, disable=not self.progress
         )
         try:
+            if self.dask is not None:
+                return self.dask.map(fn, items, bar.update)
             if self.pool is None:
                 out = []
                 for item in items:
@@ -103,6 +133,9 @@ class WorkerPool:
             bar.close()
 
     def close(self) -> None:
+        if self.dask is not None:
+            self.dask.close()
+            self.dask = None
         if self.pool is not None:
             self.pool.shutdown(cancel_futures=True)
             self.pool = None
@@ -112,3 +145,19 @@ class WorkerPool:
 
     def __exit__(self, *exc) -> None:
         self.close()
+
+
+def _dask_runner(
+    scheduler: str, num_workers: int, initializer: Callable | None, initargs: tuple
+) -> Any:
+    """A :class:`~obliq_colmap.dask_pool.DaskRunner`, or an InputError naming
+    the extra to install when Dask's distributed scheduler is missing."""
+    try:
+        from obliq_colmap.dask_pool import DaskRunner
+    except ImportError as exc:
+        raise InputError(
+            None,
+            f"--dask_scheduler needs Dask's distributed scheduler ({exc.name} is "
+            "not installed): pip install 'obliq-colmap[dask]'",
+        ) from exc
+    return DaskRunner(scheduler, num_workers, initializer, initargs)

@@ -15,6 +15,7 @@ import scipy.sparse as sp
 
 from ..geometry import skew
 from . import residuals as res
+from .linear import kkt_inverse
 from .setup import Setup, State
 
 
@@ -65,21 +66,16 @@ def camera_covariance(
         cols = np.repeat(np.r_[hid, hid + nh], L)
         G = sp.csr_matrix((vals, (rows, cols)), (n + 1, 2 * nh))
         A_red -= (G @ G.T).toarray()[:n, :n]
-    ng = len(S.A)
     # Jacobi scaling: the columns (radians, metres, pixels, distortion) differ
     # by orders of magnitude; scaled, the condition number is the geometry's.
     d = np.sqrt(np.clip(np.diag(A_red), 0.0, None))
     if not np.all(d > 0):
         return np.full((n, n), np.nan)  # a direction without any observation
-    kkt = np.zeros((n + ng, n + ng))
-    kkt[:n, :n] = A_red / np.outer(d, d)
-    kkt[:n, n:] = (S.A / d).T
-    kkt[n:, :n] = S.A / d
     try:
-        inv_kkt = np.linalg.inv(kkt)
+        inv = kkt_inverse(A_red / np.outer(d, d), S.A / d)
     except np.linalg.LinAlgError:
         return np.full((n, n), np.nan)
-    return inv_kkt[:n, :n] / np.outer(d, d)
+    return inv / np.outer(d, d)
 
 
 def image_jacobians(S: Setup, st: State):

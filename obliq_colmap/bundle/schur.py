@@ -3,8 +3,9 @@
 The camera block C (6 per image + refined intrinsics, dense: a few hundred
 unknowns) and the DIAGONAL height block h; Marquardt damping
 ``H + lambda * clip(diag H, 1e-6, 1e32)`` on both; the Schur complement
-``S = H_CC - E^T D_h^-1 E`` solved densely with the gauge constraints as a
-KKT system, then back-substitution of the heights.
+``S = H_CC - E^T D_h^-1 E`` solved with the gauge constraints as a KKT
+system (:mod:`.linear`: dense, sparse for large blocks), then
+back-substitution of the heights.
 """
 
 from __future__ import annotations
@@ -12,6 +13,7 @@ from __future__ import annotations
 import numpy as np
 
 from .coupling import Coupling
+from .linear import kkt_solve
 from .setup import Setup
 
 
@@ -79,16 +81,6 @@ def damped_step(S: Setup, H_cc, g_c, H_hh, g_h, F, lam, schur: Schur):
         rhs = -g_c
     A_red = H_cc - reduced
     A_red[np.diag_indices_from(A_red)] += lam * D_c
-    ng = len(S.A)
-    if ng:
-        n = S.n_red
-        kkt = np.zeros((n + ng, n + ng))
-        kkt[:n, :n] = A_red
-        kkt[:n, n:] = S.A.T
-        kkt[n:, :n] = S.A
-        sol = np.linalg.solve(kkt, np.concatenate([rhs, np.zeros(ng)]))
-        dc = sol[:n]
-    else:
-        dc = np.linalg.solve(A_red, rhs)
+    dc = kkt_solve(A_red, S.A, rhs)  # dense, or sparse LU for large blocks
     dh = -dinv * (g_h + S.coupling.matvec(F, dc)) if S.n_heights else np.zeros(0)
     return dc, dh, D_c, D_h

@@ -3,6 +3,7 @@
     obliq-colmap register --image_path DIR --cadastre_path FOOTPRINTS.geojson \\
                           --input_path PRIORS_MODEL --output_path OUT_MODEL \\
                           [--stop_after initial|bundle] [--num_workers N] \\
+                          [--dask_scheduler ADDRESS|local] \\
                           [--overlay_path DIR] [--camera_model MODEL] ...
 
 Writes the COLMAP binary model, ``georef.json`` and ``report.json`` directly in
@@ -93,6 +94,15 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         default=available_cores(),
         help="processes for the per-image stages (default: available cores, "
         "%(default)s)",
+    )
+    run.add_argument(
+        "--dask_scheduler",
+        metavar="ADDRESS|local",
+        help="run the per-image stages on a Dask cluster: a scheduler's address "
+        "(tcp://host:8786; the workers must see --image_path and --cadastre_path "
+        "at the same paths) or 'local' for a LocalCluster of --num_workers "
+        "one-thread processes; same results as without (needs the extra "
+        "obliq-colmap[dask])",
     )
     run.add_argument("--no_progress", action="store_true", help="no progress bars")
     run.add_argument(
@@ -259,6 +269,7 @@ def run(args: argparse.Namespace) -> int:
                 camera_path=args.camera_path, camera_params=args.camera_params
             ),
             num_workers=args.num_workers,
+            dask_scheduler=args.dask_scheduler,
             camera_model=args.camera_model,
             overlay_path=Path(args.overlay_path) if args.overlay_path else None,
             progress=not args.no_progress,

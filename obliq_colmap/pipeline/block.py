@@ -83,7 +83,13 @@ def block_stage(
         workers, init_args = pool_args
         saved = {o.image_id: copy.copy(o) for o in outcomes}  # for an undo
         first = (state, bundle_result, stage3)
-        with worker_pool(workers, init_args, inputs.cadastre, options.progress) as pool:
+        with worker_pool(
+            workers,
+            init_args,
+            inputs.cadastre,
+            options.progress,
+            options.dask_scheduler,
+        ) as pool:
             state, reregistered = reregister_failed(
                 pool, tasks, outcomes, state, options
             )

@@ -41,6 +41,10 @@ class PipelineOptions:
     priors: PriorsOptions = field(default_factory=PriorsOptions)
     #: Worker processes for the per-image stages; 0 = the available cores.
     num_workers: int = 0
+    #: Run the per-image stages on a Dask cluster: a scheduler's address, or
+    #: "local" for a LocalCluster of ``num_workers`` processes; None: a
+    #: local process pool.
+    dask_scheduler: str | None = None
     #: Half-angle (deg) of the cone around the prior rotation's vertical in
     #: which the VP is searched; None = 3 sigma of the prior rotation and
     #: focal errors + 1 deg.

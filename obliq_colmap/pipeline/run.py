@@ -75,7 +75,9 @@ def run_register(
     origin3 = np.array([cad.origin[0], cad.origin[1], 0.0])
     init_args = (inputs.cadastre_path, options.cadastre, origin3)
     workers = min(options.workers, len(tasks))
-    with worker_pool(workers, init_args, cad, options.progress) as pool:
+    with worker_pool(
+        workers, init_args, cad, options.progress, options.dask_scheduler
+    ) as pool:
         outcomes, _, rescued = initial_stage(pool, tasks, options, timings)
         for o in outcomes:
             if o.status == "unreadable" or not o.registered:
@@ -123,6 +125,7 @@ def run_register(
     report["options"] = {
         "stop_after": options.stop_after,
         "num_workers": workers,
+        "dask_scheduler": options.dask_scheduler,
         "vp_cone_deg": options.cone_deg,
         "camera_model": options.camera_model,
         "refine_focal_length": options.adjustment.bundle.refine_focal_length,

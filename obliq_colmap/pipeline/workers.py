@@ -20,7 +20,7 @@ import numpy as np
 from obliq_colmap.cadastre import Cadastre, CadastreOptions, load_cadastre
 from obliq_colmap.geometry import Camera, Pose
 from obliq_colmap.lines import RefineOptions, refine_segments
-from obliq_colmap.parallel import WorkerPool
+from obliq_colmap.parallel import WorkerPool, image_seed
 from obliq_colmap.registration import (
     RegistrationOptions,
     RegistrationResult,
@@ -70,6 +70,16 @@ class ImageTask:
     model: str = ""
     #: Intrinsics stage 2 starts from (result model), None: the priors'.
     start: Camera | None = None
+
+    # An image's random streams must not depend on the worker (or machine)
+    # that runs it, nor on the other images or their ids in the run: stage
+    # 1's are seeded from its name mixed with the user's seed; stage 2's
+    # RANSAC takes the user's seed itself, the same for every image.
+    @property
+    def seeded_vanishing(self) -> VanishingOptions:
+        """Stage 1's options, seeded for this image (:func:`image_seed`)."""
+        seed = image_seed(self.name, self.vanishing.seed)
+        return dataclasses.replace(self.vanishing, seed=seed)
 
     @property
     def result_camera(self) -> Camera:
@@ -154,7 +164,7 @@ def initial_image(task: ImageTask) -> ImageOutcome:
         return out
     out.time_s["read"] = time.perf_counter() - t0
     prior = VPPrior.from_rotation(task.prior.rotation, task.cone_deg)
-    vp = detect_vertical_vp(img, task.vanishing, task.camera, prior, task.image_id)
+    vp = detect_vertical_vp(img, task.seeded_vanishing, task.camera, prior)
     out.vp_status = vp.status
     out.line_segments = vp.segments
     if task.refine is not None:
@@ -287,14 +297,21 @@ def refine_job(
 
 
 def worker_pool(
-    num_workers: int, init_args: tuple, cadastre: Cadastre, progress: bool
+    num_workers: int,
+    init_args: tuple,
+    cadastre: Cadastre,
+    progress: bool,
+    dask_scheduler: str | None = None,
 ) -> WorkerPool:
-    """The pool of the per-image stages; each worker loads the cadastre once
-    (one worker: the calling process uses the one already loaded)."""
+    """The pool of the per-image stages, local or on a Dask cluster
+    (``dask_scheduler``: see :class:`~obliq_colmap.parallel.WorkerPool`);
+    each worker loads the cadastre once (one local worker: the calling
+    process uses the one already loaded)."""
     return WorkerPool(
         num_workers,
         _init_worker,
         init_args,
         local_initializer=lambda: _STATE.__setitem__("cadastre", cadastre),
         progress=progress,
+        dask_scheduler=dask_scheduler,
     )
