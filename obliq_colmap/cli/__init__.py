@@ -22,6 +22,7 @@ SUBCOMMANDS: dict[str, tuple[str, str]] = {
     "evaluate": ("evaluate", "measure a result model against ground truth"),
     "vanishing": ("vanishing", "detect vertical vanishing points in images"),
     "register": ("register", "register oblique images to a cadastral map"),
+    "report": ("report", "write an HTML report of a registration"),
 }
 
 logger = logging.getLogger("obliq_colmap")
