@@ -122,7 +122,9 @@ def build_report(options: ReportOptions) -> Path:
     image_path = Path(options.image_path)
     if not image_path.is_dir():
         raise InputError(image_path, "image folder does not exist")
-    priors_path = options.priors_path or run.get("priors_path")
+    # register records the priors it read (as "priors_path", or its own
+    # option name "input_path"); an explicit --priors_path wins
+    priors_path = options.priors_path or run.get("priors_path") or run.get("input_path")
     priors = None
     notes = []
     if priors_path is not None:
