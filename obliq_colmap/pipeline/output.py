@@ -230,7 +230,7 @@ def run_report(
                 else [round(float(v), 4) for v in bundle.prior_offset_m]
             ),
         }
-        names = {o.image_id: o.name for o in outcomes}
+        names = {o.image_id: o.name for o in outcomes if o.registered}
         report["uncertainty"] = uncertainty_report(bundle, names, pose_covariance)
     return report
 

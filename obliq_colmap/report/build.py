@@ -182,7 +182,13 @@ def _histograms(run: dict[str, Any]) -> list[str]:
     facades = run.get("facades", {}).get("images", {})
     unc = run.get("uncertainty", {}).get("images", {})
     stage2 = [e.get("residual_rms_px") for e in images.values()]
-    bundle = [f.get("bundle_rms_px") or [None, None] for f in facades.values()]
+    # the last bundle may have held images its verdicts then left out
+    written = {n for n, e in images.items() if e.get("status") == "registered"}
+    bundle = [
+        f.get("bundle_rms_px") or [None, None]
+        for n, f in facades.items()
+        if n in written
+    ]
     sd = [u.get("predicted_sd_px") for u in unc.values()]
 
     def arr(v: list) -> np.ndarray:

@@ -24,7 +24,8 @@ table { border-collapse: collapse; margin: 10px 0 24px; font-size: 13px; }
 th, td { border: 1px solid #ccc; padding: 3px 6px; text-align: right; }
 th { background: #eee; } td.l { text-align: left; }
 td img { display: block; width: 240px; }
-tr.bad td { background: #fde8e8; } .note { max-width: 1100px; font-size: 14px; }
+tr.bad td { background: #fde8e8; } tr.warn td { background: #fff6d9; }
+.note { max-width: 1100px; font-size: 14px; }
 .figs { display: flex; flex-wrap: wrap; gap: 12px; }
 """
 
@@ -91,7 +92,11 @@ def _image_table(rows: list[ImageRow], report: dict[str, Any]) -> str:
         e, f, u = r.entry, facades.get(r.name, {}), unc.get(r.name, {})
         brms = f.get("bundle_rms_px") or [None, None]
         ell = u.get("horizontal_ellipse_m") or [None]
-        cls = "" if e.get("status") == "registered" else ' class="bad"'
+        cls = (
+            ' class="bad"'
+            if e.get("status") != "registered"
+            else (' class="warn"' if e.get("message") else "")
+        )
         cells = (
             f'<td class="l">{escape(r.name)}</td>',
             f"<td>{_thumb(r.before, r.name + ' before')}</td>",
@@ -172,7 +177,7 @@ def render_page(
         "ground height, drawn through the priors' camera and pose (red, "
         "before) and through the registered camera and pose (green, after). "
         "Click a thumbnail for the full-size JPEG. Rows in red: images left "
-        "out.</p>"
+        "out; in yellow: written with a warning.</p>"
     )
     hist_note = (
         '<p class="note">Per-image residual RMS (one value per image): the '

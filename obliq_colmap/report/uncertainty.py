@@ -154,6 +154,10 @@ def uncertainty_report(
 ) -> dict[str, Any]:
     """The ``uncertainty`` section of report.json, images worst first.
 
+    Only the images in ``names`` (``register`` passes the written ones; the
+    last bundle may still have held images that its verdicts then left out,
+    and their sds are in their messages).
+
     Per image: ``predicted_sd_px`` (RMS over its constrained points of their
     projections' sd), and where the pose covariance was recorded
     (``records`` from :func:`record_pose_covariance`) ``position_sd_m``
