@@ -47,7 +47,7 @@ def histogram_svg(
     if hi - lo < 1e-9:
         lo, hi = lo - 0.5, hi + 0.5
     counts, edges = np.histogram(v, bins=10, range=(lo, hi))
-    x0, x1, y0, y1 = 40, width - 10, height - 40, 28
+    x0, x1, y0, y1 = 40, width - 24, height - 40, 28  # room for the last tick
     sx = (x1 - x0) / (hi - lo)
     sy = (y0 - y1) / counts.max()
     bars = "".join(
