@@ -47,8 +47,10 @@ def test_pose_uncertainty_recovers_a_known_covariance():
     np.testing.assert_allclose(out["rotation_max_sd_deg"], [0.1])
     sd_xy = np.sqrt(np.diag(cov[0, 3:5, 3:5]))
     np.testing.assert_allclose(out["position_sd_m"][0], [*sd_xy, 0.4])
-    # the angle is that of an axis: theta and theta + 180 deg are one ellipse
-    np.testing.assert_allclose(horizontal_ellipse(-cov[:, 3:5, 3:5] * -1)[0, 2], 30.0)
+    # an axis has no sign: an ellipse along -30 deg reads 150 deg
+    Rm = np.array([[c, s], [-s, c]])
+    flipped = Rm @ np.diag([a * a, b * b]) @ Rm.T
+    np.testing.assert_allclose(horizontal_ellipse(flipped[None])[0], [a, b, 150.0])
 
 
 @pytest.mark.slow
