@@ -23,6 +23,7 @@ SUBCOMMANDS: dict[str, tuple[str, str]] = {
     "vanishing": ("vanishing", "detect vertical vanishing points in images"),
     "register": ("register", "register oblique images to a cadastral map"),
     "export": ("export", "write a result model as absolute, OPK or text"),
+    "report": ("report", "write an HTML report of a registration"),
 }
 
 logger = logging.getLogger("obliq_colmap")
