@@ -21,7 +21,6 @@ from obliq_colmap.geometry import Camera, Pose, axis_angle_from_rotation
 from obliq_colmap.report import (
     horizontal_ellipse,
     pose_uncertainty,
-    record_pose_covariance,
     uncertainty_report,
 )
 from obliq_colmap.report.build import ReportOptions, build_report
@@ -71,10 +70,9 @@ def test_pose_sd_predicts_the_deviation_from_the_truth():
         syn = make_synthetic_problem(
             seed=seed, buildings=(5, 5), stations=(2, 2), noise_px=0.5
         )
-        with record_pose_covariance() as records:
-            out = solve_bundle(syn.problem, opts)
+        out = solve_bundle(syn.problem, opts)
         names = {i: f"im{i}" for i in syn.problem.image_ids}
-        unc = uncertainty_report(out, names, records)
+        unc = uncertainty_report(out, names)
         assert unc["pose_covariance"]
         for i in syn.problem.image_ids:
             e = unc["images"][names[i]]
@@ -95,19 +93,17 @@ def test_pose_sd_predicts_the_deviation_from_the_truth():
     assert np.all((rot > 0.53) & (rot < 1.47)), rot
 
 
-def test_uncertainty_report_lists_the_worst_first_and_wants_the_final_solve():
+def test_uncertainty_report_lists_the_worst_first_with_the_final_pose_blocks():
     syn = make_synthetic_problem(seed=1, buildings=(3, 3), stations=(2, 1))
-    with record_pose_covariance() as records:
-        out = solve_bundle(syn.problem, BundleOptions())
+    out = solve_bundle(syn.problem, BundleOptions())
     names = {i: f"im{i}" for i in syn.problem.image_ids}
-    unc = uncertainty_report(out, names, records)
+    unc = uncertainty_report(out, names)
     px = [e["predicted_sd_px"] for e in unc["images"].values()]
     assert px == sorted(px, reverse=True) and len(px) == len(names)
-    # another solve's covariance is not taken for this one's
-    out.image_precision_px = {i: v * 1.1 for i, v in out.image_precision_px.items()}
-    other = uncertainty_report(out, names, records)
-    assert not other["pose_covariance"]
-    assert all("position_sd_m" not in e for e in other["images"].values())
+    # the position sd is the final covariance's own block
+    i = syn.problem.image_ids[0]
+    sd = np.sqrt(np.diag(out.pose_covariance[i])[3:])
+    np.testing.assert_allclose(unc["images"][names[i]]["position_sd_m"], sd, atol=1e-4)
 
 
 def test_project_edges_through_a_known_camera():

@@ -115,3 +115,13 @@ def image_precision(S: Setup, st: State, cov: np.ndarray) -> dict[int, float]:
         var = np.einsum("npi,ij,npj->n", J, C, J)
         out[k] = float(np.sqrt(np.mean(var))) if np.all(np.isfinite(var)) else np.nan
     return out
+
+
+def pose_covariances(S: Setup, cov: np.ndarray) -> dict[int, np.ndarray]:
+    """Per active image slot: the (6, 6) covariance of its pose (rotation
+    increment omega, rad, ``R <- Exp(omega) R``; centre, m) from ``cov``."""
+    out = {}
+    for k in S.active_images:
+        cols = S.pose_col[k] + np.arange(6)
+        out[int(k)] = cov[np.ix_(cols, cols)].copy()
+    return out

@@ -398,6 +398,10 @@ class BundleResult:
         its solved camera, from the a-posteriori covariance of its pose and
         intrinsics (heights marginalised, datum by the gauge, scaled by the
         variance factor). NaN where not computed or not determinable.
+    pose_covariance : dict image_id -> (6, 6) array
+        Where the precision is computed: the a-posteriori covariance of the
+        image's pose, rotation increment omega (rad, ``R <- Exp(omega) R``)
+        then centre (m, local frame), datum by the gauge.
     variance_factor : float
         A-posteriori variance of unit weight, ``r^T W r / redundancy``.
     prior_offset_m : (2,) array or None
@@ -432,6 +436,7 @@ class BundleResult:
     horizontal_residuals_px: np.ndarray
     summary: BundleSummary = field(repr=False)
     image_precision_px: dict[int, float] = field(default_factory=dict)
+    pose_covariance: dict[int, np.ndarray] = field(default_factory=dict)
     variance_factor: float = float("nan")
     prior_offset_m: np.ndarray | None = None
     vp_angle_deg: dict[int, float] = field(default_factory=dict)

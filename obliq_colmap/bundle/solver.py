@@ -191,6 +191,7 @@ def _solve(problem: BundleProblem, opts: BundleOptions) -> BundleResult:
 
     final_rmse = rmse(r)
     precision, variance_factor = {}, float("nan")
+    pose_cov: dict[int, np.ndarray] = {}
     vp_stats = None
     # The cofactor matrix serves the precision and the VP rows' redundancy
     # numbers and tests (which the rounds read between solves).
@@ -207,6 +208,8 @@ def _solve(problem: BundleProblem, opts: BundleOptions) -> BundleResult:
             precision, variance_factor = _precision(
                 S, st, pose_priors, prior_w, prior_mask, heights0, r, w, cov
             )
+            if precision:
+                pose_cov = covariance.pose_covariances(S, variance_factor * cov)
         if vp_obs is not None:
             vp_stats = vp_obs.statistics(st, cov)
     r_problem = np.empty_like(r)
@@ -304,6 +307,9 @@ def _solve(problem: BundleProblem, opts: BundleOptions) -> BundleResult:
         summary=summary,
         image_precision_px={
             iid: precision.get(k, float("nan")) for k, iid in enumerate(P.image_ids)
+        },
+        pose_covariance={
+            iid: pose_cov[k] for k, iid in enumerate(P.image_ids) if k in pose_cov
         },
         variance_factor=variance_factor,
         prior_offset_m=-st.shift.copy() if S.shift_col >= 0 else None,

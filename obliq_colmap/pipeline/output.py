@@ -21,7 +21,7 @@ from obliq_colmap.cadastre import visible_corners
 from obliq_colmap.colmap_io import Block, Georef, ImageRecord, Point3D, write_result
 from obliq_colmap.errors import InputError
 from obliq_colmap.geometry import Camera
-from obliq_colmap.report import PoseCovarianceRecord, uncertainty_report
+from obliq_colmap.report import uncertainty_report
 from obliq_colmap.state import BlockState, ImageOutcome, Inputs, json_float
 
 __all__ = [
@@ -166,11 +166,9 @@ def run_report(
     bundle: BundleResult | None,
     georef: Georef,
     timings: dict[str, float],
-    pose_covariance: list[PoseCovarianceRecord] | None = None,
 ) -> dict[str, Any]:
     """The JSON run report: per image, per stage, the bundle's summary and
-    the cameras' uncertainty (``pose_covariance``: see
-    :func:`obliq_colmap.report.record_pose_covariance`)."""
+    the cameras' uncertainty (:func:`obliq_colmap.report.uncertainty_report`)."""
     images = {}
     for o in outcomes:
         r = o.registration
@@ -231,7 +229,7 @@ def run_report(
             ),
         }
         names = {o.image_id: o.name for o in outcomes if o.registered}
-        report["uncertainty"] = uncertainty_report(bundle, names, pose_covariance)
+        report["uncertainty"] = uncertainty_report(bundle, names)
     return report
 
 

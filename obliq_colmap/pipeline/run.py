@@ -26,7 +26,6 @@ from obliq_colmap.pipeline.output import (
 )
 from obliq_colmap.pipeline.workers import draw_overlay, worker_pool
 from obliq_colmap.registration import block_ground_height
-from obliq_colmap.report import PoseCovarianceRecord, record_pose_covariance
 from obliq_colmap.state import BlockState
 
 __all__ = ["run_register"]
@@ -96,13 +95,10 @@ def run_register(
     bundle_result: BundleResult | None = None
     stage3: Stage3 | None = None
     reregistered: list[str] = []
-    pose_covariance: list[PoseCovarianceRecord] = []
     if options.stop_after == "bundle" and any(o.registered for o in outcomes):
-        # the poses' covariance blocks, for the report's uncertainty section
-        with record_pose_covariance() as pose_covariance:
-            state, bundle_result, stage3, reregistered = block_stage(
-                inputs, tasks, outcomes, options, timings, (workers, init_args)
-            )
+        state, bundle_result, stage3, reregistered = block_stage(
+            inputs, tasks, outcomes, options, timings, (workers, init_args)
+        )
     else:
         state = BlockState.from_outcomes([o for o in outcomes if o.registered])
     registered = [o for o in outcomes if o.registered]
@@ -122,9 +118,7 @@ def run_register(
     for p in points:
         p.xyz = p.xyz - np.array([0.0, 0.0, z0])
     timings["total"] = time.perf_counter() - t_run
-    report = run_report(
-        inputs, outcomes, rescued, bundle_result, georef, timings, pose_covariance
-    )
+    report = run_report(inputs, outcomes, rescued, bundle_result, georef, timings)
     report["reregistered"] = reregistered
     if stage3 is not None:
         report["facades"] = stage3.report(by_id)

@@ -15,18 +15,14 @@
 
 from obliq_colmap.report.uncertainty import (
     TRUST_NOTE,
-    PoseCovarianceRecord,
     horizontal_ellipse,
     pose_uncertainty,
-    record_pose_covariance,
     uncertainty_report,
 )
 
 __all__ = [
     "TRUST_NOTE",
-    "PoseCovarianceRecord",
     "horizontal_ellipse",
     "pose_uncertainty",
-    "record_pose_covariance",
     "uncertainty_report",
 ]

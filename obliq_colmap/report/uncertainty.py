@@ -1,34 +1,22 @@
 """Per-camera uncertainty for the user: position and rotation standard
 deviations and the predicted deviation in pixels, from the bundle's
-a-posteriori covariance.
-
-The bundle computes the cofactor matrix of its camera block
-(:func:`obliq_colmap.bundle.covariance.camera_covariance`) and hands it,
-scaled by the variance factor, to ``covariance.image_precision``; it keeps
-only the per-image pixel figure. :func:`record_pose_covariance` wraps that
-call (the module calls through its attribute so that it can be wrapped) to
-keep each image's 6 x 6 pose block as well; :func:`uncertainty_report`
-picks the recorded call that produced the final bundle's figures.
+a-posteriori covariance (:attr:`BundleResult.pose_covariance` and
+:attr:`BundleResult.image_precision_px`).
 """
 
 from __future__ import annotations
 
 import math
-from collections.abc import Iterator
-from contextlib import contextmanager
-from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
 
-from obliq_colmap.bundle import BundleResult, covariance
+from obliq_colmap.bundle import BundleResult
 
 __all__ = [
-    "PoseCovarianceRecord",
     "TRUST_NOTE",
     "horizontal_ellipse",
     "pose_uncertainty",
-    "record_pose_covariance",
     "uncertainty_report",
 ]
 
@@ -48,50 +36,6 @@ TRUST_NOTE = (
     "the bundle's gauge (the mean camera height per component, or the GNSS "
     "centres where given)."
 )
-
-
-@dataclass
-class PoseCovarianceRecord:
-    """One call of ``covariance.image_precision``.
-
-    Attributes
-    ----------
-    precision_px : dict image_id -> predicted deviation (px), as returned.
-    pose_cov : dict image_id -> (6, 6) covariance of (rotation increment
-        omega (rad, camera frame, ``R <- Exp(omega) R``), centre (m, local
-        frame)).
-    """
-
-    precision_px: dict[int, float] = field(default_factory=dict)
-    pose_cov: dict[int, np.ndarray] = field(default_factory=dict)
-
-
-@contextmanager
-def record_pose_covariance() -> Iterator[list[PoseCovarianceRecord]]:
-    """Record every bundle precision computation inside the ``with`` block.
-
-    Yields the list the records are appended to (one per bundle solve that
-    computed its precision); the bundle's results are unchanged.
-    """
-    records: list[PoseCovarianceRecord] = []
-    original = covariance.image_precision
-
-    def recording(S, st, cov):
-        out = original(S, st, cov)
-        rec = PoseCovarianceRecord()
-        for k, value in out.items():
-            iid = int(S.image_ids[k])
-            cols = S.pose_col[k] + np.arange(6)
-            rec.precision_px[iid] = value
-            rec.pose_cov[iid] = cov[np.ix_(cols, cols)].copy()
-        records.append(rec)
-        return out
-
-    covariance.image_precision = recording
-    try:
-        yield records
-    finally:
-        covariance.image_precision = original
 
 
 def horizontal_ellipse(cov_xy: np.ndarray) -> np.ndarray:
@@ -129,20 +73,6 @@ def pose_uncertainty(pose_cov: np.ndarray) -> dict[str, np.ndarray]:
     }
 
 
-def _matching(
-    bundle: BundleResult, records: list[PoseCovarianceRecord]
-) -> PoseCovarianceRecord | None:
-    """The last record whose figures are the final bundle's (the rounds
-    solve several times; only one solve's covariance belongs to the poses
-    written)."""
-    want = {i: v for i, v in bundle.image_precision_px.items() if math.isfinite(v)}
-    for rec in reversed(records):
-        got = {i: v for i, v in rec.precision_px.items() if math.isfinite(v)}
-        if want and got == want:
-            return rec
-    return None
-
-
 def _r(x: float, nd: int) -> float | None:
     return round(float(x), nd) if math.isfinite(x) else None
 
@@ -150,7 +80,6 @@ def _r(x: float, nd: int) -> float | None:
 def uncertainty_report(
     bundle: BundleResult,
     names: dict[int, str],
-    records: list[PoseCovarianceRecord] | None = None,
 ) -> dict[str, Any]:
     """The ``uncertainty`` section of report.json, images worst first.
 
@@ -159,18 +88,17 @@ def uncertainty_report(
     and their sds are in their messages).
 
     Per image: ``predicted_sd_px`` (RMS over its constrained points of their
-    projections' sd), and where the pose covariance was recorded
-    (``records`` from :func:`record_pose_covariance`) ``position_sd_m``
+    projections' sd), and where the bundle computed the pose covariance
+    ``position_sd_m``
     (x, y, z), ``horizontal_ellipse_m`` (semi-major, semi-minor, angle deg
     counter-clockwise from east) and ``rotation_sd_deg`` (camera x, y, z
     axes) with ``rotation_max_sd_deg``.
     """
-    rec = _matching(bundle, records or [])
     ids = [i for i in bundle.image_precision_px if i in names]
     px = {i: bundle.image_precision_px[i] for i in ids}
-    with_cov = [i for i in ids if rec is not None and i in rec.pose_cov]
+    with_cov = [i for i in ids if i in bundle.pose_covariance]
     sds = (
-        pose_uncertainty(np.array([rec.pose_cov[i] for i in with_cov]))
+        pose_uncertainty(np.array([bundle.pose_covariance[i] for i in with_cov]))
         if with_cov
         else {}
     )
@@ -188,7 +116,7 @@ def uncertainty_report(
         images[names[i]] = entry
     return {
         "variance_factor": _r(bundle.variance_factor, 4),
-        "pose_covariance": rec is not None,
+        "pose_covariance": bool(with_cov),
         "trust": TRUST_NOTE,
         "images": images,
     }

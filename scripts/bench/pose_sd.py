@@ -5,7 +5,7 @@ Two measurements:
 
 * ``synthetic`` (default): Monte Carlo over the bundle alone on
   ``make_synthetic_problem`` (16 images, 0.5 px noise, loss off), the pose
-  blocks recorded by :func:`obliq_colmap.report.record_pose_covariance`;
+  blocks of ``BundleResult.pose_covariance``;
   prints per axis sqrt(mean deviation^2 / mean sd^2) for the horizontal
   centre (m) and the rotation about the camera's axes (deg).
 * ``--model OUT --gt GT``: one ``register`` output against the scene's true
@@ -32,7 +32,7 @@ import numpy as np
 from obliq_colmap.bundle import BundleOptions, solve_bundle
 from obliq_colmap.colmap_io import read_georef, read_model
 from obliq_colmap.geometry import axis_angle_from_rotation
-from obliq_colmap.report import record_pose_covariance, uncertainty_report
+from obliq_colmap.report import uncertainty_report
 from obliq_colmap.synthetic.bundle_problem import make_synthetic_problem
 
 
@@ -45,10 +45,9 @@ def synthetic(trials: int, noise: float) -> None:
         syn = make_synthetic_problem(
             seed=seed, buildings=(5, 5), stations=(2, 2), noise_px=noise
         )
-        with record_pose_covariance() as records:
-            out = solve_bundle(syn.problem, opts)
+        out = solve_bundle(syn.problem, opts)
         names = {i: str(i) for i in syn.problem.image_ids}
-        unc = uncertainty_report(out, names, records)
+        unc = uncertainty_report(out, names)
         for i in syn.problem.image_ids:
             e = unc["images"][names[i]]
             dxy.append(out.poses[i].center[:2] - syn.poses[i].center[:2])
