@@ -22,6 +22,10 @@ SUBCOMMANDS: dict[str, tuple[str, str]] = {
     "evaluate": ("evaluate", "measure a result model against ground truth"),
     "vanishing": ("vanishing", "detect vertical vanishing points in images"),
     "register": ("register", "register oblique images to a cadastral map"),
+    "export_products": (
+        "export_products",
+        "terrain grid, building heights, LoD1 model, map discrepancies",
+    ),
 }
 
 logger = logging.getLogger("obliq_colmap")
