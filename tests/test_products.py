@@ -56,6 +56,11 @@ def test_eave_is_the_highest_shared_track_above_the_floor():
     assert h == pytest.approx(10.0) and n == 3
     h, n = highest_cluster(np.array([0.1, 0.2]), 0.5, 2, floor=2.0)
     assert np.isnan(h) and n == 0
+    # two tracks of a taller building behind, both on wall 0: not the eave
+    walls = np.array([0, 1, 0, 1, 0, 1, 2, 0])
+    z2 = np.append(z[:-1], 17.4)
+    h, n = highest_cluster(np.append(z2, 17.3), 0.5, 2, 2.0, np.append(walls, 0), 2)
+    assert h == pytest.approx(10.0) and n == 3
 
 
 def _closed_and_outward(doc: dict) -> float:

@@ -35,6 +35,9 @@ class HeightOptions:
     #: tracks a height needs to be an eave (2: one wall seen from two sides
     #: or two walls; a single track may be another building's edge).
     min_tracks: int = 2
+    #: walls (map edges) among those tracks: a building's eave runs round
+    #: it, while a taller building seen behind one wall shows on that wall.
+    min_walls: int = 2
     #: an eave lower than this above the ground is a wall's foot (m).
     min_height_m: float = 2.0
 
@@ -62,20 +65,29 @@ class BuildingHeights:
         return self.eave_z - self.ground_z
 
 
-def highest_cluster(z: np.ndarray, tol: float, min_count: int, floor: float):
+def highest_cluster(
+    z: np.ndarray,
+    tol: float,
+    min_count: int,
+    floor: float,
+    walls: np.ndarray | None = None,
+    min_walls: int = 1,
+):
     """The highest value of ``z`` (N,) above ``floor`` that at least
-    ``min_count`` values share within ``tol``: (height, count), or (NaN, 0).
-    The height is the median of those values."""
-    z = np.sort(z[z >= floor])
+    ``min_count`` values, on at least ``min_walls`` distinct ``walls`` (N,),
+    share within ``tol``: (height, count), or (NaN, 0). The height is the
+    median of those values."""
+    walls = np.zeros(len(z), int) if walls is None else np.asarray(walls)
+    keep = z >= floor
+    order = np.argsort(z[keep])
+    z, walls = z[keep][order], walls[keep][order]
     if len(z) == 0:
         return np.nan, 0
-    n = (np.abs(z[:, None] - z[None, :]) <= tol).sum(axis=1)
-    ok = np.flatnonzero(n >= min_count)
-    if len(ok) == 0:
-        return np.nan, 0
-    top = z[ok[-1]]
-    members = z[np.abs(z - top) <= tol]
-    return float(np.median(members)), int(len(members))
+    near = np.abs(z[:, None] - z[None, :]) <= tol  # (N, N): a few tracks each
+    for i in np.flatnonzero(near.sum(axis=1) >= min_count)[::-1]:
+        if len(np.unique(walls[near[i]])) >= min_walls:
+            return float(np.median(z[near[i]])), int(near[i].sum())
+    return np.nan, 0
 
 
 def building_heights(
@@ -83,6 +95,7 @@ def building_heights(
     terrain,
     facade_xyz: np.ndarray,
     facade_building: np.ndarray,
+    facade_edge: np.ndarray,
     options: HeightOptions,
 ) -> BuildingHeights:
     """Ground and eave height of every building of the map.
@@ -91,7 +104,7 @@ def building_heights(
     ----------
     terrain : function (M, 2) -> (M,) local heights (:func:`estimate_terrain`).
     facade_xyz : (F, 3) facade track points; facade_building : (P, 2)
-        (facade point, building) pairs.
+        (facade point, building) pairs; facade_edge : (P,) their walls.
     """
     B = len(cadastre.polygons)
     zc = terrain(cadastre.corner_xy)
@@ -106,14 +119,16 @@ def building_heights(
         else np.zeros(B, int)
     )
     order = np.argsort(facade_building[:, 1], kind="stable")
-    fb = facade_building[order]
+    fb, fe = facade_building[order], facade_edge[order]
     starts = np.searchsorted(fb[:, 1], np.arange(B + 1))
     for b in np.flatnonzero(ntr):  # per building: a handful of tracks each
-        z = facade_xyz[fb[starts[b] : starts[b + 1], 0], 2]
+        rows = slice(starts[b], starts[b + 1])
         eave[b], count[b] = highest_cluster(
-            z,
+            facade_xyz[fb[rows, 0], 2],
             options.cluster_tol_m,
             options.min_tracks,
             ground[b] + options.min_height_m,
+            fe[rows],
+            options.min_walls,
         )
     return BuildingHeights(ground, eave, ntr, count)

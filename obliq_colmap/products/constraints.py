@@ -41,6 +41,7 @@ class ModelConstraints:
     ground_xyz : (G, 3) ground corners (x, y, recovered ground height).
     facade_xyz : (F, 3) facade track points (x_j, y_j, h_j).
     facade_building : (P, 2) int pairs (facade point, cadastre building).
+    facade_edge : (P,) int, the map edge (wall) of each pair.
     """
 
     georef: Georef
@@ -49,6 +50,7 @@ class ModelConstraints:
     ground_xyz: np.ndarray
     facade_xyz: np.ndarray
     facade_building: np.ndarray
+    facade_edge: np.ndarray
 
 
 def read_points(model_path: Path) -> np.ndarray:
@@ -76,20 +78,24 @@ def split_points(
     Returns
     -------
     corner_index : (N,) int, the cadastre corner a point sits on, -1 if none.
-    pairs : (P, 2) int, (point, building) for points on a building's boundary
-        that are not corners.
+    pairs : (P, 3) int, (point, building, edge) for points on a building's
+        outline (on map edge ``edge``) that are not corners; one row per
+        point and building.
     on_edge : (N,) bool.
     """
     tree = cKDTree(cadastre.corner_xy)
     d, k = tree.query(xyz[:, :2])
     corner_index = np.where(d <= corner_tol_m, k, -1)
     rest = np.flatnonzero(corner_index < 0)
-    rings = [shapely.boundary(p) for p in cadastre.polygons]
-    strtree = shapely.STRtree(rings)
-    pt, b = strtree.query(
+    strtree = shapely.STRtree(shapely.linestrings(cadastre.edge_xy))
+    pt, e = strtree.query(
         shapely.points(xyz[rest, :2]), predicate="dwithin", distance=edge_tol_m
     )
-    pairs = np.column_stack([rest[pt], b]).astype(int).reshape(-1, 2)
+    pairs = np.column_stack([rest[pt], cadastre.edge_building[e], e]).astype(int)
+    pairs = pairs.reshape(-1, 3)
+    # a point near a corner touches both of its edges: one row per building
+    _, first = np.unique(pairs[:, :2], axis=0, return_index=True)
+    pairs = pairs[np.sort(first)]
     on_edge = np.zeros(len(xyz), bool)
     on_edge[pairs[:, 0]] = True
     return corner_index, pairs, on_edge
@@ -136,4 +142,5 @@ def load_constraints(
         ground_xyz=xyz[is_corner],
         facade_xyz=xyz[facade_ids],
         facade_building=np.column_stack([remap[pairs[:, 0]], pairs[:, 1]]),
+        facade_edge=pairs[:, 2],
     )

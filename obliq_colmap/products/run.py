@@ -127,7 +127,12 @@ def make_products(
     terrain, samples = estimate_terrain(c.ground_xyz, c.facade_xyz, options.terrain)
     grid = terrain_grid(terrain, samples, options.terrain)
     h = building_heights(
-        c.cadastre, terrain, c.facade_xyz, c.facade_building, options.heights
+        c.cadastre,
+        terrain,
+        c.facade_xyz,
+        c.facade_building,
+        c.facade_edge,
+        options.heights,
     )
     wkt = esri_wkt(c.cadastre.crs)
     disc = None
