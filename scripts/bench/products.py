@@ -126,8 +126,8 @@ def score(model: Path, scene: Path, prod: Path) -> dict:
     res["eave_height"] = {
         "buildings_with_tracks": n_seen,
         "with_height": len(e),
-        "median_abs_error_m": round(float(np.median(e)), 3),
-        "p90_abs_error_m": round(float(np.percentile(e, 90)), 3),
+        "median_abs_error_m": round(float(np.median(e)), 3) if len(e) else None,
+        "p90_abs_error_m": round(float(np.percentile(e, 90)), 3) if len(e) else None,
     }
     disc = prod / "discrepancies.geojson"
     if disc.is_file():
