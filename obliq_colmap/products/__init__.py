@@ -2,7 +2,9 @@
 
 Modules, in reading order: ``constraints`` (the model's constrained points
 read back and assigned to the map's corners and walls), ``terrain`` (the
-terrain height grid, ESRI ASCII), ``buildings`` (ground and eave height per
-footprint, GeoJSON), ``cityjson`` (the LoD1 city model), ``discrepancies``
-(footprints the images contradict), ``run`` (``obliq-colmap products``).
+terrain height grid), ``buildings`` (ground and eave height per footprint),
+``cityjson`` (the LoD1 city model), ``support`` (the images' vertical edges
+at the map's corners) and ``discrepancies`` (footprints the images
+contradict), ``esri`` (the grid and .prj writers), ``run`` (``make_products``,
+behind ``obliq-colmap export_products``).
 """
