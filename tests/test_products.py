@@ -224,5 +224,10 @@ def test_export_products_end_to_end(tmp_path):
     )
     city = json.loads((out / "lod1.city.json").read_text())
     assert len(city["CityObjects"]) == 2
-    # a non-empty output folder is a user mistake: exit code 2
-    assert main([*argv, "--output_path", str(out)]) == 2
+    # user mistakes: exit code 2, nothing written
+    assert main([*argv, "--output_path", str(out)]) == 2  # not empty
+    bad = tmp_path / "bad"
+    assert main([*argv, "--output_path", str(bad), "--cell_size", "0"]) == 2
+    argv[2] = str(tmp_path)  # no georef.json there
+    assert main([*argv, "--output_path", str(bad)]) == 2
+    assert not bad.exists()

@@ -14,6 +14,7 @@ from __future__ import annotations
 import argparse
 import logging
 
+from obliq_colmap.errors import InputError
 from obliq_colmap.products.run import ProductsOptions, make_products
 from obliq_colmap.products.terrain import TerrainOptions
 
@@ -48,8 +49,8 @@ def run(args: argparse.Namespace) -> int:
             terrain=TerrainOptions(cell_size_m=args.cell_size),
             num_workers=args.num_workers,
         )
-    except ValueError as exc:
-        raise SystemExit(f"obliq-colmap export_products: error: {exc}") from None
+    except ValueError as exc:  # an option out of range: a user mistake
+        raise InputError(None, f"--cell_size: {exc}") from None
     summary = make_products(
         args.input_path, args.cadastre_path, args.output_path, args.image_path, options
     )
