@@ -1,0 +1,134 @@
+"""Ground and eave height per mapped footprint.
+
+* Ground height: the lowest terrain height (:mod:`.terrain`) at the
+  footprint's vertices, as a building's base is where it meets the ground
+  on its downhill side.
+* Eave height: the height of the highest facade constraint below the roof
+  rim. The highest horizontal edge a wall shows is where it meets its roof
+  (a flat roof's rim, a pitched roof's eave); tracks above it on the same
+  wall are edges of other buildings seen behind it, matched across images
+  but single (no other track of the building at that height), so the eave
+  is the highest height that at least ``min_tracks`` of the building's
+  tracks share within ``cluster_tol_m``, at least ``min_height_m`` above
+  the ground (lower clusters are the wall's foot). Buildings without such a
+  cluster get no eave height (NaN).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from obliq_colmap.cadastre import Cadastre
+
+__all__ = ["BuildingHeights", "HeightOptions", "building_heights", "highest_cluster"]
+
+
+@dataclass
+class HeightOptions:
+    """Options of :func:`building_heights`."""
+
+    #: tracks within this height of each other count as one edge (m): twice
+    #: the track heights' spread across a building's walls (~0.2 m).
+    cluster_tol_m: float = 0.5
+    #: tracks a height needs to be an eave (2: one wall seen from two sides
+    #: or two walls; a single track may be another building's edge).
+    min_tracks: int = 2
+    #: walls (map edges) among those tracks: a building's eave runs round
+    #: it, while a taller building seen behind one wall shows on that wall.
+    min_walls: int = 2
+    #: an eave lower than this above the ground is a wall's foot (m).
+    min_height_m: float = 2.0
+
+    def __post_init__(self) -> None:
+        if self.cluster_tol_m <= 0 or self.min_tracks < 1 or self.min_height_m < 0:
+            raise ValueError("cluster_tol_m > 0, min_tracks >= 1, min_height_m >= 0")
+
+
+@dataclass
+class BuildingHeights:
+    """Per cadastre building (polygon) b, LOCAL heights (m).
+
+    ground_z, eave_z : (B,) NaN where unknown. num_tracks : (B,) int, the
+    building's facade tracks. eave_tracks : (B,) int, those at its eave.
+    """
+
+    ground_z: np.ndarray
+    eave_z: np.ndarray
+    num_tracks: np.ndarray
+    eave_tracks: np.ndarray
+
+    @property
+    def eave_height(self) -> np.ndarray:
+        """(B,) eave height above the ground (m)."""
+        return self.eave_z - self.ground_z
+
+
+def highest_cluster(
+    z: np.ndarray,
+    tol: float,
+    min_count: int,
+    floor: float,
+    walls: np.ndarray | None = None,
+    min_walls: int = 1,
+):
+    """The highest value of ``z`` (N,) above ``floor`` that at least
+    ``min_count`` values, on at least ``min_walls`` distinct ``walls`` (N,),
+    share within ``tol``: (height, count), or (NaN, 0). The height is the
+    median of those values."""
+    walls = np.zeros(len(z), int) if walls is None else np.asarray(walls)
+    keep = z >= floor
+    order = np.argsort(z[keep])
+    z, walls = z[keep][order], walls[keep][order]
+    if len(z) == 0:
+        return np.nan, 0
+    near = np.abs(z[:, None] - z[None, :]) <= tol  # (N, N): a few tracks each
+    for i in np.flatnonzero(near.sum(axis=1) >= min_count)[::-1]:
+        if len(np.unique(walls[near[i]])) >= min_walls:
+            return float(np.median(z[near[i]])), int(near[i].sum())
+    return np.nan, 0
+
+
+def building_heights(
+    cadastre: Cadastre,
+    terrain,
+    facade_xyz: np.ndarray,
+    facade_building: np.ndarray,
+    facade_edge: np.ndarray,
+    options: HeightOptions,
+) -> BuildingHeights:
+    """Ground and eave height of every building of the map.
+
+    Parameters
+    ----------
+    terrain : function (M, 2) -> (M,) local heights (:func:`estimate_terrain`).
+    facade_xyz : (F, 3) facade track points; facade_building : (P, 2)
+        (facade point, building) pairs; facade_edge : (P,) their walls.
+    """
+    B = len(cadastre.polygons)
+    zc = terrain(cadastre.corner_xy)
+    ground = np.full(B, np.inf)
+    np.minimum.at(ground, cadastre.corner_building, zc)
+    ground[~np.isfinite(ground)] = np.nan
+    eave = np.full(B, np.nan)
+    count = np.zeros(B, int)
+    ntr = (
+        np.bincount(facade_building[:, 1], minlength=B)
+        if len(facade_building)
+        else np.zeros(B, int)
+    )
+    order = np.argsort(facade_building[:, 1], kind="stable")
+    fb, fe = facade_building[order], facade_edge[order]
+    starts = np.searchsorted(fb[:, 1], np.arange(B + 1))
+    for b in np.flatnonzero(ntr):  # per building: a handful of tracks each
+        rows = slice(starts[b], starts[b + 1])
+        eave[b], count[b] = highest_cluster(
+            facade_xyz[fb[rows, 0], 2],
+            options.cluster_tol_m,
+            options.min_tracks,
+            ground[b] + options.min_height_m,
+            fe[rows],
+            options.min_walls,
+        )
+    return BuildingHeights(ground, eave, ntr, count)

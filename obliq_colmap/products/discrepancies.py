@@ -1,0 +1,244 @@
+"""Map discrepancies: footprints the images contradict.
+
+Evidence per footprint: its corners' vertical edges, re-detected at the
+final poses. In every registered image, the line segments that point at the
+image's vertical vanishing point are drawn into an edge map; each corner the
+image should see (inside the image, one of its walls facing the camera) is
+sampled along its vertical (``num_samples`` heights between 1 m above the
+ground and 0.5 m below the eave) and a sample is supported when a vertical
+edge passes within ``support_px``. The same is done with the whole
+footprint shifted by each offset of a grid (+-``max_shift_m``), so that
+``support[b, s]`` is the share of supported samples of building b under
+shift s.
+
+* A building whose best support is below ``absent_ratio`` times the block's
+  median best support, and on whose walls the facade tracks found no eave:
+  absent from the scene (demolished but mapped).
+* A building whose best support comes with a shift longer than
+  ``min_shift_m``, beats the unshifted support by ``min_gain`` of itself,
+  and whose support is below ``shifted_ratio`` times the median unshifted
+  and above it shifted:
+  shifted (a consistent offset of all its corners).
+
+Corners on another footprint's outline (party walls) are left out: the
+neighbour's edge supports them whatever this footprint does.
+
+Occlusion by other buildings is not modelled: it lowers a building's
+support under every shift alike, so the tests are relative.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import shapely
+
+from obliq_colmap.colmap_io import read_model
+from obliq_colmap.errors import InputError
+from obliq_colmap.parallel import WorkerPool, available_cores
+from obliq_colmap.products.support import edge_support
+
+__all__ = ["DiscrepancyOptions", "classify", "find_discrepancies", "shift_grid"]
+
+logger = logging.getLogger(__name__)
+
+
+@dataclass
+class DiscrepancyOptions:
+    """Options of :func:`find_discrepancies`."""
+
+    #: a segment points at the vertical VP when both its ends lie within this
+    #: of the line from its midpoint to the VP (px).
+    vertical_tol_px: float = 1.5
+    #: shortest vertical segment drawn (px).
+    min_length_px: float = 15.0
+    #: a sample is supported by an edge within this (px).
+    support_px: float = 1.5
+    #: heights sampled along each corner's vertical.
+    num_samples: int = 6
+    #: height of a building without an eave height (m).
+    default_height_m: float = 6.0
+    #: shifts searched: +-max_shift_m in steps of shift_step_m.
+    max_shift_m: float = 2.0
+    shift_step_m: float = 0.25
+    #: a shift shorter than this is no discrepancy (m).
+    min_shift_m: float = 0.5
+    #: relative gain of the best shift over none to call a building shifted
+    #: (5 % of the buildings in place reach 0.4 by chance, 1 % 0.6).
+    min_gain: float = 0.6
+    #: and its support without the shift below this fraction of the median,
+    #: with it at least this fraction (seen clearly at its shifted place).
+    shifted_ratio: float = 0.5
+    #: best support below this fraction of the block's median: absent.
+    absent_ratio: float = 0.3
+    #: corner views (corner x image) a building needs to be judged.
+    min_views: int = 8
+
+    def __post_init__(self) -> None:
+        if self.num_samples < 1 or self.shift_step_m <= 0 or self.max_shift_m < 0:
+            raise ValueError("num_samples >= 1, shift_step_m > 0, max_shift_m >= 0")
+
+
+def shift_grid(options: DiscrepancyOptions) -> np.ndarray:
+    """(S, 2) shifts (m); row 0 is (0, 0)."""
+    k = np.arange(
+        -options.max_shift_m, options.max_shift_m + 1e-9, options.shift_step_m
+    )
+    S = np.stack(np.meshgrid(k, k), -1).reshape(-1, 2)
+    S = S[np.argsort(np.hypot(S[:, 0], S[:, 1]), kind="stable")]
+    return S
+
+
+def classify(
+    support: np.ndarray,
+    views: np.ndarray,
+    shifts: np.ndarray,
+    has_eave: np.ndarray,
+    options: DiscrepancyOptions,
+) -> dict[str, np.ndarray]:
+    """Per building: best shift, supports, score and verdict.
+
+    Parameters
+    ----------
+    support : (B, S) supported samples; views : (B,) sampled corner views.
+    has_eave : (B,) bool, the facade tracks found an eave on its walls (a
+        demolished building has none: no absent verdict then).
+
+    Returns
+    -------
+    dict of (B,) arrays: judged, s0, best, shift (B, 2), gain, kind
+    ("", "absent", "shifted"), score in [0, 1].
+    """
+    judged = views >= options.min_views
+    frac = support / np.maximum(views * options.num_samples, 1)[:, None]
+    best_i = frac.argmax(axis=1)
+    best = frac[np.arange(len(frac)), best_i]
+    s0 = frac[:, 0]
+    ref = float(np.median(best[judged])) if judged.any() else 0.0
+    absent = judged & (best < options.absent_ratio * ref) & ~has_eave
+    shift = shifts[best_i]
+    gain = (best - s0) / np.maximum(best, 1e-9)
+    shifted = (
+        judged
+        & ~absent
+        & (np.hypot(shift[:, 0], shift[:, 1]) > options.min_shift_m)
+        & (gain >= options.min_gain)
+        & (s0 < options.shifted_ratio * ref)
+        & (best >= options.shifted_ratio * ref)
+    )
+    kind = np.where(absent, "absent", np.where(shifted, "shifted", ""))
+    score = np.where(
+        judged, np.maximum(1.0 - best / max(ref, 1e-9), 0.0) * (best < ref), 0.0
+    )
+    score = np.where(shifted, np.maximum(score, gain), score)
+    return {
+        "judged": judged,
+        "s0": s0,
+        "best": best,
+        "shift": shift,
+        "gain": gain,
+        "kind": kind,
+        "score": np.clip(score, 0.0, 1.0),
+    }
+
+
+def shared_corners(cadastre, tol_m: float = 0.3) -> np.ndarray:
+    """(C,) bool: corners within ``tol_m`` of another footprint's outline."""
+    rings = [shapely.boundary(p) for p in cadastre.polygons]
+    tree = shapely.STRtree(rings)
+    pt, b = tree.query(
+        shapely.points(cadastre.corner_xy), predicate="dwithin", distance=tol_m
+    )
+    other = b != cadastre.corner_building[pt]
+    out = np.zeros(len(cadastre.corner_xy), bool)
+    out[pt[other]] = True
+    return out
+
+
+def find_discrepancies(
+    input_path,
+    image_path,
+    c,
+    heights,
+    options: DiscrepancyOptions,
+    num_workers: int = 0,
+) -> dict:
+    """The discrepancy layer (GeoJSON dict, absolute coordinates) of one
+    registration: one feature per judged footprint with its score."""
+    block = read_model(input_path)
+    cad = c.cadastre
+    image_path = Path(image_path)
+    zg = heights.ground_z[cad.corner_building]
+    top = np.where(
+        np.isfinite(heights.eave_z),
+        heights.eave_z,
+        heights.ground_z + options.default_height_m,
+    )[cad.corner_building]
+    common = {
+        "options": options,
+        "corner_xy": cad.corner_xy,
+        "corner_wall_normals": cad.edge_normal[cad.corner_edges],
+        "corner_z0": zg + 1.0,
+        "corner_z1": np.maximum(top - 0.5, zg + 1.5),
+        "shifts": shift_grid(options),
+    }
+    # A corner on another footprint's outline (a terrace's party wall) is
+    # supported by that neighbour's edge whatever this footprint does.
+    common["corner_z0"] = np.where(shared_corners(cad), np.nan, common["corner_z0"])
+    tasks = []
+    for im in block.images.values():
+        p = image_path / im.name
+        if not p.is_file():
+            raise InputError(p, "image of the model not found under --image_path")
+        tasks.append(
+            dict(
+                common,
+                path=p,
+                camera=block.cameras[im.camera_id],
+                pose=im.cam_from_world,
+            )
+        )
+    workers = num_workers or available_cores()
+    with WorkerPool(min(workers, len(tasks))) as pool:
+        results = pool.map(edge_support, tasks, "vertical edges")
+    B, S = len(cad.polygons), len(common["shifts"])
+    support, views = np.zeros((B, S)), np.zeros(B)
+    for k, sup in results:
+        b = cad.corner_building[k]
+        np.add.at(support, b, sup)
+        np.add.at(views, b, 1.0)
+    v = classify(support, views, common["shifts"], np.isfinite(heights.eave_z), options)
+    o = c.georef.origin
+    feats = []
+    for b in np.flatnonzero(v["judged"]):
+        geom = shapely.affinity.translate(cad.polygons[b], o[0], o[1])
+        props = {
+            "id": str(cad.building_ids[b]),
+            "score": round(float(v["score"][b]), 3),
+            "flagged": bool(v["kind"][b] != ""),
+            "kind": str(v["kind"][b]) or None,
+            "support": round(float(v["s0"][b]), 3),
+            "best_support": round(float(v["best"][b]), 3),
+            "best_shift_m": [round(float(x), 2) for x in v["shift"][b]],
+            "corner_views": int(views[b]),
+        }
+        feats.append(
+            {
+                "type": "Feature",
+                "properties": props,
+                "geometry": shapely.geometry.mapping(geom),
+            }
+        )
+    logger.info(
+        "discrepancies: %d of %d judged footprints flagged",
+        sum(f["properties"]["flagged"] for f in feats),
+        len(feats),
+    )
+    doc = {"type": "FeatureCollection"}
+    if cad.crs:
+        doc["crs"] = {"type": "name", "properties": {"name": cad.crs}}
+    doc["features"] = feats
+    return doc

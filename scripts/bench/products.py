@@ -1,0 +1,184 @@
+"""Benchmark of ``obliq-colmap export_products`` against ground truth (issue 28).
+
+    PYTHONPATH=. .venv/bin/python scripts/bench/products.py \\
+        --input_path OUT_MODEL --scene SCENE [--products_path DIR] \\
+        [--output_path R.json]
+
+OUT_MODEL is ``register``'s result on SCENE: a synthetic scene
+(``obliq-colmap synth``; truth: the city rebuilt from its seed) or an
+external one (``../shared/data/external_oblique/*``: ``gt_terrain.npz``,
+``gt_buildings.json``). Without ``--products_path`` the products are made
+(with the images) into a temporary folder. Measured, from the written files:
+
+* terrain: RMSE of ``terrain.asc`` against the true terrain at the cell
+  centres after removing ONE vertical offset (the median difference: the
+  priors' datum is arbitrary), over (a) the cells with a recovered ground
+  corner (a map corner in points3D) within 20 m, the issue's measure, where
+  the grid has a value, and (b) every cell the grid gives; coverage of (a);
+* eave height above ground (``buildings.geojson``) against the truth, over
+  the mapped buildings present in the scene with facade tracks: median and
+  p90 of the absolute error, and how many got a height;
+* discrepancies (``discrepancies.geojson``): positives = mapped buildings
+  absent from the scene or shifted by > 0.5 m; precision and recall over the
+  judged footprints, and recall over all positives with constrained points.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from obliq_colmap.products.constraints import load_constraints
+from obliq_colmap.products.run import make_products
+from obliq_colmap.synthetic.city import Terrain
+
+
+def read_asc(path: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(ny, nx) X, Y of the cell centres and Z (NaN for NODATA)."""
+    lines = path.read_text().splitlines()
+    head = {k.lower(): float(v) for k, v in (ln.split() for ln in lines[:6])}
+    Z = np.loadtxt(lines[6:], ndmin=2)
+    Z[np.isclose(Z, head["nodata_value"])] = np.nan
+    ny, nx = Z.shape
+    c = head["cellsize"]
+    xs = head["xllcorner"] + (np.arange(nx) + 0.5) * c
+    ys = head["yllcorner"] + (ny - np.arange(ny) - 0.5) * c
+    X, Y = np.meshgrid(xs, ys)
+    return X, Y, Z
+
+
+def truth(scene: Path):
+    """(terrain (M,2)->(M,) absolute, {map id: (present, shift_m, eave_height)})."""
+    if (scene / "gt_terrain.npz").is_file():  # external
+        t = np.load(scene / "gt_terrain.npz")
+        T = Terrain(float(t["x0"]), float(t["y0"]), float(t["cell"]), t["Z"])
+        gb = json.loads((scene / "gt_buildings.json").read_text())
+        b = {}
+        for x in gb["buildings"]:
+            if x["state"] == "mapped":
+                base = min(min(r) for r in x["base_z"])
+                b[x["map_id"]] = (
+                    True,
+                    float(np.hypot(*x["map_shift"])),
+                    x["eave_z"] - base,
+                )
+        for x in gb["map_only"]:
+            b[x["map_id"]] = (False, 0.0, np.nan)
+        return (lambda q: T.height(q[:, 0], q[:, 1])), b
+    from obliq_colmap.synthetic.scene_io import load_scene
+
+    sc = load_scene(scene)
+    o = sc.origin
+
+    def terrain(q):
+        return sc.city.terrain.height(q[:, 0] - o[0], q[:, 1] - o[1]) + o[2]
+
+    b = {
+        str(x["id"]): (x["in_scene"], float(np.hypot(*x["shift_m"])), x["height_m"])
+        for x in sc.buildings["buildings"]
+        if x["in_map"]
+    }
+    return terrain, b
+
+
+def score(model: Path, scene: Path, prod: Path) -> dict:
+    terrain, gt = truth(scene)
+    c = load_constraints(model, scene / "cadastre.geojson")
+    o = c.georef.origin
+    X, Y, Z = read_asc(prod / "terrain.asc")
+    q = np.column_stack([X.ravel(), Y.ravel()])
+    zt = terrain(q).reshape(X.shape)
+    d, _ = cKDTree(c.ground_xyz[:, :2] + o[:2]).query(q)
+    near = (d <= 20.0).reshape(X.shape)
+    has = np.isfinite(Z)
+    off = float(np.median((Z - zt)[near & has]))
+    err = Z - zt - off
+    res = {
+        "terrain": {
+            "vertical_offset_m": round(off, 3),
+            "rmse_near_corners_m": round(
+                float(np.sqrt(np.mean(err[near & has] ** 2))), 3
+            ),
+            "coverage_near_corners": round(float((near & has).sum() / near.sum()), 3),
+            "cells_near_corners": int(near.sum()),
+            "rmse_all_cells_m": round(float(np.sqrt(np.nanmean(err[has] ** 2))), 3),
+            "cells": int(has.sum()),
+        }
+    }
+    feats = json.loads((prod / "buildings.geojson").read_text())["features"]
+    e, n_seen = [], 0
+    for f in feats:
+        p = f["properties"]
+        g = gt.get(p["id"])
+        if g is None or not g[0] or p["num_facade_tracks"] == 0:
+            continue
+        n_seen += 1
+        if p["eave_height"] is not None:
+            e.append(p["eave_height"] - g[2])
+    e = np.abs(np.array(e))
+    res["eave_height"] = {
+        "buildings_with_tracks": n_seen,
+        "with_height": len(e),
+        "median_abs_error_m": round(float(np.median(e)), 3) if len(e) else None,
+        "p90_abs_error_m": round(float(np.percentile(e, 90)), 3) if len(e) else None,
+    }
+    disc = prod / "discrepancies.geojson"
+    if disc.is_file():
+        fs = json.loads(disc.read_text())["features"]
+        judged = {f["properties"]["id"]: f["properties"]["flagged"] for f in fs}
+        pos = {k for k, g in gt.items() if not g[0] or g[1] > 0.5}
+        seen_ids = {
+            str(c.cadastre.building_ids[b])
+            for b in c.cadastre.corner_building[c.corner_index]
+        }
+        seen_ids |= {str(c.cadastre.building_ids[b]) for b in c.facade_building[:, 1]}
+        flagged = {k for k, v in judged.items() if v}
+        jp = pos & set(judged)
+        tp = len(flagged & pos)
+        res["discrepancies"] = {
+            "judged": len(judged),
+            "flagged": len(flagged),
+            "positives_judged": len(jp),
+            "positives_seen": len(pos & seen_ids),
+            "true_positives": tp,
+            "precision": round(tp / max(len(flagged), 1), 3),
+            "recall_judged": round(tp / max(len(jp), 1), 3),
+            "recall_seen": round(tp / max(len(pos & seen_ids), 1), 3),
+        }
+    return res
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--input_path", required=True, type=Path)
+    ap.add_argument("--scene", required=True, type=Path)
+    ap.add_argument("--products_path", type=Path)
+    ap.add_argument("--output_path", type=Path)
+    a = ap.parse_args()
+    t0 = time.time()
+    with tempfile.TemporaryDirectory() as tmp:
+        prod = a.products_path
+        if prod is None:
+            prod = Path(tmp) / "products"
+            make_products(
+                a.input_path, a.scene / "cadastre.geojson", prod, a.scene / "images"
+            )
+        res = {"input_path": str(a.input_path), "scene": str(a.scene)}
+        res.update(score(a.input_path, a.scene, prod))
+    res["time_s"] = round(time.time() - t0, 1)
+    text = json.dumps(res, indent=1)
+    print(text)
+    if a.output_path:
+        a.output_path.write_text(text + "\n")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,233 @@
+"""Products of a registration (issue 28): terrain, eave heights, LoD1, the
+discrepancy verdicts, and the command end to end on a tiny model."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+from shapely.geometry import Polygon
+
+from obliq_colmap.cli import main
+from obliq_colmap.colmap_io import Block, Georef, ImageRecord, Point3D, write_result
+from obliq_colmap.geometry import Camera, Pose
+from obliq_colmap.products.buildings import highest_cluster
+from obliq_colmap.products.cityjson import city_model
+from obliq_colmap.products.discrepancies import DiscrepancyOptions, classify
+from obliq_colmap.products.esri import ascii_grid_text, esri_wkt
+from obliq_colmap.products.terrain import (
+    TerrainOptions,
+    estimate_terrain,
+    terrain_grid,
+)
+
+
+def _true_terrain(xy: np.ndarray) -> np.ndarray:
+    return 0.02 * xy[:, 0] - 0.01 * xy[:, 1] + 0.8 * np.sin(xy[:, 0] / 90.0)
+
+
+def test_terrain_from_wall_feet_beats_the_offset_corners():
+    """Feet tracks with 0.2 m noise among floor and eave tracks, corners
+    1 m off in datum: the grid follows the feet to about their noise."""
+    rng = np.random.default_rng(3)
+    xy = rng.uniform(-150, 150, (400, 2))
+    feet = np.column_stack([xy, _true_terrain(xy) + rng.normal(0, 0.2, 400)])
+    floors = feet + [0, 0, 3.0]
+    eaves = feet + np.column_stack([np.zeros((400, 2)), rng.uniform(6, 20, 400)])
+    cxy = rng.uniform(-150, 150, (300, 2))
+    corners = np.column_stack([cxy, _true_terrain(cxy) + 1.0 + rng.normal(0, 0.3, 300)])
+    opts = TerrainOptions(cell_size_m=10.0)
+    terrain, samples = estimate_terrain(corners, np.vstack([feet, floors, eaves]), opts)
+    assert len(samples) >= 380  # the feet, not the floors or eaves
+    grid = terrain_grid(terrain, samples, opts)
+    X, Y = grid.centres()
+    ok = np.isfinite(grid.Z)
+    err = grid.Z[ok] - _true_terrain(np.column_stack([X[ok], Y[ok]]))
+    # ~20 feet within the smoothing radius: 0.2 / sqrt(20) noise plus the
+    # sinusoid's curvature over 30 m; the corners' 1 m must not leak in.
+    assert abs(np.median(err)) < 0.15
+    assert np.sqrt(np.mean(err**2)) < 0.25
+
+
+def test_eave_is_the_highest_shared_track_above_the_floor():
+    z = np.array([0.1, 0.0, 3.1, 3.0, 9.9, 10.1, 10.0, 17.3])  # 17.3: alone
+    h, n = highest_cluster(z, tol=0.5, min_count=2, floor=2.0)
+    assert h == pytest.approx(10.0) and n == 3
+    h, n = highest_cluster(np.array([0.1, 0.2]), 0.5, 2, floor=2.0)
+    assert np.isnan(h) and n == 0
+    # two tracks of a taller building behind, both on wall 0: not the eave
+    walls = np.array([0, 1, 0, 1, 0, 1, 2, 0])
+    z2 = np.append(z[:-1], 17.4)
+    h, n = highest_cluster(np.append(z2, 17.3), 0.5, 2, 2.0, np.append(walls, 0), 2)
+    assert h == pytest.approx(10.0) and n == 3
+
+
+def _closed_and_outward(doc: dict) -> float:
+    """Volume of every Solid (signed, outward positive) after checking that
+    each directed edge is matched by its reverse exactly once."""
+    V = np.asarray(doc["vertices"], float) * doc["transform"]["scale"]
+    vol = 0.0
+    for obj in doc["CityObjects"].values():
+        for g in obj["geometry"]:
+            edges = {}
+            for surface in g["boundaries"][0]:
+                for ring in surface:
+                    for a, b in zip(ring, ring[1:] + ring[:1], strict=True):
+                        key = (tuple(V[a]), tuple(V[b]))
+                        edges[key] = edges.get(key, 0) + 1
+                    # signed volume of the cone from the origin (rings of a
+                    # face with holes add up: holes run the other way).
+                    P = V[ring]
+                    for k in range(1, len(P) - 1):
+                        vol += np.dot(P[0], np.cross(P[k], P[k + 1])) / 6.0
+            for (a, b), n in edges.items():
+                assert n == 1 and edges.get((b, a)) == 1
+    return vol
+
+
+def test_lod1_solids_are_closed_outward_and_of_the_right_volume():
+    L = Polygon([(0, 0), (10, 0), (10, 4), (4, 4), (4, 8), (0, 8)])
+    court = Polygon(
+        [(20, 0), (30, 0), (30, 10), (20, 10)], [[(23, 3), (23, 6), (26, 6), (26, 3)]]
+    )
+    doc = city_model(
+        [L, court],
+        ["a", "b"],
+        np.array([100.0, 101.0]),
+        np.array([106.0, 104.0]),
+        [{}, {}],
+        "EPSG:25832",
+    )
+    assert doc["version"] == "2.0" and set(doc["transform"]) == {"scale", "translate"}
+    assert doc["metadata"]["referenceSystem"].endswith("/EPSG/0/25832")
+    vol = _closed_and_outward(doc)
+    assert vol == pytest.approx(L.area * 6.0 + court.area * 3.0, rel=1e-6)
+
+
+def test_esri_grid_and_prj():
+    Z = np.array([[1.0, np.nan], [2.5, 3.0]])
+    text = ascii_grid_text(Z, 500000.0, 5600000.0, 5.0)
+    lines = text.splitlines()
+    assert lines[:2] == ["ncols 2", "nrows 2"] and lines[5] == "NODATA_value -9999"
+    assert lines[6].split() == ["1", "-9999"]
+    wkt = esri_wkt("EPSG:25832")
+    assert "ETRS_1989_UTM_Zone_32N" in wkt and 'Central_Meridian",9.0' in wkt
+
+
+def test_discrepancy_verdicts():
+    """Three buildings in place, one absent, one shifted by 1 m."""
+    o = DiscrepancyOptions()
+    shifts = np.array([[0.0, 0.0], [1.0, 0.0], [-0.25, 0.0]])
+    n = o.num_samples
+    views = np.full(5, 20.0)
+    frac = np.array(
+        [
+            [0.4, 0.1, 0.35],
+            [0.45, 0.1, 0.3],
+            [0.38, 0.05, 0.3],
+            [0.01, 0.02, 0.0],
+            [0.05, 0.4, 0.1],
+        ]
+    )
+    v = classify(frac * views[:, None] * n, views, shifts, np.zeros(5, bool), o)
+    assert list(v["kind"]) == ["", "", "", "absent", "shifted"]
+    # an eave on its walls: not absent; too few views: not judged
+    v = classify(
+        frac * views[:, None] * n, views, shifts, np.array([0, 0, 0, 1, 0], bool), o
+    )
+    assert v["kind"][3] == ""
+    views[4] = o.min_views - 1
+    v = classify(frac * views[:, None] * n, views, shifts, np.zeros(5, bool), o)
+    assert not v["judged"][4]
+
+
+def _tiny_model(tmp_path):
+    """Two 10 x 10 m buildings on a 2 % slope; corners at the ground, feet
+    and eaves (8 m, 12 m) on their walls, a floor line at 3 m."""
+    origin = np.array([500000.0, 5600000.0, 40.0])
+    squares = [(0.0, 0.0), (30.0, 0.0)]
+    feats, pts = [], []
+    for k, (x, y) in enumerate(squares):
+        ring = [(x, y), (x + 10, y), (x + 10, y + 10), (x, y + 10)]
+        feats.append(
+            {
+                "type": "Feature",
+                "properties": {"id": f"b{k}"},
+                "geometry": {
+                    "type": "Polygon",
+                    "coordinates": [
+                        [[px + origin[0], py + origin[1]] for px, py in ring + ring[:1]]
+                    ],
+                },
+            }
+        )
+        base = 0.02 * x  # the terrain's lowest point under the footprint
+        for cx, cy in ring:
+            pts.append((cx, cy, 0.02 * cx))
+        for s in (2.0, 5.0, 8.0):  # along the south and west walls
+            for wx, wy in ((x + s, y), (x, y + s)):
+                h = (8.0, 12.0)[k]
+                pts += [(wx, wy, 0.02 * wx), (wx, wy, base + 3.0), (wx, wy, base + h)]
+    cadastre = tmp_path / "map.geojson"
+    cadastre.write_text(
+        json.dumps(
+            {
+                "type": "FeatureCollection",
+                "crs": {"type": "name", "properties": {"name": "EPSG:25832"}},
+                "features": feats,
+            }
+        )
+    )
+    cam = Camera("PINHOLE", 1000, 800, np.array([1000.0, 1000.0, 500.0, 400.0]), 1)
+    R = np.diag([1.0, -1.0, -1.0])  # looking straight down
+    block = Block(
+        {1: cam}, {1: ImageRecord(1, "a.jpg", 1, Pose.from_center(R, [15, 5, 300]))}
+    )
+    p3 = [Point3D(np.array(p), [(1, np.array([10.0, 10.0]))] * 2) for p in pts]
+    # the local origin of the model is the map's own: corners match exactly
+    model = tmp_path / "model"
+    write_result(model, block, Georef(origin, "EPSG:25832"), p3)
+    return model, cadastre, origin
+
+
+def test_export_products_end_to_end(tmp_path):
+    model, cadastre, origin = _tiny_model(tmp_path)
+    out = tmp_path / "products"
+    argv = [
+        "export_products",
+        "--input_path",
+        str(model),
+        "--cadastre_path",
+        str(cadastre),
+    ]
+    assert main([*argv, "--output_path", str(out), "--cell_size", "2"]) == 0
+    b = json.loads((out / "buildings.geojson").read_text())
+    assert b["crs"]["properties"]["name"] == "EPSG:25832"
+    eaves = {
+        f["properties"]["id"]: f["properties"]["eave_height"] for f in b["features"]
+    }
+    assert eaves["b0"] == pytest.approx(8.0, abs=0.05)
+    assert eaves["b1"] == pytest.approx(12.0, abs=0.05)
+    lines = (out / "terrain.asc").read_text().splitlines()
+    assert lines[4] == "cellsize 2"
+    xll = float(lines[2].split()[1]) - origin[0]
+    Z = np.array([[float(v) for v in ln.split()] for ln in lines[6:]])
+    x = xll + 2.0 * (np.arange(Z.shape[1]) + 0.5)
+    ok = Z != -9999
+    assert ok.sum() > 100
+    # the terrain is the plane z = 0.02 x exactly: the grid follows it
+    plane = origin[2] + 0.02 * np.broadcast_to(x, Z.shape)
+    assert np.abs(Z[ok] - plane[ok]).max() < 0.01
+    assert (
+        (out / "terrain.prj").read_text().startswith('PROJCS["ETRS_1989_UTM_Zone_32N"')
+    )
+    city = json.loads((out / "lod1.city.json").read_text())
+    assert len(city["CityObjects"]) == 2
+    # user mistakes: exit code 2, nothing written
+    assert main([*argv, "--output_path", str(out)]) == 2  # not empty
+    bad = tmp_path / "bad"
+    assert main([*argv, "--output_path", str(bad), "--cell_size", "0"]) == 2
+    argv[2] = str(tmp_path)  # no georef.json there
+    assert main([*argv, "--output_path", str(bad)]) == 2
+    assert not bad.exists()
