@@ -6,7 +6,7 @@ import numpy as np
 import pycolmap
 import pytest
 
-from obliq_colmap.adjustment.ties import triangulate_tracks
+from obliq_colmap.adjustment.ties import triangulate_tie_tracks
 from obliq_colmap.bundle.schur import (
     point_back_substitution,
     point_normal_blocks,
@@ -29,7 +29,7 @@ def _block(rng, n_images: int):
     return cams, poses
 
 
-def test_triangulate_tracks_recovers_points_within_noise():
+def test_triangulate_tie_tracks_recovers_points_within_noise():
     rng = np.random.default_rng(0)
     cams, poses = _block(rng, 4)
     X = np.c_[rng.uniform(-50, 150, (50, 2)), rng.uniform(0, 30, 50)]
@@ -43,7 +43,7 @@ def test_triangulate_tracks_recovers_points_within_noise():
         ]
     )
     xy += rng.normal(0, sigma, xy.shape)
-    est = triangulate_tracks(cams, poses, track, image, xy)
+    est = triangulate_tie_tracks(cams, poses, track, image, xy)
     # depth sd ~ sigma / f * Z^2 / baseline (~120 m), ground sd ~ sigma / f * Z
     err = np.abs(est - X)
     assert np.median(err[:, :2]) < 3 * sigma / 1200 * 500
@@ -107,3 +107,40 @@ def test_tie_points_on_sample_fit_true_poses():
         if (m := ties.obs_image == i).any()
     ]
     assert np.median(np.concatenate(err)) < 1.0
+
+
+def test_tracks_chain_matches_and_drop_inconsistent_ones():
+    from obliq_colmap.adjustment.ties import _tracks
+
+    # image 0 feature 0 -> image 1 feature 2 -> image 2 feature 1: one track;
+    # image 0 features 3 and 4 both reach image 1 feature 5: seen twice, dropped
+    matches = {
+        (0, 1): np.array([[0, 2], [3, 5], [4, 5]]),
+        (1, 2): np.array([[2, 1]]),
+    }
+    track, image, feature = _tracks(matches, [6, 6, 6])
+    assert len(np.unique(track)) == 1
+    np.testing.assert_array_equal(np.sort(image), [0, 1, 2])
+    np.testing.assert_array_equal(feature[np.argsort(image)], [0, 2, 1])
+
+
+def test_select_pairs_needs_overlap_and_similar_views():
+    from obliq_colmap.adjustment.ties import TiePointOptions, footprints, select_pairs
+
+    cams, poses = _block(np.random.default_rng(2), 4)
+    # a fifth camera far away (no overlap) and a sixth over image 0 but
+    # tilted 60 deg (overlaps, yet SIFT would not match across that angle)
+    c = np.array([5000.0, 0.0, 500.0])
+    R = np.diag([1.0, -1.0, -1.0])
+    far = pycolmap.Rigid3d(pycolmap.Rotation3d(R), -R @ c)
+    a = np.radians(60)
+    tilt = np.array([[1, 0, 0], [0, np.cos(a), -np.sin(a)], [0, np.sin(a), np.cos(a)]])
+    R2 = tilt @ R
+    c2 = np.array([0.0, 500 * np.tan(a), 500.0])
+    tilted = pycolmap.Rigid3d(pycolmap.Rotation3d(R2), -R2 @ c2)
+    cams, poses = cams + cams[:2], poses + [far, tilted]
+    polys = footprints(cams, poses, 0.0)
+    assert polys[5].intersects(polys[0])
+    pairs = select_pairs(polys, poses, TiePointOptions())
+    assert all(4 not in p and 5 not in p for p in pairs)
+    assert (0, 1) in pairs and (2, 3) in pairs

@@ -30,7 +30,7 @@ __all__ = [
     "match_pairs",
     "select_pairs",
     "tie_points",
-    "triangulate_tracks",
+    "triangulate_tie_tracks",
 ]
 
 logger = logging.getLogger(__name__)
@@ -43,12 +43,17 @@ class TiePointOptions:
     #: Images are down-sampled to this size for extraction (the bundle needs a
     #: few hundred good points per image, not the full resolution's thousands).
     max_image_size: int = 1000
-    max_num_features: int = 2000
+    #: SIFT's cap before orientations (each keypoint may get two).
+    max_num_features: int = 1200
     #: A pair is matched when the overlap of its ground footprints is at
     #: least this share of the smaller footprint.
     min_overlap: float = 0.2
     #: Each image is matched with at most this many partners (largest overlap).
     max_pairs_per_image: int = 6
+    #: Pairs whose optical axes differ more are not matched: SIFT does not
+    #: survive the 90 deg between two heads of an oblique system (measured on
+    #: the sample: 0 verified matches between E and N views).
+    max_view_angle_deg: float = 40.0
     #: Triangulated points whose reprojection error exceeds this are dropped.
     max_reproj_error_px: float = 3.0
     min_track_length: int = 2
@@ -106,15 +111,20 @@ def footprints(
 
 
 def select_pairs(
-    polys: Sequence[Polygon], options: TiePointOptions
+    polys: Sequence[Polygon],
+    poses: Sequence[pycolmap.Rigid3d],
+    options: TiePointOptions,
 ) -> list[tuple[int, int]]:
-    """Pairs (i < j) whose footprints overlap enough, each image's best
-    ``max_pairs_per_image`` partners (a pair is kept if either end chose it)."""
+    """Pairs (i < j) whose footprints overlap enough and whose views differ by
+    at most ``max_view_angle_deg``, each image's best ``max_pairs_per_image``
+    partners (a pair is kept if either end chose it)."""
     n = len(polys)
+    axes = np.stack([p.rotation.matrix()[2] for p in poses]).reshape(-1, 3)
+    similar = axes @ axes.T >= np.cos(np.radians(options.max_view_angle_deg))
     share = np.zeros((n, n))
     for i in range(n):
         for j in range(i + 1, n):
-            if polys[i].intersects(polys[j]):
+            if similar[i, j] and polys[i].intersects(polys[j]):
                 inter = polys[i].intersection(polys[j]).area
                 share[i, j] = share[j, i] = inter / max(
                     min(polys[i].area, polys[j].area), 1e-9
@@ -194,7 +204,7 @@ def _tracks(matches: dict[tuple[int, int], np.ndarray], counts: Sequence[int]):
     return track[keep], image[keep], node[keep] - offset[image[keep]]
 
 
-def triangulate_tracks(
+def triangulate_tie_tracks(
     cameras: Sequence[pycolmap.Camera],
     poses: Sequence[pycolmap.Rigid3d],
     obs_track: np.ndarray,
@@ -245,7 +255,7 @@ def tie_points(
     """Tie points of a registered block (images, cameras and cam_from_world
     poses in the same order)."""
     options = options or TiePointOptions()
-    pairs = select_pairs(footprints(cameras, poses, ground_z), options)
+    pairs = select_pairs(footprints(cameras, poses, ground_z), poses, options)
     features = extract_features(gray_images, options)
     matches = match_pairs(features, cameras, pairs, options)
     track, image, feature = _tracks(matches, [len(f[0]) for f in features])
@@ -253,7 +263,7 @@ def tie_points(
     offset = np.concatenate([[0], np.cumsum(counts)])[:-1]
     xy = np.concatenate([f[0] for f in features])[offset[image] + feature]
     _, track = np.unique(track, return_inverse=True)
-    xyz = triangulate_tracks(cameras, poses, track, image, xy)
+    xyz = triangulate_tie_tracks(cameras, poses, track, image, xy)
     err = _reprojection_errors(cameras, poses, xyz, track, image, xy)
     bad_track = np.zeros(len(xyz), bool)
     bad_track[track[err > options.max_reproj_error_px]] = True

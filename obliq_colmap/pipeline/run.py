@@ -23,6 +23,7 @@ from obliq_colmap.pipeline.output import (
     constrained_points,
     result_block,
     run_report,
+    tie_point_records,
 )
 from obliq_colmap.pipeline.workers import draw_overlay, worker_pool
 from obliq_colmap.registration import block_ground_height
@@ -112,6 +113,13 @@ def run_register(
     )
     block = result_block(inputs, state)
     points = constrained_points(inputs, block, state, by_id, bundle_result, stage3)
+    if options.adjustment.tie_points and len(block.images) >= 2:
+        t_ties = time.perf_counter()
+        ties = tie_point_records(
+            inputs, block, z0, options.adjustment.tie_point_options
+        )
+        points += ties
+        timings["tie_points"] = time.perf_counter() - t_ties
     block = block.shifted(np.array([0.0, 0.0, z0]))
     for p in points:
         p.xyz = p.xyz - np.array([0.0, 0.0, z0])
