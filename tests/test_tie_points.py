@@ -110,7 +110,7 @@ def test_tie_points_on_sample_fit_true_poses():
 
 
 def test_tracks_chain_matches_and_drop_inconsistent_ones():
-    from obliq_colmap.adjustment.ties import _tracks
+    from obliq_colmap.adjustment.ties import chain_tie_tracks
 
     # image 0 feature 0 -> image 1 feature 2 -> image 2 feature 1: one track;
     # image 0 features 3 and 4 both reach image 1 feature 5: seen twice, dropped
@@ -118,7 +118,7 @@ def test_tracks_chain_matches_and_drop_inconsistent_ones():
         (0, 1): np.array([[0, 2], [3, 5], [4, 5]]),
         (1, 2): np.array([[2, 1]]),
     }
-    track, image, feature = _tracks(matches, [6, 6, 6])
+    track, image, feature = chain_tie_tracks(matches, [6, 6, 6])
     assert len(np.unique(track)) == 1
     np.testing.assert_array_equal(np.sort(image), [0, 1, 2])
     np.testing.assert_array_equal(feature[np.argsort(image)], [0, 2, 1])

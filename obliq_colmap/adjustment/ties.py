@@ -20,14 +20,14 @@ import pycolmap
 import scipy.sparse as sp
 from scipy.sparse.csgraph import connected_components
 from shapely.geometry import Polygon
-from tqdm import tqdm
+
+from obliq_colmap.adjustment.tie_matching import extract_features, match_pairs
 
 __all__ = [
     "TiePointOptions",
     "TiePoints",
-    "extract_features",
+    "chain_tie_tracks",
     "footprints",
-    "match_pairs",
     "select_pairs",
     "tie_points",
     "triangulate_tie_tracks",
@@ -54,6 +54,11 @@ class TiePointOptions:
     #: survive the 90 deg between two heads of an oblique system (measured on
     #: the sample: 0 verified matches between E and N views).
     max_view_angle_deg: float = 40.0
+    #: Match within the epipolar band of the registered poses (pixels of the
+    #: down-sampled image); SIFT's ratio test (COLMAP's max_ratio).
+    guided_matching: bool = True
+    max_epipolar_error_px: float = 2.0
+    max_ratio: float = 0.9
     #: Triangulated points whose reprojection error exceeds this are dropped.
     max_reproj_error_px: float = 3.0
     min_track_length: int = 2
@@ -138,51 +143,7 @@ def select_pairs(
     return sorted(chosen)
 
 
-def extract_features(gray_images: Sequence[np.ndarray], options: TiePointOptions):
-    """SIFT on each (H, W) uint8 image: a list of ((K, 2) full-resolution
-    pixel coordinates, pycolmap keypoints, pycolmap descriptors)."""
-    eo = pycolmap.FeatureExtractionOptions()
-    eo.max_image_size = options.max_image_size
-    eo.num_threads = options.num_threads
-    eo.sift.max_num_features = options.max_num_features
-    extractor = pycolmap.FeatureExtractor.create(eo, pycolmap.Device.cpu)
-    out = []
-    for img in tqdm(gray_images, desc="tie points: SIFT", disable=None):
-        kps, desc = extractor.extract_from_uint8_array(np.ascontiguousarray(img))
-        xy = np.array([(k.x, k.y) for k in kps], float).reshape(-1, 2)
-        out.append((xy, kps, desc))
-    return out
-
-
-def match_pairs(
-    features,
-    cameras: Sequence[pycolmap.Camera],
-    pairs: Sequence[tuple[int, int]],
-    options: TiePointOptions,
-) -> dict[tuple[int, int], np.ndarray]:
-    """Verified matches per pair: (m, 2) feature indices, the inliers of
-    pycolmap's calibrated two-view geometry."""
-    mo = pycolmap.FeatureMatchingOptions()
-    mo.use_gpu = False
-    mo.num_threads = options.num_threads
-    matcher = pycolmap.FeatureMatcher.create(mo, pycolmap.Device.cpu)
-    out = {}
-    for i, j in tqdm(pairs, desc="tie points: matching", disable=None):
-        xi, ki, di = features[i]
-        xj, kj, dj = features[j]
-        m = np.asarray(matcher.match(ki, di, kj, dj)).reshape(-1, 2)
-        if len(m) < 16:
-            continue
-        geom = pycolmap.estimate_calibrated_two_view_geometry(
-            cameras[i], xi, cameras[j], xj, m.astype(np.uint32)
-        )
-        inl = np.asarray(geom.inlier_matches).reshape(-1, 2)
-        if len(inl) >= 16:
-            out[(i, j)] = inl.astype(np.int64)
-    return out
-
-
-def _tracks(matches: dict[tuple[int, int], np.ndarray], counts: Sequence[int]):
+def chain_tie_tracks(matches: dict[tuple[int, int], np.ndarray], counts: Sequence[int]):
     """Connected components of the match graph: (M,) track, image, feature of
     each observation in tracks of >= 2 images that see each image once."""
     offset = np.concatenate([[0], np.cumsum(counts)])
@@ -257,8 +218,8 @@ def tie_points(
     options = options or TiePointOptions()
     pairs = select_pairs(footprints(cameras, poses, ground_z), poses, options)
     features = extract_features(gray_images, options)
-    matches = match_pairs(features, cameras, pairs, options)
-    track, image, feature = _tracks(matches, [len(f[0]) for f in features])
+    matches = match_pairs(features, cameras, poses, pairs, options)
+    track, image, feature = chain_tie_tracks(matches, [len(f[0]) for f in features])
     counts = np.array([len(f[0]) for f in features])
     offset = np.concatenate([[0], np.cumsum(counts)])[:-1]
     xy = np.concatenate([f[0] for f in features])[offset[image] + feature]
