@@ -144,3 +144,32 @@ def test_select_pairs_needs_overlap_and_similar_views():
     pairs = select_pairs(polys, poses, TiePointOptions())
     assert all(4 not in p and 5 not in p for p in pairs)
     assert (0, 1) in pairs and (2, 3) in pairs
+
+
+@pytest.mark.slow
+def test_register_writes_tie_points_with_tracks(tmp_path):
+    """``register --tie_points 1`` (here after stage 2): the tie points reach
+    points3D.bin with tracks across images, reprojecting within SIFT's noise
+    at the registered poses (sub-pixel mean, not the 3 px cut)."""
+    from pathlib import Path
+
+    from obliq_colmap.adjustment import AdjustmentOptions
+    from obliq_colmap.pipeline import PipelineOptions, run_register, write_run
+
+    sample = Path(__file__).resolve().parents[1] / "data_samples" / "oblique_small"
+    options = PipelineOptions(
+        stop_after="initial",
+        num_workers=1,
+        progress=False,
+        adjustment=AdjustmentOptions(tie_points=True),
+    )
+    run = run_register(
+        sample / "images", sample / "cadastre.geojson", sample / "priors", options
+    )
+    ties = run.report["tie_points"]
+    assert ties["num_points"] > 0 and ties["min_per_image"] > 0
+    write_run(tmp_path / "model", run)
+    rec = pycolmap.Reconstruction(tmp_path / "model")
+    rec.update_point_3d_errors()
+    assert rec.num_points3D() == len(run.points3D)
+    assert rec.compute_mean_reprojection_error() < 1.0
