@@ -64,6 +64,7 @@ from obliq_colmap.adjustment.rounds import (
     with_variance_components,
     without_outliers,
 )
+from obliq_colmap.adjustment.ties import TiePointOptions, TiePoints, tie_points
 from obliq_colmap.adjustment.tracks import FacadeTracks, PairMatch, triangulate_tracks
 from obliq_colmap.adjustment.verdicts import (
     Verdicts,
@@ -86,6 +87,8 @@ __all__ = [
     "MatchingOptions",
     "PairMatch",
     "Stage3",
+    "TiePointOptions",
+    "TiePoints",
     "Verdicts",
     "build_bundle_problem",
     "bundle_stage",
@@ -103,6 +106,7 @@ __all__ = [
     "misplaced_images",
     "points_along_edges",
     "rejected_images",
+    "tie_points",
     "triangulate_tracks",
     "vertical_constraints",
     "with_track_lines",

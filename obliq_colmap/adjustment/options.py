@@ -6,6 +6,7 @@ from dataclasses import dataclass, field
 
 from obliq_colmap.adjustment.facades import FacadeOptions
 from obliq_colmap.adjustment.matching import MatchingOptions
+from obliq_colmap.adjustment.ties import TiePointOptions
 from obliq_colmap.bundle import BundleOptions
 
 __all__ = ["AdjustmentOptions"]
@@ -52,6 +53,11 @@ class AdjustmentOptions:
     #: Prior 1-sigma (m) of a track's offset from its wall: weak, since roof
     #: rims overhang and parapets stand back from the map edge.
     track_offset_sigma_m: float = 10.0
+    #: SIFT tie points matched across the registered block, triangulated
+    #: after the bundle and written with their tracks (not yet observed IN the
+    #: bundle). Off by default: SIFT on the CPU costs seconds per image.
+    tie_points: bool = False
+    tie_point_options: TiePointOptions = field(default_factory=TiePointOptions)
 
     def __post_init__(self) -> None:
         if self.outlier_rounds < 0 or self.outlier_factor <= 0:

@@ -238,6 +238,16 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "(default %(default)s)",
     )
     bundle.add_argument(
+        "--tie_points",
+        type=_bool01,
+        default=int(AdjustmentOptions().tie_points),
+        metavar="{0,1}",
+        help="match SIFT tie points across the registered block (pairs from the "
+        "poses' ground footprints, pycolmap two-view verification), triangulate "
+        "them and write them with their tracks to points3D.bin (default "
+        "%(default)s)",
+    )
+    bundle.add_argument(
         "--loss_scale",
         type=float,
         default=bdefaults.loss_scale_px,
@@ -299,7 +309,8 @@ def run(args: argparse.Namespace) -> int:
                     ),
                     vp_observations=bool(args.bundle_vp_observations),
                     loss_scale_px=args.loss_scale,
-                )
+                ),
+                tie_points=bool(args.tie_points),
             ),
         )
     except ValueError as exc:  # an option out of its range

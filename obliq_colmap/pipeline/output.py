@@ -12,10 +12,11 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+import cv2
 import numpy as np
 
 from obliq_colmap import __version__
-from obliq_colmap.adjustment import Stage3
+from obliq_colmap.adjustment import Stage3, TiePointOptions, tie_points
 from obliq_colmap.bundle import BundleResult
 from obliq_colmap.cadastre import visible_corners
 from obliq_colmap.colmap_io import Block, Georef, ImageRecord, Point3D, write_result
@@ -31,6 +32,7 @@ __all__ = [
     "result_block",
     "run_report",
     "summary_table",
+    "tie_point_records",
     "write_run",
 ]
 
@@ -157,6 +159,32 @@ def constrained_points(
                 fobs[j].append((i, p))
         points += [Point3D(F[j], o) for j, o in enumerate(fobs) if len(o) >= 2]
     return points
+
+
+def tie_point_records(
+    inputs: Inputs, block: Block, ground_z: float, options: TiePointOptions
+) -> list[Point3D]:
+    """SIFT tie points of the registered block (:func:`adjustment.tie_points`)
+    with their tracks at the measured pixels, in the block's frame."""
+    ids = sorted(block.images)
+    gray = [
+        cv2.imread(str(inputs.image_path / block.images[i].name), cv2.IMREAD_GRAYSCALE)
+        for i in ids
+    ]
+    cams = [block.cameras[block.images[i].camera_id].to_pycolmap() for i in ids]
+    poses = [block.images[i].cam_from_world.to_rigid3d() for i in ids]
+    ties = tie_points(gray, cams, poses, ground_z, options)
+    order = np.argsort(ties.obs_point, kind="stable")
+    starts = np.searchsorted(ties.obs_point[order], np.arange(len(ties.xyz) + 1))
+    image_ids = np.asarray(ids)[ties.obs_image[order]]
+    xy = ties.obs_xy[order]
+    return [
+        Point3D(
+            ties.xyz[t],
+            [(int(image_ids[k]), xy[k]) for k in range(starts[t], starts[t + 1])],
+        )
+        for t in range(len(ties.xyz))
+    ]
 
 
 def run_report(

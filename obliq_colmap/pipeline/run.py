@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import logging
 import time
+from collections import Counter
 from pathlib import Path
 
 import numpy as np
@@ -13,7 +14,7 @@ import numpy as np
 from obliq_colmap import __version__
 from obliq_colmap.adjustment import Stage3
 from obliq_colmap.bundle import BundleResult
-from obliq_colmap.colmap_io import Georef
+from obliq_colmap.colmap_io import Georef, Point3D
 from obliq_colmap.pipeline.block import block_stage
 from obliq_colmap.pipeline.initial import initial_stage
 from obliq_colmap.pipeline.inputs import image_tasks, load_inputs
@@ -23,6 +24,7 @@ from obliq_colmap.pipeline.output import (
     constrained_points,
     result_block,
     run_report,
+    tie_point_records,
 )
 from obliq_colmap.pipeline.workers import draw_overlay, worker_pool
 from obliq_colmap.registration import block_ground_height
@@ -114,12 +116,29 @@ def run_register(
     )
     block = result_block(inputs, state)
     points = constrained_points(inputs, block, state, by_id, bundle_result, stage3)
+    ties: list[Point3D] = []
+    if options.adjustment.tie_points and len(block.images) >= 2:
+        t_ties = time.perf_counter()
+        ties = tie_point_records(
+            inputs, block, z0, options.adjustment.tie_point_options
+        )
+        points += ties
+        timings["tie_points"] = time.perf_counter() - t_ties
     block = block.shifted(np.array([0.0, 0.0, z0]))
     for p in points:
         p.xyz = p.xyz - np.array([0.0, 0.0, z0])
     timings["total"] = time.perf_counter() - t_run
     report = run_report(inputs, outcomes, rescued, bundle_result, georef, timings)
     report["reregistered"] = reregistered
+    if options.adjustment.tie_points:
+        per_image = Counter(i for p in ties for i, _ in p.observations)
+        counts = [per_image.get(i, 0) for i in block.images]
+        report["tie_points"] = {
+            "num_points": len(ties),
+            "num_observations": sum(counts),
+            "min_per_image": min(counts, default=0),
+            "median_per_image": float(np.median(counts)) if counts else 0.0,
+        }
     if stage3 is not None:
         report["facades"] = stage3.report(by_id)
     report["options"] = {

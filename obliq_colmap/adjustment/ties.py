@@ -1,0 +1,243 @@
+"""Tie points of stage 3: SIFT features matched across the registered block.
+
+Pairs are chosen from the registered poses (footprints on the ground that
+overlap), not exhaustively: an oblique block of n images has O(n) useful
+pairs, and matching all n^2 / 2 is most of the cost. Matches are verified
+with pycolmap's calibrated two-view geometry, chained into tracks (connected
+components of the match graph; tracks that see one image twice are dropped),
+and triangulated from the registered poses (midpoint of the rays, batched
+3x3 solves) with a reprojection check.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+import pycolmap
+import scipy.sparse as sp
+from scipy.sparse.csgraph import connected_components
+from shapely.geometry import Polygon
+
+from obliq_colmap.adjustment.tie_matching import extract_features, match_pairs
+
+__all__ = [
+    "TiePointOptions",
+    "TiePoints",
+    "chain_tie_tracks",
+    "footprints",
+    "select_pairs",
+    "tie_points",
+    "triangulate_tie_tracks",
+]
+
+logger = logging.getLogger(__name__)
+
+
+@dataclass(kw_only=True)
+class TiePointOptions:
+    """Options of the tie points (COLMAP-like names)."""
+
+    #: Images are down-sampled to this size for extraction (the bundle needs a
+    #: few hundred good points per image, not the full resolution's thousands).
+    max_image_size: int = 1000
+    #: SIFT's cap before orientations (each keypoint may get two).
+    max_num_features: int = 1200
+    #: A pair is matched when the overlap of its ground footprints is at
+    #: least this share of the smaller footprint.
+    min_overlap: float = 0.2
+    #: Each image is matched with at most this many partners (largest overlap).
+    max_pairs_per_image: int = 6
+    #: Pairs whose optical axes differ more are not matched: SIFT does not
+    #: survive the 90 deg between two heads of an oblique system (measured on
+    #: the sample: 0 verified matches between E and N views).
+    max_view_angle_deg: float = 40.0
+    #: Match within the epipolar band of the registered poses (pixels of the
+    #: down-sampled image); SIFT's ratio test (COLMAP's max_ratio).
+    guided_matching: bool = True
+    max_epipolar_error_px: float = 2.0
+    max_ratio: float = 0.9
+    #: Triangulated points whose reprojection error exceeds this are dropped.
+    max_reproj_error_px: float = 3.0
+    min_track_length: int = 2
+    num_threads: int = 2
+
+    def __post_init__(self) -> None:
+        if self.max_image_size < 64 or self.max_num_features < 8:
+            raise ValueError("max_image_size must be >= 64 and max_num_features >= 8")
+        if not 0.0 < self.min_overlap <= 1.0:
+            raise ValueError("min_overlap must be in (0, 1]")
+
+
+@dataclass
+class TiePoints:
+    """Triangulated tracks: T points, M observations.
+
+    xyz: (T, 3) world points; obs_point: (M,) track of each observation;
+    obs_image: (M,) index of its image (into the caller's list);
+    obs_xy: (M, 2) pixel coordinates (COLMAP convention, full resolution);
+    obs_feature: (M,) feature index in its image.
+    """
+
+    xyz: np.ndarray
+    obs_point: np.ndarray
+    obs_image: np.ndarray
+    obs_xy: np.ndarray
+    obs_feature: np.ndarray
+
+    def per_image(self, num_images: int) -> np.ndarray:
+        """(num_images,) number of observations in each image."""
+        return np.bincount(self.obs_image, minlength=num_images)
+
+
+def footprints(
+    cameras: Sequence[pycolmap.Camera],
+    poses: Sequence[pycolmap.Rigid3d],
+    ground_z: float,
+) -> list[Polygon]:
+    """Each image's footprint on the plane z = ground_z (corners' rays; a ray
+    above the horizon is clipped to 20 flying heights, far enough for obliques)."""
+    out = []
+    for cam, pose in zip(cameras, poses, strict=True):
+        w, h = cam.width, cam.height
+        corners = np.array([[0, 0], [w, 0], [w, h], [0, h]], float)
+        rays_cam = np.c_[cam.cam_from_img(corners), np.ones(4)]
+        R = pose.rotation.matrix()
+        c = -R.T @ pose.translation
+        rays = rays_cam @ R  # (4, 3) world directions: R^T d
+        height = c[2] - ground_z
+        down = -rays[:, 2]
+        t = np.where(down > 1e-9, height / np.maximum(down, 1e-9), np.inf)
+        t = np.minimum(t, 20.0 * abs(height) / np.linalg.norm(rays, axis=1))
+        out.append(Polygon(c[:2] + t[:, None] * rays[:, :2]).buffer(0))
+    return out
+
+
+def select_pairs(
+    polys: Sequence[Polygon],
+    poses: Sequence[pycolmap.Rigid3d],
+    options: TiePointOptions,
+) -> list[tuple[int, int]]:
+    """Pairs (i < j) whose footprints overlap enough and whose views differ by
+    at most ``max_view_angle_deg``, each image's best ``max_pairs_per_image``
+    partners (a pair is kept if either end chose it)."""
+    n = len(polys)
+    axes = np.stack([p.rotation.matrix()[2] for p in poses]).reshape(-1, 3)
+    similar = axes @ axes.T >= np.cos(np.radians(options.max_view_angle_deg))
+    share = np.zeros((n, n))
+    for i in range(n):
+        for j in range(i + 1, n):
+            if similar[i, j] and polys[i].intersects(polys[j]):
+                inter = polys[i].intersection(polys[j]).area
+                share[i, j] = share[j, i] = inter / max(
+                    min(polys[i].area, polys[j].area), 1e-9
+                )
+    chosen = set()
+    for i in range(n):
+        order = np.argsort(-share[i])[: options.max_pairs_per_image]
+        chosen.update(
+            (min(i, j), max(i, j)) for j in order if share[i, j] >= options.min_overlap
+        )
+    return sorted(chosen)
+
+
+def chain_tie_tracks(matches: dict[tuple[int, int], np.ndarray], counts: Sequence[int]):
+    """Connected components of the match graph: (M,) track, image, feature of
+    each observation in tracks of >= 2 images that see each image once."""
+    offset = np.concatenate([[0], np.cumsum(counts)])
+    if not matches:
+        return (np.zeros(0, np.int64),) * 3
+    a = np.concatenate([offset[i] + m[:, 0] for (i, _), m in matches.items()])
+    b = np.concatenate([offset[j] + m[:, 1] for (_, j), m in matches.items()])
+    n = int(offset[-1])
+    graph = sp.coo_matrix((np.ones(len(a)), (a, b)), shape=(n, n))
+    _, label = connected_components(graph, directed=False)
+    node = np.unique(np.concatenate([a, b]))
+    image = np.searchsorted(offset, node, side="right") - 1
+    track = label[node]
+    size = np.bincount(track)
+    distinct = np.bincount(
+        np.unique(np.c_[track, image], axis=0)[:, 0], minlength=len(size)
+    )
+    keep = (size[track] >= 2) & (distinct[track] == size[track])
+    return track[keep], image[keep], node[keep] - offset[image[keep]]
+
+
+def triangulate_tie_tracks(
+    cameras: Sequence[pycolmap.Camera],
+    poses: Sequence[pycolmap.Rigid3d],
+    obs_track: np.ndarray,
+    obs_image: np.ndarray,
+    obs_xy: np.ndarray,
+) -> np.ndarray:
+    """(T, 3) midpoints of each track's rays: ``sum_k (I - d d^T) (X - c_k) = 0``,
+    one batched 3x3 solve (T = obs_track.max() + 1; tracks are 0..T-1)."""
+    R = np.stack([p.rotation.matrix() for p in poses])
+    C = np.stack([-p.rotation.matrix().T @ p.translation for p in poses])
+    d = np.empty((len(obs_xy), 3))
+    for i in np.unique(obs_image):  # per image (a few dozen), not per point
+        m = obs_image == i
+        d[m] = np.c_[cameras[i].cam_from_img(obs_xy[m]), np.ones(m.sum())] @ R[i]
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    P = np.eye(3) - d[:, :, None] * d[:, None, :]
+    T = int(obs_track.max()) + 1 if len(obs_track) else 0
+    A = np.zeros((T, 3, 3))
+    b = np.zeros((T, 3))
+    np.add.at(A, obs_track, P)
+    np.add.at(b, obs_track, np.einsum("kij,kj->ki", P, C[obs_image]))
+    return np.linalg.solve(A + 1e-12 * np.eye(3), b[:, :, None])[:, :, 0]
+
+
+def _reprojection_errors(
+    cameras, poses, xyz, obs_point, obs_image, obs_xy
+) -> np.ndarray:
+    """(M,) pixel distance of each observation from its point's projection."""
+    err = np.full(len(obs_xy), np.inf)
+    for i in np.unique(obs_image):
+        m = obs_image == i
+        X = poses[i] * xyz[obs_point[m]]  # (m, 3) camera frame
+        front = X[:, 2] > 0
+        uv = cameras[i].img_from_cam(X[front])
+        e = np.full(m.sum(), np.inf)
+        e[front] = np.linalg.norm(np.asarray(uv) - obs_xy[m][front], axis=1)
+        err[m] = e
+    return err
+
+
+def tie_points(
+    gray_images: Sequence[np.ndarray],
+    cameras: Sequence[pycolmap.Camera],
+    poses: Sequence[pycolmap.Rigid3d],
+    ground_z: float,
+    options: TiePointOptions | None = None,
+) -> TiePoints:
+    """Tie points of a registered block (images, cameras and cam_from_world
+    poses in the same order)."""
+    options = options or TiePointOptions()
+    pairs = select_pairs(footprints(cameras, poses, ground_z), poses, options)
+    features = extract_features(gray_images, options)
+    matches = match_pairs(features, cameras, poses, pairs, options)
+    track, image, feature = chain_tie_tracks(matches, [len(f[0]) for f in features])
+    counts = np.array([len(f[0]) for f in features])
+    offset = np.concatenate([[0], np.cumsum(counts)])[:-1]
+    xy = np.concatenate([f[0] for f in features])[offset[image] + feature]
+    _, track = np.unique(track, return_inverse=True)
+    xyz = triangulate_tie_tracks(cameras, poses, track, image, xy)
+    err = _reprojection_errors(cameras, poses, xyz, track, image, xy)
+    bad_track = np.zeros(len(xyz), bool)
+    bad_track[track[err > options.max_reproj_error_px]] = True
+    keep = ~bad_track[track]
+    keep &= (
+        np.bincount(track[keep], minlength=len(xyz))[track] >= options.min_track_length
+    )
+    kept_tracks, new_track = np.unique(track[keep], return_inverse=True)
+    logger.info(
+        "tie points: %d pairs, %d matched, %d points, %d observations",
+        len(pairs),
+        len(matches),
+        len(kept_tracks),
+        int(keep.sum()),
+    )
+    return TiePoints(xyz[kept_tracks], new_track, image[keep], xy[keep], feature[keep])

@@ -1,0 +1,175 @@
+"""Tie points: tracks, triangulation, and the Schur elimination of 3-D points."""
+
+from __future__ import annotations
+
+import numpy as np
+import pycolmap
+import pytest
+
+from obliq_colmap.adjustment.ties import triangulate_tie_tracks
+from obliq_colmap.bundle.schur import (
+    point_back_substitution,
+    point_normal_blocks,
+    point_schur,
+)
+
+
+def _block(rng, n_images: int):
+    """Cameras 500 m up looking down-ish at a 200 m square."""
+    cams, poses = [], []
+    for i in range(n_images):
+        cams.append(
+            pycolmap.Camera(
+                model="PINHOLE", width=1000, height=700, params=[1200, 1200, 500, 350]
+            )
+        )
+        c = np.array([40.0 * i, 10.0 * (i % 2), 500.0])
+        R = np.diag([1.0, -1.0, -1.0])  # looking straight down
+        poses.append(pycolmap.Rigid3d(pycolmap.Rotation3d(R), -R @ c))
+    return cams, poses
+
+
+def test_triangulate_tie_tracks_recovers_points_within_noise():
+    rng = np.random.default_rng(0)
+    cams, poses = _block(rng, 4)
+    X = np.c_[rng.uniform(-50, 150, (50, 2)), rng.uniform(0, 30, 50)]
+    track = np.repeat(np.arange(50), 4)
+    image = np.tile(np.arange(4), 50)
+    sigma = 0.3
+    xy = np.concatenate(
+        [
+            cams[i].img_from_cam(poses[i] * X[t][None])
+            for t, i in zip(track, image, strict=True)
+        ]
+    )
+    xy += rng.normal(0, sigma, xy.shape)
+    est = triangulate_tie_tracks(cams, poses, track, image, xy)
+    # depth sd ~ sigma / f * Z^2 / baseline (~120 m), ground sd ~ sigma / f * Z
+    err = np.abs(est - X)
+    assert np.median(err[:, :2]) < 3 * sigma / 1200 * 500
+    assert np.median(err[:, 2]) < 3 * sigma / 1200 * 500**2 / 120
+    assert np.max(err[:, 2]) > 0  # noise reached the points
+
+
+def test_point_schur_matches_dense_solve():
+    rng = np.random.default_rng(1)
+    n_pts, C = 30, 12
+    pidx = np.repeat(np.arange(n_pts), 4)
+    N = len(pidx)
+    Jc, Jp = rng.normal(size=(N, C)), rng.normal(size=(N, 3))
+    r, w = rng.normal(size=N), rng.uniform(0.5, 2.0, N)
+    H_pp, g_p, W, H_cc, g_c = point_normal_blocks(Jc, Jp, r, w, pidx, n_pts)
+    lam = 0.1
+    reduced, coupled, Hinv = point_schur(H_pp, g_p, W, lam)
+    A = H_cc - reduced
+    A[np.diag_indices(C)] += lam * np.clip(np.diag(H_cc), 1e-6, 1e32)
+    dc = np.linalg.solve(A, -g_c + coupled)
+    dp = point_back_substitution(Hinv, g_p, W, dc)
+    # the same damped system, dense
+    J = np.zeros((N, C + 3 * n_pts))
+    J[:, :C] = Jc
+    J[np.arange(N)[:, None], C + 3 * pidx[:, None] + np.arange(3)] = Jp
+    H = J.T @ (w[:, None] * J)
+    H[np.diag_indices_from(H)] += lam * np.clip(np.diag(H), 1e-6, 1e32)
+    full = np.linalg.solve(H, -J.T @ (w * r))
+    np.testing.assert_allclose(dc, full[:C], rtol=1e-8, atol=1e-10)
+    np.testing.assert_allclose(dp.ravel(), full[C:], rtol=1e-8, atol=1e-10)
+
+
+@pytest.mark.slow
+def test_tie_points_on_sample_fit_true_poses():
+    """On the 16-image sample with the true poses, verified tracks reproject
+    to within SIFT's noise (sub-pixel median)."""
+    from pathlib import Path
+
+    import cv2
+
+    from obliq_colmap.adjustment.ties import TiePointOptions, tie_points
+
+    root = Path(__file__).resolve().parents[1] / "data_samples" / "oblique_small"
+    rec = pycolmap.Reconstruction(root / "gt")
+    images = sorted(rec.images.values(), key=lambda im: im.name)[:6]
+    gray = [
+        cv2.imread(str(root / "images" / im.name), cv2.IMREAD_GRAYSCALE)
+        for im in images
+    ]
+    cams = [rec.cameras[im.camera_id] for im in images]
+    poses = [im.cam_from_world() for im in images]
+    ties = tie_points(gray, cams, poses, 100.0, TiePointOptions(max_num_features=1000))
+    assert len(ties.xyz) > 10
+    err = [
+        np.linalg.norm(
+            cams[i].img_from_cam(poses[i] * ties.xyz[ties.obs_point[m]])
+            - ties.obs_xy[m],
+            axis=1,
+        )
+        for i in range(len(images))
+        if (m := ties.obs_image == i).any()
+    ]
+    assert np.median(np.concatenate(err)) < 1.0
+
+
+def test_tracks_chain_matches_and_drop_inconsistent_ones():
+    from obliq_colmap.adjustment.ties import chain_tie_tracks
+
+    # image 0 feature 0 -> image 1 feature 2 -> image 2 feature 1: one track;
+    # image 0 features 3 and 4 both reach image 1 feature 5: seen twice, dropped
+    matches = {
+        (0, 1): np.array([[0, 2], [3, 5], [4, 5]]),
+        (1, 2): np.array([[2, 1]]),
+    }
+    track, image, feature = chain_tie_tracks(matches, [6, 6, 6])
+    assert len(np.unique(track)) == 1
+    np.testing.assert_array_equal(np.sort(image), [0, 1, 2])
+    np.testing.assert_array_equal(feature[np.argsort(image)], [0, 2, 1])
+
+
+def test_select_pairs_needs_overlap_and_similar_views():
+    from obliq_colmap.adjustment.ties import TiePointOptions, footprints, select_pairs
+
+    cams, poses = _block(np.random.default_rng(2), 4)
+    # a fifth camera far away (no overlap) and a sixth over image 0 but
+    # tilted 60 deg (overlaps, yet SIFT would not match across that angle)
+    c = np.array([5000.0, 0.0, 500.0])
+    R = np.diag([1.0, -1.0, -1.0])
+    far = pycolmap.Rigid3d(pycolmap.Rotation3d(R), -R @ c)
+    a = np.radians(60)
+    tilt = np.array([[1, 0, 0], [0, np.cos(a), -np.sin(a)], [0, np.sin(a), np.cos(a)]])
+    R2 = tilt @ R
+    c2 = np.array([0.0, 500 * np.tan(a), 500.0])
+    tilted = pycolmap.Rigid3d(pycolmap.Rotation3d(R2), -R2 @ c2)
+    cams, poses = cams + cams[:2], poses + [far, tilted]
+    polys = footprints(cams, poses, 0.0)
+    assert polys[5].intersects(polys[0])
+    pairs = select_pairs(polys, poses, TiePointOptions())
+    assert all(4 not in p and 5 not in p for p in pairs)
+    assert (0, 1) in pairs and (2, 3) in pairs
+
+
+@pytest.mark.slow
+def test_register_writes_tie_points_with_tracks(tmp_path):
+    """``register --tie_points 1`` (here after stage 2): the tie points reach
+    points3D.bin with tracks across images, reprojecting within SIFT's noise
+    at the registered poses (sub-pixel mean, not the 3 px cut)."""
+    from pathlib import Path
+
+    from obliq_colmap.adjustment import AdjustmentOptions
+    from obliq_colmap.pipeline import PipelineOptions, run_register, write_run
+
+    sample = Path(__file__).resolve().parents[1] / "data_samples" / "oblique_small"
+    options = PipelineOptions(
+        stop_after="initial",
+        num_workers=1,
+        progress=False,
+        adjustment=AdjustmentOptions(tie_points=True),
+    )
+    run = run_register(
+        sample / "images", sample / "cadastre.geojson", sample / "priors", options
+    )
+    ties = run.report["tie_points"]
+    assert ties["num_points"] > 0 and ties["min_per_image"] > 0
+    write_run(tmp_path / "model", run)
+    rec = pycolmap.Reconstruction(tmp_path / "model")
+    rec.update_point_3d_errors()
+    assert rec.num_points3D() == len(run.points3D)
+    assert rec.compute_mean_reprojection_error() < 1.0
