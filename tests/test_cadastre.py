@@ -680,3 +680,38 @@ def test_real_footprints_delfshaven():
     edges = visible_edges(cad, _camera(), pose, 0.0)
     assert 50 < len(corners) < cad.num_corners / 2
     assert 50 < len(edges) < cad.num_edges / 2
+
+
+@pytest.mark.parametrize("margin_px", [0.0, 300.0])
+def test_the_view_box_keeps_every_corner_the_whole_map_test_finds(margin_px):
+    """With a constant ground the corners are first narrowed to the buildings
+    the spatial index finds in the frustum's footprint; the result is the
+    whole-map test's (a callable ground skips the narrowing) for every
+    camera of the sample's priors."""
+    from obliq_colmap.cadastre.visibility import _view_box
+    from obliq_colmap.colmap_io import read_model
+
+    sample = Path(__file__).resolve().parents[1] / "data_samples" / "oblique_small"
+    cad = load_cadastre(sample / "cadastre.geojson")
+    priors = read_model(sample / "priors")
+    heights = [im.cam_from_world.center[2] for im in priors.images.values()]
+    ground = float(np.median(heights)) - 600.0
+    for im in priors.images.values():
+        camera = priors.cameras[im.camera_id]
+        pose = Pose(
+            im.cam_from_world.rotation,
+            im.cam_from_world.translation + im.cam_from_world.rotation @ cad.origin,
+        )
+        box = _view_box(camera, pose, (ground, ground + 50.0), margin_px)
+        assert box is not None  # the narrowing is what is tested
+        fast = visible_corners(cad, camera, pose, ground, (0.0, 50.0), margin_px)
+        whole = visible_corners(
+            cad,
+            camera,
+            pose,
+            lambda xy: np.full(len(xy), ground),
+            (0.0, 50.0),
+            margin_px,
+        )
+        assert len(whole) > 0
+        np.testing.assert_array_equal(fast, whole)

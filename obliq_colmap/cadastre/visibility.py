@@ -119,14 +119,63 @@ def _vertical_extent(
 
 
 def _facing(
-    cadastre: Cadastre, center_xy: np.ndarray, exclude_shared_walls: bool
+    cadastre: Cadastre,
+    center_xy: np.ndarray,
+    exclude_shared_walls: bool,
+    edges: np.ndarray | slice = slice(None),
 ) -> np.ndarray:
-    """(E,) bool: the wall's outward normal points towards the camera centre."""
-    to_camera = center_xy[None, :] - cadastre.edge_xy[:, 0]  # (E, 2)
-    facing = np.sum(cadastre.edge_normal * to_camera, axis=1) > 0
+    """(E,) bool for ``edges`` (default all): the wall's outward normal
+    points towards the camera centre."""
+    to_camera = center_xy[None, :] - cadastre.edge_xy[edges, 0]  # (E, 2)
+    facing = np.sum(cadastre.edge_normal[edges] * to_camera, axis=1) > 0
     if exclude_shared_walls:
-        facing &= cadastre.edge_shared_fraction < SHARED_WALL_FRACTION
+        facing &= cadastre.edge_shared_fraction[edges] < SHARED_WALL_FRACTION
     return facing
+
+
+def _view_box(
+    camera: Camera,
+    cam_from_world: Pose,
+    z_range: tuple[float, float],
+    margin_px: float,
+) -> tuple[float, float, float, float] | None:
+    """Horizontal bounding box (xmin, ymin, xmax, ymax) of the viewing
+    frustum between the heights ``z_range``; None when it is unbounded (an
+    edge of the image looks level or up, or the camera is not above the
+    slab).
+
+    With every edge ray pointing down from above the slab, the frustum's part
+    in the slab is the convex hull of the 8 points where the 4 edge rays
+    cross its two planes, so their box bounds every point it contains.
+    """
+    z_lo, z_hi = z_range
+    center = cam_from_world.center
+    if not center[2] > z_hi:
+        return None
+    xmin, xmax, ymin, ymax = _frustum_bounds(camera, margin_px)
+    rays = np.array(
+        [[xmin, ymin, 1], [xmax, ymin, 1], [xmax, ymax, 1], [xmin, ymax, 1]]
+    )
+    d = rays @ cam_from_world.rotation  # (4, 3) world directions (R^T ray)
+    if not np.all(d[:, 2] < 0):
+        return None
+    t = (np.array([z_lo, z_hi])[:, None] - center[2]) / d[None, :, 2]  # (2, 4)
+    xy = center[:2] + t[..., None] * d[None, :, :2]  # (2, 4, 2)
+    lo, hi = xy.reshape(-1, 2).min(axis=0), xy.reshape(-1, 2).max(axis=0)
+    return float(lo[0]), float(lo[1]), float(hi[0]), float(hi[1])
+
+
+def _corners_of(cadastre: Cadastre, buildings: np.ndarray) -> np.ndarray:
+    """(K,) ascending indices of the corners of ``buildings`` (ascending);
+    the corners of one building are contiguous (``corner_building`` is
+    sorted)."""
+    start = np.searchsorted(cadastre.corner_building, buildings, side="left")
+    stop = np.searchsorted(cadastre.corner_building, buildings, side="right")
+    count = stop - start
+    if not count.sum():
+        return np.zeros(0, dtype=np.int64)
+    offsets = np.repeat(start - np.cumsum(count) + count, count)
+    return (np.arange(count.sum()) + offsets).astype(np.int64)
 
 
 def visible_corners(
@@ -195,11 +244,23 @@ def visible_corners(
     if cadastre.num_corners == 0:
         return np.zeros(0, dtype=np.int64)
     center = cam_from_world.center
-    facing = _facing(cadastre, center[:2], exclude_shared_walls)
-    candidate = (
-        facing[cadastre.corner_edges[:, 0]] | facing[cadastre.corner_edges[:, 1]]
-    )
-    idx = np.flatnonzero(candidate)
+    # A constant ground bounds the frustum's footprint: only the buildings the
+    # spatial index finds there are tested (a city-wide map costs per image
+    # what its part in view costs).
+    idx = np.arange(cadastre.num_corners)
+    if not callable(ground_height):
+        lo, hi = sorted(float(v) for v in height_range_m)
+        box = _view_box(
+            camera,
+            cam_from_world,
+            (float(ground_height) + lo, float(ground_height) + hi),
+            margin_px,
+        )
+        if box is not None:
+            idx = _corners_of(cadastre, cadastre.buildings_in_box(*box))
+    edges = cadastre.corner_edges[idx]  # (K, 2)
+    facing = _facing(cadastre, center[:2], exclude_shared_walls, edges.ravel())
+    idx = idx[facing.reshape(-1, 2).any(axis=1)]
     if len(idx) == 0:
         return idx.astype(np.int64)
 
