@@ -2,7 +2,9 @@
 
 Everything is written under a temporary sibling name and renamed into place
 with ``os.replace`` at the end, so a failed or interrupted run never leaves a
-file or a model folder that looks complete.
+file or a model folder that looks complete. An output folder that is a
+mount point cannot be renamed onto: there the temporary folder is made
+inside it and its files are renamed into place one by one.
 """
 
 from __future__ import annotations
@@ -32,6 +34,20 @@ def check_output_path(output_path: str | Path) -> None:
         raise InputError(
             output_path.parent, "parent folder of --output_path does not exist"
         )
+    staging = _staging_parent(output_path)
+    try:
+        probe = tempfile.mkdtemp(prefix=".obliq-write-test-", dir=staging)
+    except OSError as exc:
+        raise InputError(
+            staging, f"cannot write there ({exc.strerror or exc}); nothing was done"
+        ) from None
+    os.rmdir(probe)
+
+
+def _staging_parent(path: Path) -> Path:
+    """Where the temporary folder goes: beside ``path``, or inside it when
+    ``path`` is an (empty) mount point, which a rename cannot replace."""
+    return path if path.is_dir() and os.path.ismount(path) else path.parent
 
 
 class AtomicFolder:
@@ -48,8 +64,11 @@ class AtomicFolder:
         self.tmp: Path | None = None
 
     def __enter__(self) -> Path:
+        self.inside = _staging_parent(self.path) == self.path
         self.tmp = Path(
-            tempfile.mkdtemp(prefix=f".{self.path.name}.tmp-", dir=self.path.parent)
+            tempfile.mkdtemp(
+                prefix=f".{self.path.name}.tmp-", dir=_staging_parent(self.path)
+            )
         )
         return self.tmp
 
@@ -57,6 +76,13 @@ class AtomicFolder:
         assert self.tmp is not None
         if exc_type is not None:
             shutil.rmtree(self.tmp, ignore_errors=True)
+            return
+        if self.inside:
+            # A mount point: its files renamed into place one by one (the
+            # same file system), the temporary folder removed.
+            for entry in sorted(self.tmp.iterdir()):
+                os.replace(entry, self.path / entry.name)
+            os.rmdir(self.tmp)
             return
         check_output_path(self.path)  # nobody wrote there meanwhile
         os.chmod(self.tmp, 0o755)

@@ -1,8 +1,10 @@
 """COLMAP model I/O: round trips, atomic writes, errors, and COLMAP 3.8 as reader."""
 
 import json
+import os
 import shutil
 import subprocess
+from pathlib import Path
 
 import numpy as np
 import pycolmap
@@ -119,6 +121,50 @@ def test_failed_write_leaves_nothing(tmp_path):
         raise RuntimeError("crash in the middle")
     assert not out.exists()
     assert list(tmp_path.iterdir()) == []
+
+
+def test_an_unwritable_output_location_is_refused_before_any_work(
+    tmp_path, monkeypatch
+):
+    # (as root a read-only mode does not stop writing: the refusal is
+    # simulated where the probe writes)
+    from obliq_colmap import files
+
+    def refuse(*args, **kwargs):
+        raise PermissionError(30, "Read-only file system")
+
+    monkeypatch.setattr(files.tempfile, "mkdtemp", refuse)
+    with pytest.raises(InputError, match="cannot write there") as exc:
+        files.check_output_path(tmp_path / "model")
+    assert str(tmp_path) in str(exc.value)
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_an_output_folder_that_is_a_mount_point_is_filled_in_place(
+    tmp_path, monkeypatch
+):
+    """A mount point cannot be renamed onto (EBUSY): the model is staged
+    inside it and its files renamed into place; nothing else is left."""
+    out = tmp_path / "mounted"
+    out.mkdir()
+    real = os.path.ismount
+    monkeypatch.setattr(os.path, "ismount", lambda p: Path(p) == out or real(p))
+    replace = os.replace
+
+    def busy(src, dst):  # what rename(2) onto a mount point does
+        if Path(dst) == out:
+            raise OSError(16, "Device or resource busy", str(dst))
+        replace(src, dst)
+
+    monkeypatch.setattr(os, "replace", busy)
+    io.write_result(out, make_block(), io.Georef(ORIGIN))
+    plain = tmp_path / "plain"
+    io.write_result(plain, make_block(), io.Georef(ORIGIN))
+    assert sorted(p.name for p in out.iterdir()) == sorted(
+        p.name for p in plain.iterdir()
+    )
+    shutil.rmtree(plain)
+    assert [p.name for p in tmp_path.iterdir()] == ["mounted"]
 
 
 def test_read_errors_name_the_path(tmp_path):
