@@ -100,17 +100,17 @@ def _parse_camera_params(text: str) -> tuple[float, float, float]:
 
 def _process(job: dict) -> dict:
     """One image: read, detect, overlay; a pure function of ``job``."""
-    import cv2
     import numpy as np
 
     from obliq_colmap.geometry import Camera
+    from obliq_colmap.images import read_image
     from obliq_colmap.vanishing import VanishingOptions, VPPrior, detect_vertical_vp
 
     t0 = time.perf_counter()
     name = job["name"]
-    image = cv2.imread(job["file"], cv2.IMREAD_GRAYSCALE)
+    image, problem = read_image(job["file"])
     if image is None:
-        return {"name": name, "error": "cannot read the image"}
+        return {"name": name, "error": problem}
     H, W = image.shape
     camera = None
     if job["camera"] is not None:

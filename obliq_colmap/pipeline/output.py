@@ -12,7 +12,6 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-import cv2
 import numpy as np
 
 from obliq_colmap import __version__
@@ -22,6 +21,7 @@ from obliq_colmap.cadastre import visible_corners
 from obliq_colmap.colmap_io import Block, Georef, ImageRecord, Point3D, write_result
 from obliq_colmap.errors import InputError
 from obliq_colmap.geometry import Camera
+from obliq_colmap.images import read_image
 from obliq_colmap.report import uncertainty_report
 from obliq_colmap.state import BlockState, ImageOutcome, Inputs, json_float
 
@@ -167,10 +167,7 @@ def tie_point_records(
     """SIFT tie points of the registered block (:func:`adjustment.tie_points`)
     with their tracks at the measured pixels, in the block's frame."""
     ids = sorted(block.images)
-    gray = [
-        cv2.imread(str(inputs.image_path / block.images[i].name), cv2.IMREAD_GRAYSCALE)
-        for i in ids
-    ]
+    gray = [read_image(inputs.image_path / block.images[i].name)[0] for i in ids]
     cams = [block.cameras[block.images[i].camera_id].to_pycolmap() for i in ids]
     poses = [block.images[i].cam_from_world.to_rigid3d() for i in ids]
     ties = tie_points(gray, cams, poses, ground_z, options)

@@ -19,6 +19,7 @@ import numpy as np
 
 from obliq_colmap.cadastre import Cadastre, CadastreOptions, load_cadastre
 from obliq_colmap.geometry import Camera, Pose
+from obliq_colmap.images import read_image
 from obliq_colmap.lines import RefineOptions, refine_segments
 from obliq_colmap.parallel import WorkerPool, image_seed
 from obliq_colmap.registration import (
@@ -141,19 +142,13 @@ def _init_worker(
     _STATE["cadastre"] = load_cadastre(cadastre_path, options, origin)
 
 
-def _read_gray(path: Path) -> np.ndarray | None:
-    import cv2
-
-    return cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)
-
-
 def initial_image(task: ImageTask) -> ImageOutcome:
     """Stage 1 and 2 of one image; failures come back as values."""
     t0 = time.perf_counter()
     out = ImageOutcome(task.image_id, task.name, status="failed")
-    img = _read_gray(task.path)
+    img, problem = read_image(task.path)
     if img is None:
-        out.status, out.message = "unreadable", f"cannot read image {task.path}"
+        out.status, out.message = "unreadable", f"{task.path}: {problem}"
         return out
     if img.shape != (task.camera.height, task.camera.width):
         out.status = "unreadable"
@@ -260,7 +255,7 @@ def draw_overlay(args: tuple[ImageTask, RegistrationResult, Path]) -> None:
     import cv2
 
     task, result, folder = args
-    img = cv2.imread(str(task.path), cv2.IMREAD_COLOR)
+    img, _ = read_image(task.path, color=True)
     if img is None:
         return
     drawn = draw_registration_overlay(

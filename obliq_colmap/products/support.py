@@ -12,6 +12,7 @@ import cv2
 import numpy as np
 
 from obliq_colmap.geometry import Camera, Pose
+from obliq_colmap.images import read_image
 from obliq_colmap.lines import detect_segments
 
 if TYPE_CHECKING:
@@ -55,7 +56,7 @@ def edge_support(task: dict) -> tuple[np.ndarray, np.ndarray]:
     corners : (K,) int, the corners the image should see.
     supported : (K, S) int, supported samples per corner and shift.
     """
-    img = cv2.imread(str(task["path"]), cv2.IMREAD_GRAYSCALE)
+    img, _ = read_image(task["path"])
     cam, pose, o = task["camera"], task["pose"], task["options"]
     if img is None:
         return np.zeros(0, int), np.zeros((0, len(task["shifts"])), int)

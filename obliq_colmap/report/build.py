@@ -19,6 +19,7 @@ from obliq_colmap.cadastre import load_cadastre
 from obliq_colmap.colmap_io import Block, read_georef, read_model
 from obliq_colmap.errors import InputError
 from obliq_colmap.files import AtomicFolder
+from obliq_colmap.images import read_image
 from obliq_colmap.report.overlays import project_edges, write_overlay
 from obliq_colmap.report.page import ImageRow, render_page
 from obliq_colmap.report.svg import PlanLayer, histogram_svg, plan_svg
@@ -113,7 +114,6 @@ def build_report(options: ReportOptions) -> Path:
         Missing or invalid model, report.json, map, image folder or priors;
         an existing non-empty output folder.
     """
-    import cv2
 
     model_path = Path(options.input_path)
     run = _read_run(model_path)
@@ -153,7 +153,7 @@ def build_report(options: ReportOptions) -> Path:
         (tmp / "images").mkdir()
         for name in tqdm(names, desc="report overlays", unit="image"):
             entry = run["images"][name]
-            image = cv2.imread(str(image_path / name), cv2.IMREAD_COLOR)
+            image, _ = read_image(image_path / name, color=True)
             if image is None:
                 logger.warning("%s: cannot read; no overlays", image_path / name)
                 rows.append(ImageRow(name, entry, None, None))
