@@ -626,14 +626,15 @@ def test_block_state_after_a_bundle_keeps_its_ground_and_datum():
 @pytest.mark.parametrize(
     "option, message",
     [
-        (["--head_focal_min_images", "-1"], "head_focal_min_images must be >= 0"),
+        (["--head_focal_min_images", "-1"], "--head_focal_min_images must be >= 0"),
+        (["--prior_position_sigma", "-1"], "error: --prior_position_sigma must be > 0"),
         (["--num_workers", "0"], "--num_workers must be >= 1"),
         (
             ["--head_focal_min_images", "3", "--refine_focal_length", "0"],
             "--refine_focal_length 0 keeps",
         ),
-        (["--bundle_rotation_sigma", "0"], "rotation_prior_sigma_deg must be > 0"),
-        (["--bundle_position_sigma", "-1"], "position_prior_sigma_m must be > 0"),
+        (["--bundle_rotation_sigma", "0"], "--bundle_rotation_sigma must be > 0"),
+        (["--bundle_position_sigma", "-1"], "--bundle_position_sigma must be > 0"),
     ],
 )
 def test_register_option_out_of_range_is_one_line(tmp_path, capsys, option, message):

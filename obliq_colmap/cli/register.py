@@ -15,6 +15,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import logging
+import re
 import sys
 from pathlib import Path
 
@@ -43,8 +44,26 @@ def _bool01(text: str) -> bool:
     return text == "1"
 
 
+#: The options dataclasses' fields as the command line names them, so that a
+#: value out of range is reported with the option the user typed.
+OPTION_OF_FIELD = {
+    "prior_position_sigma_m": "--prior_position_sigma",
+    "prior_rotation_sigma_deg": "--prior_rotation_sigma",
+    "prior_focal_sigma": "--prior_focal_sigma",
+    "ground_height": "--ground_height",
+    "head_focal_min_images": "--head_focal_min_images",
+    "rotation_prior_sigma_deg": "--bundle_rotation_sigma",
+    "position_prior_sigma_m": "--bundle_position_sigma",
+    "principal_point_prior_sigma": "--bundle_principal_point_sigma",
+    "loss_scale_px": "--loss_scale",
+}
+
+
 def _option_error(message: str) -> None:
-    """An option out of its range: one line, exit code 2 (as argparse does)."""
+    """An option out of its range: one line naming the command-line option,
+    exit code 2 (as argparse does)."""
+    for field, option in OPTION_OF_FIELD.items():
+        message = re.sub(rf"\b(\w+Options\.)?{field}\b", option, message)
     print(f"obliq-colmap register: error: {message}", file=sys.stderr)
     raise SystemExit(2)
 
