@@ -308,9 +308,32 @@ def test_small_and_empty_polygons_dropped(tmp_path, caplog):
     assert list(cad.building_ids) == ["a"]
     assert cad.report.num_skipped == 3
     text = caplog.text
-    assert "feature 1 (id 'gone')" in text and "empty" in text
-    assert "feature 2" in text and "Point" in text
+    # one line for the features that are not footprints, naming them
+    assert "skipped 2 of 4 features" in text
+    assert "1 with an empty Polygon (features 1)" in text
+    assert "1 with geometry type 'Point' (features 2)" in text
     assert "feature 3 (id 'tiny')" in text
+
+
+def test_a_map_of_lines_is_one_error_not_a_warning_per_feature(tmp_path, caplog):
+    lines = [
+        {
+            "type": "Feature",
+            "properties": {},
+            "geometry": {
+                "type": "LineString",
+                "coordinates": [[500_000 + i, 5_600_000], [500_010 + i, 5_600_000]],
+            },
+        }
+        for i in range(50)
+    ]
+    path = _write(tmp_path / "lines.geojson", _collection(lines))
+    with (
+        caplog.at_level(logging.WARNING, logger="obliq_colmap.cadastre"),
+        pytest.raises(InputError, match="50 with geometry type 'LineString'"),
+    ):
+        load_cadastre(path)
+    assert caplog.text == ""
 
 
 def test_buildings_near_and_in_box(shapes):

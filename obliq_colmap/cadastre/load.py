@@ -70,17 +70,27 @@ def load_cadastre(
 
     # 1. Parse the features (absolute coordinates).
     features: list[Feature] = []
+    skipped: dict[str, list[int]] = {}
     for index, raw in enumerate(doc["features"]):
         feature = parse_feature(path, index, raw)
-        if feature is None:
-            report.num_skipped += 1
+        if isinstance(feature, str):
+            skipped.setdefault(feature, []).append(index)
         else:
             features.append(feature)
+    report.num_skipped += sum(len(v) for v in skipped.values())
     if not features:
         raise InputError(
             path,
             f"no Polygon or MultiPolygon features among {report.num_features} "
-            "features; expected building footprints",
+            f"features ({_skip_summary(skipped)}); expected building footprints",
+        )
+    if skipped:
+        logger.warning(
+            "%s: skipped %d of %d features, not building footprints: %s",
+            path,
+            report.num_skipped,
+            report.num_features,
+            _skip_summary(skipped),
         )
     bounds = check_metric(path, crs, features, options)
 
@@ -136,3 +146,14 @@ def load_cadastre(
         report.seconds,
     )
     return cadastre
+
+
+def _skip_summary(skipped: dict[str, list[int]]) -> str:
+    """'985 with geometry type 'LineString' (features 0, 1, 2, ...)'-like
+    phrase, one part per reason."""
+    parts = []
+    for reason, indices in skipped.items():
+        shown = ", ".join(str(i) for i in indices[:3])
+        more = ", ..." if len(indices) > 3 else ""
+        parts.append(f"{len(indices)} with {reason} (features {shown}{more})")
+    return "; ".join(parts)

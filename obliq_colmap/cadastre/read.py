@@ -138,8 +138,10 @@ def parse_crs(path: Path, member: Any) -> str | None:
     return None
 
 
-def parse_feature(path: Path, index: int, raw: Any) -> Feature | None:
-    """One feature's geometry (absolute) and properties; None to skip it."""
+def parse_feature(path: Path, index: int, raw: Any) -> Feature | str:
+    """One feature's geometry (absolute) and properties, or why it is
+    skipped (a short phrase that the loader counts: one line for the map,
+    not one per feature)."""
     if not isinstance(raw, dict):
         raise InputError(path, f"feature {index} is not a JSON object")
     props = raw.get("properties")
@@ -153,10 +155,8 @@ def parse_feature(path: Path, index: int, raw: Any) -> Feature | None:
     kind = geom.get("type") if isinstance(geom, dict) else None
     if kind not in ("Polygon", "MultiPolygon"):
         what = "no geometry" if geom is None else f"geometry type {kind!r}"
-        logger.warning(
-            "%s: %s has %s, not a Polygon or MultiPolygon; skipped", path, label, what
-        )
-        return None
+        logger.debug("%s: %s has %s; skipped", path, label, what)
+        return what
     try:
         geometry = shapely.force_2d(shape(geom))
     except Exception as err:  # shapely raises many types for bad coordinates
@@ -164,8 +164,8 @@ def parse_feature(path: Path, index: int, raw: Any) -> Feature | None:
             path, f"{label}: malformed {kind} coordinates ({err})"
         ) from None
     if geometry.is_empty:
-        logger.warning("%s: %s has an empty %s; skipped", path, label, kind)
-        return None
+        logger.debug("%s: %s has an empty %s; skipped", path, label, kind)
+        return f"an empty {kind}"
     coords = shapely.get_coordinates(geometry)
     if not np.all(np.isfinite(coords)):
         raise InputError(path, f"{label}: coordinates are not all finite numbers")
