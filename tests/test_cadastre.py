@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import logging
+import math
 from pathlib import Path
 
 import numpy as np
@@ -382,30 +383,67 @@ def test_normalize_crs(name, expected):
 # --------------------------------------------------------------------------
 
 
-def test_lonlat_rejected():
-    path = DATA / "cadastre_lonlat.geojson"
-    with pytest.raises(InputError, match="reproject") as info:
-        load_cadastre(path)
-    assert "longitude/latitude" in str(info.value)
-    assert info.value.path == path
+def test_rfc7946_lonlat_is_reprojected_into_its_utm_zone():
+    """RFC 7946 GeoJSON (no crs member, WGS 84 longitude / latitude): a
+    footprint in Delft goes into UTM 31N; its sides, by hand: 0.0003 deg of
+    longitude at 52.0117 N is 111,320 m x cos(lat) x 0.0003 = 20.56 m,
+    0.0002 deg of latitude 22.26 m (UTM's scale there ~0.9997)."""
+    pytest.importorskip("pyproj")
+    cad = load_cadastre(DATA / "cadastre_lonlat.geojson")
+    assert cad.crs == "EPSG:32631"
+    area = cad.polygons[0].area
+    expected = 111_320 * math.cos(math.radians(52.0117)) * 0.0003 * 22.26
+    assert area == pytest.approx(expected, rel=0.005)
 
 
-def test_lonlat_crs_rejected(tmp_path):
+def test_a_map_is_brought_into_the_crs_asked_for():
+    pytest.importorskip("pyproj")
+    utm = load_cadastre(DATA / "cadastre_lonlat.geojson")
+    again = load_cadastre(
+        DATA / "cadastre_lonlat.geojson", CadastreOptions(crs="EPSG:25831")
+    )
+    assert again.crs == "EPSG:25831"  # ETRS89 / UTM 31N: the same grid to cm
+    np.testing.assert_allclose(
+        again.corner_xy + again.origin[:2], utm.corner_xy + utm.origin[:2], atol=0.02
+    )
+
+
+def test_a_lonlat_crs_member_with_projected_coordinates_is_refused(tmp_path):
     doc = _collection(
         [_square_feature(500_000, 5_600_000)], crs="urn:ogc:def:crs:OGC:1.3:CRS84"
     )
-    with pytest.raises(InputError, match="reproject"):
+    with pytest.raises(InputError, match="longitude/latitude but its coordinates"):
         load_cadastre(_write(tmp_path / "crs84.geojson", doc))
 
 
-def test_small_local_coordinates_allowed_on_request(tmp_path):
+def test_small_local_coordinates_are_kept_local_on_request(tmp_path):
+    pytest.importorskip("pyproj")
     path = _write(
         tmp_path / "local.geojson", _collection([_square_feature(0, 0)], None)
     )
-    with pytest.raises(InputError, match="longitude/latitude"):
-        load_cadastre(path)
+    # RFC 7946: without a crs member these are degrees, and are reprojected
+    assert load_cadastre(path).crs == "EPSG:32631"
     cad = load_cadastre(path, CadastreOptions(allow_degree_range=True))
     assert cad.num_corners == 4 and cad.crs is None
+
+
+def test_a_geopackage_map_reads_as_its_geojson(tmp_path):
+    pyogrio = pytest.importorskip("pyogrio")
+    src = DATA / "cadastre_shapes.geojson"
+    gpkg = tmp_path / "shapes.gpkg"
+    meta, _, wkb, fields = pyogrio.raw.read(src)
+    pyogrio.raw.write(
+        gpkg,
+        wkb,
+        fields,
+        meta["fields"],
+        geometry_type=meta["geometry_type"],
+        crs=meta["crs"],
+        driver="GPKG",
+    )
+    a, b = load_cadastre(src), load_cadastre(gpkg)
+    assert list(a.building_ids) == list(b.building_ids) and a.crs == b.crs
+    np.testing.assert_allclose(a.corner_xy, b.corner_xy)
 
 
 @pytest.mark.parametrize(

@@ -14,6 +14,7 @@ from shapely.geometry import Polygon
 from obliq_colmap.errors import InputError
 
 from .clean import assemble, clean_polygon, valid_parts
+from .formats import read_document, to_projected
 from .model import SHARED_WALL_FRACTION, Cadastre
 from .options import CadastreOptions, CadastreReport
 from .read import (
@@ -22,7 +23,6 @@ from .read import (
     choose_origin,
     parse_crs,
     parse_feature,
-    read_json,
 )
 
 logger = logging.getLogger(__name__)
@@ -64,7 +64,7 @@ def load_cadastre(
     t_start = time.perf_counter()
     options = CadastreOptions() if options is None else options
     path = Path(path)
-    doc = read_json(path)
+    doc = read_document(path)
     crs = parse_crs(path, doc.get("crs"))
     report = CadastreReport(num_features=len(doc["features"]))
 
@@ -92,6 +92,9 @@ def load_cadastre(
             report.num_features,
             _skip_summary(skipped),
         )
+    features, crs = to_projected(
+        path, crs, features, options.crs, options.allow_degree_range
+    )
     bounds = check_metric(path, crs, features, options)
 
     # 2. Local frame.

@@ -46,7 +46,13 @@ class CadastreOptions:
     allow_degree_range : bool
         Accept coordinates that all lie within the longitude / latitude range
         (|x| <= 180, |y| <= 90) when the ``crs`` member does not say they are
-        degrees: a small map in a local metric frame near (0, 0).
+        degrees: a small map in a local metric frame near (0, 0). Otherwise
+        such a map is RFC 7946 GeoJSON (WGS 84 longitude / latitude) and is
+        reprojected.
+    crs : str or None
+        The projected CRS to bring the map into (``register --crs``, e.g.
+        "EPSG:25832": the priors' CRS); None keeps a projected map's own and
+        takes the UTM zone of its centre for one in longitude / latitude.
     """
 
     min_edge_length_m: float = 0.05
@@ -59,6 +65,7 @@ class CadastreOptions:
     shared_edge_tolerance_m: float = 0.05
     origin_rounding_m: float = 100.0
     allow_degree_range: bool = False
+    crs: str | None = None
 
     def __post_init__(self) -> None:
         for name in (

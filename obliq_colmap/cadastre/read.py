@@ -193,10 +193,8 @@ def check_metric(
     if crs is not None and crs.upper() in GEOGRAPHIC_CRS:
         raise InputError(
             path,
-            f"the map's CRS {crs} is longitude/latitude in degrees; "
-            "footprints must be in a projected metric CRS (e.g. UTM): reproject "
-            "the file first (e.g. ogr2ogr -t_srs EPSG:<UTM zone>); reprojection "
-            "is not supported yet",
+            f"the map's CRS {crs} is longitude/latitude in degrees; footprints"
+            " must be in a projected metric CRS (e.g. UTM)",
         )
     xmin, ymin, xmax, ymax = shapely.total_bounds([f.geometry for f in features])
     degree_like = max(abs(xmin), abs(xmax)) <= 180 and max(abs(ymin), abs(ymax)) <= 90
@@ -204,11 +202,9 @@ def check_metric(
         raise InputError(
             path,
             f"coordinates look like longitude/latitude in degrees (x in "
-            f"[{xmin:g}, {xmax:g}], y in [{ymin:g}, {ymax:g}]); footprints must "
-            "be in a projected metric CRS (e.g. UTM): reproject the file first "
-            "(e.g. ogr2ogr -t_srs EPSG:<UTM zone>); reprojection is not supported "
-            "yet. If these really are metres in a local frame, set "
-            "CadastreOptions(allow_degree_range=True)",
+            f"[{xmin:g}, {xmax:g}], y in [{ymin:g}, {ymax:g}]) but were not"
+            " reprojected; footprints must be in a projected metric CRS (e.g."
+            " UTM)",
         )
     return float(xmin), float(ymin), float(xmax), float(ymax)
 

@@ -19,6 +19,7 @@ import re
 import sys
 from pathlib import Path
 
+from obliq_colmap.cadastre import CadastreOptions
 from obliq_colmap.files import check_output_path
 from obliq_colmap.geometry import SUPPORTED_MODELS
 from obliq_colmap.parallel import available_cores
@@ -74,7 +75,15 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     io.add_argument(
         "--cadastre_path",
         required=True,
-        help="GeoJSON footprints (Polygon/MultiPolygon) in a projected metric CRS",
+        help="building footprints (Polygon/MultiPolygon): GeoJSON (projected with a"
+        " 'crs' member, or RFC 7946 longitude/latitude), Shapefile or GeoPackage",
+    )
+    io.add_argument(
+        "--crs",
+        default=None,
+        help="the projected CRS of the priors (e.g. EPSG:25832): the map is"
+        " reprojected into it (default: the map's own projected CRS, or the UTM"
+        " zone of a longitude/latitude map); recorded in georef.json",
     )
     io.add_argument(
         "--input_path",
@@ -297,6 +306,7 @@ def run(args: argparse.Namespace) -> int:
             priors=PriorsOptions(
                 camera_path=args.camera_path, camera_params=args.camera_params
             ),
+            cadastre=CadastreOptions(crs=args.crs),
             num_workers=args.num_workers,
             dask_scheduler=args.dask_scheduler,
             camera_model=args.camera_model,
