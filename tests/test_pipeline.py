@@ -959,3 +959,48 @@ def test_pose_priors_far_worse_than_their_sigma_are_an_input_error(initial_run):
     rejected = verdict(real)
     assert len(rejected) <= real.max_prior_rejected_fraction * len(outcomes)
     pl.check_pose_priors(inputs, outcomes, len(outcomes), rejected, real)  # no error
+
+
+@pytest.mark.slow
+def test_overlays_are_drawn_from_the_written_poses_with_a_legend(tmp_path):
+    """``--overlay_path``: one JPEG per written image whose drawn pixels lie
+    on the map's edges projected through the WRITTEN camera (not stage 2's),
+    a legend in its top-left corner; stage 2's overlays in ``stage2/``."""
+    import cv2
+
+    from obliq_colmap.cadastre import load_cadastre
+    from obliq_colmap.colmap_io import read_georef
+
+    out, folder = tmp_path / "model", tmp_path / "overlays"
+    options = PipelineOptions(num_workers=1, progress=False, overlay_path=folder)
+    run = run_register(
+        SAMPLE / "images", SAMPLE / "cadastre.geojson", SAMPLE / "priors", options
+    )
+    write_run(out, run)
+    names = sorted(im.name for im in run.block.images.values())
+    assert sorted(p.name for p in folder.glob("*.jpg")) == names
+    assert len(list((folder / "stage2").glob("*.png"))) == len(names)
+    model, georef = read_model(out), read_georef(out)
+    cad = load_cadastre(SAMPLE / "cadastre.geojson", None, georef.origin)
+    im = next(i for i in model.images.values() if i.name == "N_00.jpg")
+    cam = model.cameras[im.camera_id]
+    drawn = cv2.imread(str(folder / "N_00.jpg")).astype(int)
+    raw = cv2.imread(str(SAMPLE / "images" / "N_00.jpg")).astype(int)
+    changed = np.abs(drawn - raw).max(axis=2) > 60
+    assert changed[:20, :200].any()  # the legend
+    changed[:40, :] = False
+    ys, xs = np.nonzero(changed)
+    # the edges through the written pose, at the heights the model's own
+    # corner points give (its ground), sampled densely
+    ground = np.median([p.xyz[2] for p in run.points3D])
+    edges = cad.edge_xy
+    t = np.linspace(0, 1, 40)[None, :, None]
+    pts = (edges[:, :1] + t * (edges[:, 1:] - edges[:, :1])).reshape(-1, 2)
+    X = np.column_stack([pts, np.full(len(pts), ground)])
+    Xc = im.cam_from_world.transform(X)
+    px = cam.img_from_cam(Xc[Xc[:, 2] > 0])
+    px = px[np.all(np.isfinite(px), axis=1)]
+    from scipy.spatial import cKDTree
+
+    d, _ = cKDTree(px).query(np.column_stack([xs, ys]))
+    assert np.median(d) < 3.0, np.median(d)

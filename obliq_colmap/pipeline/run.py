@@ -26,6 +26,7 @@ from obliq_colmap.pipeline.output import (
     run_report,
     tie_point_records,
 )
+from obliq_colmap.pipeline.overlays import STAGE2_FOLDER, final_overlays
 from obliq_colmap.pipeline.workers import draw_overlay, worker_pool
 from obliq_colmap.registration import block_ground_height
 from obliq_colmap.state import BlockState
@@ -85,7 +86,7 @@ def run_register(
             if o.status == "unreadable" or not o.registered:
                 logger.warning("%s: left out: %s", o.name, o.message)
         if options.overlay_path is not None:
-            folder = Path(options.overlay_path)
+            folder = Path(options.overlay_path) / STAGE2_FOLDER
             folder.mkdir(parents=True, exist_ok=True)
             jobs = [
                 (t, o.registration, folder)
@@ -115,6 +116,9 @@ def run_register(
         },
     )
     block = result_block(inputs, state)
+    if options.overlay_path is not None:
+        stage = "bundle's" if bundle_result is not None else "registered (stage 2)"
+        final_overlays(inputs, block, state, by_id, Path(options.overlay_path), stage)
     points = constrained_points(inputs, block, state, by_id, bundle_result, stage3)
     ties: list[Point3D] = []
     if options.adjustment.tie_points and len(block.images) >= 2:
