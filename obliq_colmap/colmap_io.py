@@ -92,10 +92,12 @@ class Point3D:
     ----------
     xyz : (3,) array, model (local) frame, metres.
     observations : list of (image_id, (2,) pixel array).
+    color : (3,) uint8 RGB or None (written black).
     """
 
     xyz: np.ndarray
     observations: list[tuple[int, np.ndarray]]
+    color: np.ndarray | None = None
 
 
 @dataclass
@@ -260,7 +262,13 @@ def to_reconstruction(block: Block, points3D: list[Point3D] | None = None):
         track = pycolmap.Track()
         for image_id, idx in elements:
             track.add_element(image_id, idx)
-        rec.add_point3D(np.asarray(point.xyz, float), track)
+        color = np.zeros(3, np.uint8) if point.color is None else point.color
+        rec.add_point3D(
+            np.asarray(point.xyz, float), track, np.asarray(color, np.uint8)
+        )
+    # each point's error: the mean distance of its observations to its
+    # projections (COLMAP's model_analyzer reports their mean)
+    rec.update_point_3d_errors()
     return rec
 
 

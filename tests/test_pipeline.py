@@ -1004,3 +1004,17 @@ def test_overlays_are_drawn_from_the_written_poses_with_a_legend(tmp_path):
 
     d, _ = cKDTree(px).query(np.column_stack([xs, ys]))
     assert np.median(d) < 3.0, np.median(d)
+
+
+def test_one_point_per_physical_corner_with_its_error_written(bundle_run):
+    """Vertices shared by two footprints are one corner: no two points of the
+    written model lie within 5 cm of each other, and every point carries
+    its reprojection error (COLMAP's model_analyzer reports their mean)."""
+    from scipy.spatial import cKDTree
+
+    out, _ = bundle_run
+    rec = pycolmap.Reconstruction(str(out))
+    xyz = np.array([p.xyz for p in rec.points3D.values()])
+    assert len(cKDTree(xyz).query_pairs(0.05)) == 0
+    errors = np.array([p.error for p in rec.points3D.values()])
+    assert np.all(errors >= 0) and np.all(np.isfinite(errors))

@@ -145,7 +145,7 @@ def constrained_points(
         keep, px = _observations(block, i, X[vis])
         for c, p in zip(vis[keep], px, strict=True):
             obs[c].append((i, p))
-    points = [Point3D(X[c], o) for c, o in enumerate(obs) if len(o) >= 2]
+    points = _one_point_per_place(X, obs, cad.corner_xy)
     if bundle is not None and stage3 is not None:
         t = stage3.tracks
         F = np.column_stack([t.anchor_xy, bundle.facade_heights])
@@ -158,6 +158,38 @@ def constrained_points(
             for j, p in zip(tr[keep], px, strict=True):
                 fobs[j].append((i, p))
         points += [Point3D(F[j], o) for j, o in enumerate(fobs) if len(o) >= 2]
+    return points
+
+
+#: Map corners closer than this (m) are one physical corner: a vertex shared
+#: by two footprints (a party wall's end), digitised once per footprint.
+SAME_CORNER_M = 0.05
+
+
+def _one_point_per_place(
+    X: np.ndarray, obs: list[list[tuple[int, np.ndarray]]], corner_xy: np.ndarray
+) -> list[Point3D]:
+    """One point per physical corner: corners (C,) within ``SAME_CORNER_M``
+    of each other merged (mean position, one observation per image), kept
+    where seen in at least two images. X (C, 3); corner_xy (C, 2)."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+    from scipy.spatial import cKDTree
+
+    pairs = cKDTree(corner_xy).query_pairs(SAME_CORNER_M, output_type="ndarray")
+    C = len(corner_xy)
+    graph = coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), (C, C))
+    _, label = connected_components(graph, directed=False)
+    points = []
+    for members in np.split(
+        np.argsort(label, kind="stable"), np.cumsum(np.bincount(label))[:-1]
+    ):
+        seen: dict[int, np.ndarray] = {}
+        for c in members:
+            for i, p in obs[c]:
+                seen.setdefault(i, p)
+        if len(seen) >= 2:
+            points.append(Point3D(X[members].mean(axis=0), list(seen.items())))
     return points
 
 
