@@ -31,7 +31,7 @@ class _WorkerSetup(WorkerPlugin):
         self.initargs = initargs
 
     def setup(self, worker: Any) -> None:
-        from obliq_colmap.parallel import limit_threads
+        from obliq_colmap.threads import limit_threads
 
         limit_threads()
         if self.initializer is not None:

@@ -20,6 +20,7 @@ from multiprocessing import get_context
 from typing import Any
 
 from obliq_colmap.errors import InputError
+from obliq_colmap.threads import limit_threads
 
 
 def available_cores() -> int:
@@ -37,15 +38,6 @@ def image_seed(name: str, seed: int = 0) -> int:
     return int.from_bytes(digest, "little") >> 1  # 63 bits: a valid numpy seed
 
 
-def limit_threads() -> None:
-    """One BLAS and one OpenCV thread in this process, for its life."""
-    import cv2
-    from threadpoolctl import threadpool_limits
-
-    cv2.setNumThreads(1)  # one process per core; no oversubscription
-    _LIMITS.append(threadpool_limits(1))
-
-
 def _start_worker(initializer: Callable | None, initargs: tuple) -> None:
     limit_threads()
     if initializer is not None:
@@ -53,7 +45,6 @@ def _start_worker(initializer: Callable | None, initargs: tuple) -> None:
 
 
 #: The worker's thread limits, kept alive for the process's life.
-_LIMITS: list[Any] = []
 
 
 class WorkerPool:

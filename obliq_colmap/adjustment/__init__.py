@@ -64,7 +64,8 @@ from obliq_colmap.adjustment.rounds import (
     with_variance_components,
     without_outliers,
 )
-from obliq_colmap.adjustment.ties import TiePointOptions, TiePoints, tie_points
+from obliq_colmap.adjustment.tie_options import TiePointOptions
+from obliq_colmap.adjustment.ties import TiePoints, tie_points
 from obliq_colmap.adjustment.tracks import FacadeTracks, PairMatch, triangulate_tracks
 from obliq_colmap.adjustment.verdicts import (
     Verdicts,

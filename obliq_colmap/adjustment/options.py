@@ -6,7 +6,7 @@ from dataclasses import dataclass, field
 
 from obliq_colmap.adjustment.facades import FacadeOptions
 from obliq_colmap.adjustment.matching import MatchingOptions
-from obliq_colmap.adjustment.ties import TiePointOptions
+from obliq_colmap.adjustment.tie_options import TiePointOptions
 from obliq_colmap.bundle import BundleOptions
 
 __all__ = ["AdjustmentOptions"]

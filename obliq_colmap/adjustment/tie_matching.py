@@ -12,7 +12,7 @@ import pycolmap
 from tqdm import tqdm
 
 if TYPE_CHECKING:
-    from obliq_colmap.adjustment.ties import TiePointOptions
+    from obliq_colmap.adjustment.tie_options import TiePointOptions
 
 __all__ = ["extract_features", "match_pairs"]
 

@@ -30,7 +30,6 @@ support under every shift alike, so the tests are relative.
 from __future__ import annotations
 
 import logging
-from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -39,47 +38,12 @@ import shapely
 from obliq_colmap.colmap_io import read_model
 from obliq_colmap.errors import InputError
 from obliq_colmap.parallel import WorkerPool, available_cores
+from obliq_colmap.products.discrepancy_options import DiscrepancyOptions
 from obliq_colmap.products.support import edge_support
 
 __all__ = ["DiscrepancyOptions", "classify", "find_discrepancies", "shift_grid"]
 
 logger = logging.getLogger(__name__)
-
-
-@dataclass
-class DiscrepancyOptions:
-    """Options of :func:`find_discrepancies`."""
-
-    #: a segment points at the vertical VP when both its ends lie within this
-    #: of the line from its midpoint to the VP (px).
-    vertical_tol_px: float = 1.5
-    #: shortest vertical segment drawn (px).
-    min_length_px: float = 15.0
-    #: a sample is supported by an edge within this (px).
-    support_px: float = 1.5
-    #: heights sampled along each corner's vertical.
-    num_samples: int = 6
-    #: height of a building without an eave height (m).
-    default_height_m: float = 6.0
-    #: shifts searched: +-max_shift_m in steps of shift_step_m.
-    max_shift_m: float = 2.0
-    shift_step_m: float = 0.25
-    #: a shift shorter than this is no discrepancy (m).
-    min_shift_m: float = 0.5
-    #: relative gain of the best shift over none to call a building shifted
-    #: (5 % of the buildings in place reach 0.4 by chance, 1 % 0.6).
-    min_gain: float = 0.6
-    #: and its support without the shift below this fraction of the median,
-    #: with it at least this fraction (seen clearly at its shifted place).
-    shifted_ratio: float = 0.5
-    #: best support below this fraction of the block's median: absent.
-    absent_ratio: float = 0.3
-    #: corner views (corner x image) a building needs to be judged.
-    min_views: int = 8
-
-    def __post_init__(self) -> None:
-        if self.num_samples < 1 or self.shift_step_m <= 0 or self.max_shift_m < 0:
-            raise ValueError("num_samples >= 1, shift_step_m > 0, max_shift_m >= 0")
 
 
 def shift_grid(options: DiscrepancyOptions) -> np.ndarray:

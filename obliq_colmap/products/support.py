@@ -16,7 +16,7 @@ from obliq_colmap.images import read_image
 from obliq_colmap.lines import detect_segments
 
 if TYPE_CHECKING:
-    from obliq_colmap.products.discrepancies import DiscrepancyOptions
+    from obliq_colmap.products.discrepancy_options import DiscrepancyOptions
 
 __all__ = ["edge_support", "vertical_edge_distance"]
 

@@ -1,0 +1,42 @@
+"""Options of the tie points (:func:`obliq_colmap.adjustment.tie_points`)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+__all__ = ["TiePointOptions"]
+
+
+@dataclass(kw_only=True)
+class TiePointOptions:
+    """Options of the tie points (COLMAP-like names)."""
+
+    #: Images are down-sampled to this size for extraction (the bundle needs a
+    #: few hundred good points per image, not the full resolution's thousands).
+    max_image_size: int = 1000
+    #: SIFT's cap before orientations (each keypoint may get two).
+    max_num_features: int = 1200
+    #: A pair is matched when the overlap of its ground footprints is at
+    #: least this share of the smaller footprint.
+    min_overlap: float = 0.2
+    #: Each image is matched with at most this many partners (largest overlap).
+    max_pairs_per_image: int = 6
+    #: Pairs whose optical axes differ more are not matched: SIFT does not
+    #: survive the 90 deg between two heads of an oblique system (measured on
+    #: the sample: 0 verified matches between E and N views).
+    max_view_angle_deg: float = 40.0
+    #: Match within the epipolar band of the registered poses (pixels of the
+    #: down-sampled image); SIFT's ratio test (COLMAP's max_ratio).
+    guided_matching: bool = True
+    max_epipolar_error_px: float = 2.0
+    max_ratio: float = 0.9
+    #: Triangulated points whose reprojection error exceeds this are dropped.
+    max_reproj_error_px: float = 3.0
+    min_track_length: int = 2
+    num_threads: int = 2
+
+    def __post_init__(self) -> None:
+        if self.max_image_size < 64 or self.max_num_features < 8:
+            raise ValueError("max_image_size must be >= 64 and max_num_features >= 8")
+        if not 0.0 < self.min_overlap <= 1.0:
+            raise ValueError("min_overlap must be in (0, 1]")
