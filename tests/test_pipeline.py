@@ -1006,10 +1006,11 @@ def test_overlays_are_drawn_from_the_written_poses_with_a_legend(tmp_path):
     assert np.median(d) < 3.0, np.median(d)
 
 
-def test_one_point_per_physical_corner_with_its_error_written(bundle_run):
+def test_one_point_per_physical_corner_with_its_error_and_colour(bundle_run):
     """Vertices shared by two footprints are one corner: no two points of the
-    written model lie within 5 cm of each other, and every point carries
-    its reprojection error (COLMAP's model_analyzer reports their mean)."""
+    written model lie within 5 cm of each other; every point carries its
+    reprojection error (COLMAP's model_analyzer reports their mean) and its
+    colour from the images."""
     from scipy.spatial import cKDTree
 
     out, _ = bundle_run
@@ -1018,3 +1019,20 @@ def test_one_point_per_physical_corner_with_its_error_written(bundle_run):
     assert len(cKDTree(xyz).query_pairs(0.05)) == 0
     errors = np.array([p.error for p in rec.points3D.values()])
     assert np.all(errors >= 0) and np.all(np.isfinite(errors))
+    # coloured from the images: each point's colour follows the pixel at
+    # its first observation (the median over its track)
+    import cv2
+
+    stored, first = [], []
+    images = {}
+    for p in list(rec.points3D.values())[:300]:
+        el = p.track.elements[0]
+        im = rec.images[el.image_id]
+        if im.name not in images:
+            images[im.name] = cv2.imread(str(SAMPLE / "images" / im.name))
+        x, y = np.floor(im.points2D[el.point2D_idx].xy).astype(int)
+        first.append(images[im.name][y, x, ::-1].astype(float))
+        stored.append(p.color.astype(float))
+    stored, first = np.array(stored), np.array(first)
+    assert np.all(stored.sum(axis=1) > 0)
+    assert np.corrcoef(stored.ravel(), first.ravel())[0, 1] > 0.5

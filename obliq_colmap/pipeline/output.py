@@ -28,6 +28,7 @@ from obliq_colmap.state import BlockState, ImageOutcome, Inputs, json_float
 __all__ = [
     "REPORT_FILE",
     "RunResult",
+    "color_points",
     "constrained_points",
     "result_block",
     "run_report",
@@ -159,6 +160,31 @@ def constrained_points(
                 fobs[j].append((i, p))
         points += [Point3D(F[j], o) for j, o in enumerate(fobs) if len(o) >= 2]
     return points
+
+
+def color_points(image_path, block: Block, points: list[Point3D]) -> None:
+    """Give each point (in place) the median RGB colour of the pixels at its
+    observations; one image in memory at a time."""
+    per_image: dict[int, list[tuple[int, np.ndarray]]] = {}
+    for k, p in enumerate(points):
+        for i, xy in p.observations:
+            per_image.setdefault(i, []).append((k, xy))
+    samples: list[list[np.ndarray]] = [[] for _ in points]
+    for i, obs in per_image.items():
+        image, _ = read_image(image_path / block.images[i].name, color=True)
+        if image is None:
+            continue
+        H, W = image.shape[:2]
+        xy = np.array([o[1] for o in obs])
+        # COLMAP pixel (x, y) covers [x - 0.5, x + 0.5): the pixel is floor(x)
+        col = np.clip(np.floor(xy[:, 0]).astype(int), 0, W - 1)
+        row = np.clip(np.floor(xy[:, 1]).astype(int), 0, H - 1)
+        rgb = image[row, col, ::-1]
+        for (k, _), c in zip(obs, rgb, strict=True):
+            samples[k].append(c)
+    for p, s in zip(points, samples, strict=True):
+        if s:
+            p.color = np.median(np.array(s), axis=0).astype(np.uint8)
 
 
 #: Map corners closer than this (m) are one physical corner: a vertex shared

@@ -21,6 +21,7 @@ from obliq_colmap.pipeline.inputs import image_tasks, load_inputs
 from obliq_colmap.pipeline.options import PipelineOptions
 from obliq_colmap.pipeline.output import (
     RunResult,
+    color_points,
     constrained_points,
     result_block,
     run_report,
@@ -128,6 +129,7 @@ def run_register(
         )
         points += ties
         timings["tie_points"] = time.perf_counter() - t_ties
+    color_points(inputs.image_path, block, points)
     block = block.shifted(np.array([0.0, 0.0, z0]))
     for p in points:
         p.xyz = p.xyz - np.array([0.0, 0.0, z0])
