@@ -37,7 +37,22 @@ from obliq_colmap.geometry import (
     rotation_from_axis_angle,
 )
 
-__all__ = ["SyntheticBundle", "concatenate", "make_synthetic_problem"]
+__all__ = ["PAPER_FLIGHT", "SyntheticBundle", "concatenate", "make_synthetic_problem"]
+
+#: The `paper` preset's camera and flight at full size (4008 x 2672 px,
+#: 6000 px focal, 500 m, 40 m building spacing, 300 m between stations),
+#: the setting of the bundle benchmarks; the block's size (``buildings``,
+#: ``stations``) is each caller's.
+PAPER_FLIGHT = dict(
+    spacing_m=40.0,
+    station_spacing_m=300.0,
+    altitude_m=500.0,
+    width=4008,
+    height=2672,
+    focal_px=6000.0,
+    noise_px=0.5,
+    corner_height_start_sigma_m=2.0,
+)
 
 
 @dataclass

@@ -51,25 +51,14 @@ from threadpoolctl import threadpool_limits
 from obliq_colmap.bundle import BundleOptions, solve_bundle
 from obliq_colmap.bundle import residuals as res
 from obliq_colmap.geometry import Pose, project
-from obliq_colmap.synthetic.bundle_problem import make_synthetic_problem
+from obliq_colmap.synthetic.bundle_problem import PAPER_FLIGHT, make_synthetic_problem
 
 # The helpers shared by the scripts live in scripts/bench/, which is not a
 # package: put it first on the path (scripts/README.md).
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "bench"))
 from reference import load_reference  # noqa: E402
 
-PAPER = dict(
-    buildings=(26, 26),
-    spacing_m=40.0,
-    stations=(3, 3),
-    station_spacing_m=300.0,
-    altitude_m=500.0,
-    width=4008,
-    height=2672,
-    focal_px=6000.0,
-    noise_px=0.5,
-    corner_height_start_sigma_m=2.0,
-)
+PAPER = dict(buildings=(26, 26), stations=(3, 3), **PAPER_FLIGHT)
 
 
 def pose_errors(poses, cameras, syn):

@@ -36,22 +36,14 @@ import tempfile
 import time
 from pathlib import Path
 
+from obliq_colmap.synthetic.bundle_problem import PAPER_FLIGHT, make_synthetic_problem
+
 ROOT = Path(__file__).resolve().parents[2]
 SAMPLE = ROOT / "data_samples" / "oblique_small"
 
-#: The paper's camera and flight (scripts/bench/bundle.py's PAPER) but for
-#: the block's size, which follows the number of stations.
-PAPER = dict(
-    spacing_m=40.0,
-    station_spacing_m=300.0,
-    altitude_m=500.0,
-    width=4008,
-    height=2672,
-    focal_px=6000.0,
-    noise_px=0.5,
-    corner_height_start_sigma_m=2.0,
-    view_cone_margin_deg=10.0,
-)
+#: The paper's camera and flight; the block's size follows the number of
+#: stations.
+PAPER = dict(**PAPER_FLIGHT, view_cone_margin_deg=10.0)
 
 #: Stations (x, y) per block size: 4 images (heads) per station.
 STATIONS = {36: (3, 3), 100: (5, 5), 200: (10, 5), 400: (10, 10), 1000: (25, 10)}
@@ -66,7 +58,6 @@ def bundle_one(num_images: int) -> dict:
     from threadpoolctl import threadpool_limits
 
     from obliq_colmap.bundle import BundleOptions, solve_bundle
-    from obliq_colmap.synthetic.bundle_problem import make_synthetic_problem
 
     nx, ny = STATIONS[num_images]
     # The buildings cover the stations' grid and 220 m beyond, as the

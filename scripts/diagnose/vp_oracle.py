@@ -65,12 +65,18 @@ def direction_covariance(vp: np.ndarray, K: np.ndarray, sigma_deg: float) -> np.
     return J @ cov_d @ J.T
 
 
-def install_oracle(vps: dict[str, np.ndarray], names: dict[int, str], sigma_deg: float):
+def install_oracle(
+    vps: dict[str, np.ndarray], downs: dict[str, np.ndarray], sigma_deg: float
+):
+    """Wrap the stage-1 call; the image is the one whose priors' "down"
+    direction is the INS prior's (the call carries no name)."""
     real = workers.detect_vertical_vp
+    names = list(downs)
+    D = np.array([downs[n] for n in names])  # (I, 3)
 
     def oracle(img, options, camera, prior, rng=None):
         res = real(img, options, camera, prior, rng)
-        vp = vps[names[int(rng)]]
+        vp = vps[names[int(np.argmax(D @ prior.down_cam))]]
         H, W = img.shape[:2]
         T, _ = normaliser(W, H)
         grads = gradients(img, options.second_pass.sigma_px)
@@ -97,8 +103,12 @@ def main() -> None:
     args = ap.parse_args()
     scene = args.scene
     priors = pycolmap.Reconstruction(str(scene / "priors"))
-    names = {i: im.name for i, im in priors.images.items()}
-    install_oracle(true_vps(scene / "gt"), names, args.sigma_deg)
+    down = np.array([0.0, 0.0, -1.0])
+    downs = {
+        im.name: im.cam_from_world().rotation.matrix() @ down
+        for im in priors.images.values()
+    }
+    install_oracle(true_vps(scene / "gt"), downs, args.sigma_deg)
     out = args.output_path
     shutil.rmtree(out, ignore_errors=True)
     argv = [
