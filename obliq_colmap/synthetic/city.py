@@ -13,8 +13,11 @@ L-shaped corner buildings, some skewed party walls), a courtyard building
 (polygon with a hole, optionally chamfered corners), detached houses (slightly
 rotated rectangles, gabled or hipped roofs, some with a detached annex: a
 two-part building), large mixed buildings (L, U, slab, tower, trapezoid, twin
-slabs) or a park. Streets carry lane marks, zebra crossings, parked cars and
-trees; yards carry sheds and trees; flat roofs carry small boxes. Only the
+slabs), industrial halls, towers on a plaza (these two in
+:mod:`~obliq_colmap.synthetic.districts`) or a park, drawn with the
+probabilities of the scene's district (``SceneOptions.district``). Streets
+carry lane marks, zebra crossings, parked cars and trees; yards carry sheds
+and trees; flat roofs carry small boxes. Only the
 buildings are in the cadastre; the rest is unmapped clutter.
 
 Buildings stand on the terrain: ``base_z`` is the minimum terrain height
@@ -37,7 +40,8 @@ from obliq_colmap.synthetic.cameras import (
     city_extent,
     stream,
 )
-from obliq_colmap.synthetic.options import SceneOptions
+from obliq_colmap.synthetic.districts import DistrictBlocks
+from obliq_colmap.synthetic.options import DISTRICT_BLOCKS, SceneOptions
 
 logger = logging.getLogger(__name__)
 
@@ -728,7 +732,7 @@ def _street_lines(
     return np.array(xs), np.array(ws)
 
 
-class _CityBuilder:
+class _CityBuilder(DistrictBlocks):
     """Fills blocks with buildings and clutter (grid-frame generation)."""
 
     def __init__(self, options: SceneOptions, rng: np.random.Generator, layout: Layout):
@@ -823,10 +827,8 @@ class _CityBuilder:
     # ---- block types -----------------------------------------------------
     def block(self, x0, y0, x1, y1, kx, ky) -> int:
         r = self.rng
-        kind = r.choice(
-            ["terrace", "courtyard", "houses", "mixed", "park"],
-            p=[0.34, 0.13, 0.25, 0.21, 0.07],
-        )
+        kinds = DISTRICT_BLOCKS[self.o.district]
+        kind = r.choice(list(kinds), p=list(kinds.values()))
         getattr(self, f"_{kind}")(x0, y0, x1, y1)
         return 1 if kind in ("houses", "park") or r.uniform() < 0.3 else 0
 
@@ -1210,7 +1212,7 @@ class _CityBuilder:
             lines, widths = (L.xs, L.wx) if axis == 0 else (L.ys, L.wy)
             cross, cw = (L.ys, L.wy) if axis == 0 else (L.xs, L.wx)
             for c0, w in zip(lines, widths, strict=True):
-                trees = r.uniform() < 0.5
+                trees = r.uniform() < self.o.street_tree_fraction
                 for k in range(len(cross) - 1):
                     s0 = cross[k] + cw[k] / 2 + 4.0
                     s1 = cross[k + 1] - cw[k + 1] / 2 - 4.0

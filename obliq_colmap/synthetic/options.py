@@ -14,6 +14,18 @@ from dataclasses import dataclass
 #: Image width (px) at which ``gsd_m`` and ``principal_point_offset_px`` hold.
 REFERENCE_WIDTH_PX = 2004
 
+#: Districts: the probability of each block type (the builder's ``_<kind>``
+#: methods). "mixed" is the inner city every preset had before districts.
+DISTRICT_BLOCKS: dict[str, dict[str, float]] = {
+    "mixed": {
+        "terrace": 0.34, "courtyard": 0.13, "houses": 0.25, "mixed": 0.21, "park": 0.07
+    },
+    "dense": {"terrace": 0.55, "courtyard": 0.3, "mixed": 0.15},
+    "houses": {"houses": 0.92, "park": 0.08},
+    "industrial": {"halls": 0.8, "mixed": 0.12, "park": 0.08},
+    "highrise": {"towers": 0.55, "courtyard": 0.2, "mixed": 0.1, "park": 0.15},
+}  # fmt: skip
+
 #: Allowed values of ``SceneOptions.distortion`` and their COLMAP models.
 DISTORTION_MODELS = {"none": "PINHOLE", "radial": "RADIAL", "opencv": "OPENCV"}
 
@@ -98,6 +110,10 @@ class SceneOptions:
     street_width_max_m: float = 22.0
     #: extra city beyond the union of the camera footprints, m.
     margin_m: float = 60.0
+    #: block types drawn (a key of :data:`DISTRICT_BLOCKS`).
+    district: str = "mixed"
+    #: fraction of streets lined with trees (crowns over the facades' feet).
+    street_tree_fraction: float = 0.5
 
     # --- cadastre ------------------------------------------------------------
     #: fraction of the scene's buildings left out of the map.
@@ -140,6 +156,12 @@ class SceneOptions:
                 f"distortion={self.distortion!r}; allowed: "
                 f"{', '.join(DISTORTION_MODELS)}"
             )
+        if self.district not in DISTRICT_BLOCKS:
+            raise ValueError(
+                f"district={self.district!r}; allowed: {', '.join(DISTRICT_BLOCKS)}"
+            )
+        if not 0.0 <= self.street_tree_fraction <= 1.0:
+            raise ValueError("street_tree_fraction must be in [0, 1]")
         if self.grid_rows < 1 or self.grid_cols < 1:
             raise ValueError("grid_rows and grid_cols must be >= 1")
         if self.image_width_px < 64:
@@ -180,7 +202,10 @@ class SceneOptions:
 
 
 #: Named scenes. ``small`` is for tests (8 images), ``paper`` mirrors the
-#: 36-image block of Habbecke & Kobbelt, ``hard`` stresses the priors.
+#: 36-image block of Habbecke & Kobbelt, ``hard`` stresses the priors; the
+#: district classes (issue 25's matrix) fly the paper's block over one
+#: district each, ``houses`` with the harder flight of detached-house scenes
+#: (slope, priors and lens as ``hard``).
 PRESETS: dict[str, SceneOptions] = {
     "paper": SceneOptions(),
     "small": SceneOptions(grid_rows=1, grid_cols=2),
@@ -193,6 +218,23 @@ PRESETS["hard"] = dataclasses.replace(
     prior_focal_percent=8.0,
     distortion="radial",
 )
+
+
+PRESETS["dense"] = dataclasses.replace(PRESETS["paper"], district="dense")
+PRESETS["houses"] = dataclasses.replace(
+    PRESETS["hard"],
+    district="houses",
+    block_size_min_m=45.0,
+    block_size_max_m=75.0,
+    street_width_min_m=9.0,
+    street_width_max_m=14.0,
+    street_tree_fraction=0.8,
+)
+PRESETS["industrial"] = dataclasses.replace(PRESETS["paper"], district="industrial")
+PRESETS["highrise"] = dataclasses.replace(PRESETS["paper"], district="highrise")
+
+#: The scene classes of the benchmark matrix (scripts/bench/classes.py).
+SCENE_CLASSES = ("paper", "dense", "houses", "industrial", "highrise")
 
 
 def preset(name: str, **overrides) -> SceneOptions:
