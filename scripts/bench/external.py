@@ -373,19 +373,21 @@ def print_scene(scene: str, results: dict) -> None:
 
 
 def camera_model_of(scene: Path) -> str | None:
-    """SIMPLE_RADIAL where the scene's lens has radial distortion."""
+    """SIMPLE_RADIAL where the scene's lens has distortion (external or synthetic)."""
     try:
-        params = json.loads((scene / "scene.json").read_text()).get("params", {})
+        info = json.loads((scene / "scene.json").read_text())
     except (OSError, ValueError):
         return None
-    return "SIMPLE_RADIAL" if float(params.get("k1", 0.0)) != 0.0 else None
+    k1 = float(info.get("params", {}).get("k1", 0.0))  # the external format
+    distortion = info.get("options", {}).get("distortion", "none")  # ours
+    return "SIMPLE_RADIAL" if k1 != 0.0 or distortion != "none" else None
 
 
-def _json_ready(obj):
+def json_ready(obj):
     if isinstance(obj, dict):
-        return {k: _json_ready(v) for k, v in obj.items()}
+        return {k: json_ready(v) for k, v in obj.items()}
     if isinstance(obj, (list, tuple)):
-        return [_json_ready(v) for v in obj]
+        return [json_ready(v) for v in obj]
     if isinstance(obj, (float, np.floating)):
         return (
             float(obj) if math.isfinite(obj) else (None if math.isnan(obj) else "inf")
@@ -470,9 +472,7 @@ def main(argv: list[str] | None = None) -> int:
         if args.work_path is None:
             shutil.rmtree(work, ignore_errors=True)
     if args.output_path is not None:
-        args.output_path.write_text(
-            json.dumps(_json_ready(everything), indent=1) + "\n"
-        )
+        args.output_path.write_text(json.dumps(json_ready(everything), indent=1) + "\n")
     return 0
 
 
