@@ -548,7 +548,7 @@ def strip_pencil_case(rng, sigma=0.25):
     """Verticals, a street orthogonal to them, and a bigger false pencil.
 
     The false pencil (110 segments in a strip, converging far below the
-    image, 37 deg from the vertical) outnumbers the 40 verticals, as a street
+    image, 31 deg from the vertical) outnumbers the 40 verticals, as a street
     with its cars and a facade's window rows did in a rendered image; the
     street's 60 lines meet at a horizontal direction orthogonal to the true
     vertical only.
@@ -557,7 +557,7 @@ def strip_pencil_case(rng, sigma=0.25):
     dv = np.linalg.solve(CAMERA.K, vp)
     dh = np.cross(dv, [1.0, 0.0, 0.0])
     street = CAMERA.K @ dh
-    false = np.array([320.0 + 0.05 * 20000.0, 20000.0, 1.0])
+    false = np.array([320.0 + 0.05 * 5000.0, 5000.0, 1.0])
     segs = noisy_segments(vp, rng, n_in=40, n_out=0, sigma=sigma)
     ends = [segs.endpoints]
     for target, n, (x0, x1) in ((street, 60, (80, 560)), (false, 110, (380, 560))):
@@ -860,3 +860,32 @@ def test_local_contrast_finds_the_edges_of_facades_in_shadow(seed):
     assert res.status == "ok" and dark_eq > 0.5 * lit_eq
     assert lit_eq == pytest.approx(lit, rel=0.05)  # the lit half as before
     assert direction_error_deg(res.vp, vp) < 0.05
+
+
+def test_aerial_prior_wants_a_finite_vp_below_the_image():
+    """A street pencil meets at infinity; an oblique camera's vertical VP does not.
+
+    The real photo ``rennes_oblique_aerial/00_5021.jpg`` gave an "ok" VP at
+    infinity on the streets and a railway, ~25 deg off the image's vertical:
+    the aerial prior must refuse it, with or without intrinsics, and keep the
+    VPs of tilts the prior allows.
+    """
+    from obliq_colmap.vanishing.ransac import PriorTest
+
+    f, w, h = 1000.0, 1500, 1000
+    K = np.array([[f, 0, w / 2], [0, f, h / 2], [0, 0, 1.0]])
+    street = np.array([[np.sin(np.radians(25)), np.cos(np.radians(25)), 0.0]])
+
+    def vp_at_tilt(deg):
+        return np.array([[w / 2, h / 2 + f * np.tan(np.radians(deg)), 1.0]])
+
+    with_k = PriorTest(VPPrior.aerial(), w, h, np.eye(3), K)
+    assert with_k(vp_at_tilt(60.0))[0] and with_k(vp_at_tilt(80.0))[0]
+    assert not with_k(vp_at_tilt(88.0))[0]  # steeper than the 85 deg allowed
+    assert not with_k(street)[0]
+    without_k = PriorTest(VPPrior.aerial(), w, h, np.eye(3), None)
+    assert without_k(vp_at_tilt(60.0))[0]
+    assert not without_k(street)[0]
+    far = 3.0 * w * np.tan(np.radians(85.0))  # the longest lens, steepest tilt
+    assert without_k(np.array([[w / 2, h / 2 + 0.9 * far, 1.0]]))[0]
+    assert not without_k(np.array([[w / 2, h / 2 + 1.1 * far, 1.0]]))[0]

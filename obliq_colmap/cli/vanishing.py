@@ -51,8 +51,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         default=None,
         help="where the VP may lie: none (+-30 deg of the image's vertical axis, "
         "above or below), aerial (the paper's: at least one image height below "
-        "the image), ins (cone around the priors' vertical; default with "
-        "--input_path, else none)",
+        "the image, and no farther than a camera tilted 85 deg from nadir puts "
+        "it: with --camera_params the tilt is tested exactly, so give a rough "
+        "focal length where you know one), ins (cone around the priors' "
+        "vertical; default with --input_path, else none)",
     )
     parser.add_argument(
         "--cone_deg",

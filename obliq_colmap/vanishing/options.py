@@ -45,6 +45,18 @@ class VPPrior:
         (0.5: outside the image's vertical extent).
     min_y_h : float
         aerial: least y coordinate of the VP, image heights.
+    max_tilt_deg : float
+        aerial: largest angle between the optical axis and the world's down
+        direction (the camera's tilt from nadir; 85: a high oblique with the
+        horizon 5 deg above the principal point). An oblique aerial camera
+        has a FINITE VP below the image, ``f tan(tilt)`` below the principal
+        point; the pencil of a street or railway running away from the
+        camera meets at infinity and must not pass for it. With intrinsics
+        the tilt is tested exactly; without, the VP must lie within
+        ``max_focal_w * W * tan(max_tilt_deg)`` of the image centre.
+    max_focal_w : float
+        aerial without intrinsics: the longest focal length allowed, in
+        image widths (3: a horizontal field of view of at least 19 deg).
     """
 
     kind: str = "none"
@@ -53,6 +65,8 @@ class VPPrior:
     max_angle_deg: float = 30.0
     min_distance_h: float = 0.5
     min_y_h: float = 2.0
+    max_tilt_deg: float = 85.0
+    max_focal_w: float = 3.0
 
     def __post_init__(self) -> None:
         if self.kind not in PRIOR_KINDS:

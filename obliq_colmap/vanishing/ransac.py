@@ -36,6 +36,11 @@ class PriorTest:
                 raise ValueError("the 'ins' prior needs intrinsics (a camera)")
             self.Kinv = np.linalg.inv(K)
             self.cos_cone = np.cos(np.radians(prior.cone_deg))
+        if prior.kind == "aerial":
+            self.Kinv = None if K is None else np.linalg.inv(K)
+            self.cos_tilt = np.cos(np.radians(prior.max_tilt_deg))
+            tan_tilt = np.tan(np.radians(prior.max_tilt_deg))
+            self.max_distance = prior.max_focal_w * width * tan_tilt
 
     def __call__(self, v_n: np.ndarray) -> np.ndarray:
         v = v_n @ self.Tinv.T  # (H, 3) pixel homogeneous
@@ -50,8 +55,15 @@ class PriorTest:
         in_cone = np.abs(dx) <= np.tan(np.radians(p.max_angle_deg)) * np.abs(dy)
         if p.kind == "aerial":
             below = y >= p.min_y_h * self.H * w
-            return in_cone & below & (dy > 0)
+            return in_cone & below & (dy > 0) & self._finite(v, dx, dy, w)
         return in_cone & (np.abs(dy) >= p.min_distance_h * self.H * w)
+
+    def _finite(self, v, dx, dy, w) -> np.ndarray:
+        """Aerial: the VP no farther than the steepest allowed tilt puts it."""
+        if self.Kinv is not None:
+            d = v @ self.Kinv.T  # w >= 0 and below the image: d points down
+            return d[:, 2] >= self.cos_tilt * np.linalg.norm(d, axis=1)
+        return np.hypot(dx, dy) <= self.max_distance * w
 
 
 def candidate_segments(
