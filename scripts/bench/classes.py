@@ -59,6 +59,7 @@ def scene_for(work: Path, name: str, seed: int, image_width: int) -> Path:
         sun_elevation_deg=elevation,
     )
     print(f"# synth {name} seed {seed}: sun {azimuth:.0f} / {elevation:.0f} deg")
+    path.parent.mkdir(parents=True, exist_ok=True)
     generate_scene(path, options, seed=seed, show_progress=False, preset=name)
     return path
 
