@@ -15,7 +15,7 @@ The exact command (from the repository root; ~1-2 min per scene and run on 2
 shared cores)::
 
     python scripts/bench/classes.py --work_path W [--scene_class houses ...]
-        [--seeds 1 2] [--run bundle] [--image_width 2004]
+        [--seeds 1 2] [--run bundle] [--image_width 2004] [--horizontal_fov_deg 25.4]
         [--output_path bench_classes.json]
 
 Figures go to docs/STATUS.md (the table per scene class) and to
@@ -46,9 +46,12 @@ def sun_of(seed: int) -> tuple[float, float]:
     return float(rng.uniform(0.0, 360.0)), float(rng.uniform(30.0, 60.0))
 
 
-def scene_for(work: Path, name: str, seed: int, image_width: int) -> Path:
+def scene_for(
+    work: Path, name: str, seed: int, image_width: int, fov_deg: float | None
+) -> Path:
     """Generate (or reuse) the scene of one class and seed."""
-    path = work / "scenes" / f"{name}_s{seed}_w{image_width}"
+    lens = "" if fov_deg is None else f"_fov{fov_deg:g}"
+    path = work / "scenes" / f"{name}_s{seed}_w{image_width}{lens}"
     if (path / "scene.json").is_file():
         return path
     azimuth, elevation = sun_of(seed)
@@ -57,6 +60,7 @@ def scene_for(work: Path, name: str, seed: int, image_width: int) -> Path:
         image_width_px=image_width,
         sun_azimuth_deg=azimuth,
         sun_elevation_deg=elevation,
+        **({} if fov_deg is None else {"horizontal_fov_deg": fov_deg}),
     )
     print(f"# synth {name} seed {seed}: sun {azimuth:.0f} / {elevation:.0f} deg")
     path.parent.mkdir(parents=True, exist_ok=True)
@@ -71,6 +75,12 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--seeds", type=int, nargs="+", default=[1])
     parser.add_argument("--run", action="append", choices=external.RUNS)
     parser.add_argument("--image_width", type=int, default=2004)
+    parser.add_argument(
+        "--horizontal_fov_deg",
+        type=float,
+        help="the lens of every scene (default the preset's, 45 deg; the GSD is "
+        "kept, so a longer lens flies higher)",
+    )
     parser.add_argument("--register_args", default="")
     parser.add_argument("--output_path", type=Path)
     args = parser.parse_args(argv)
@@ -81,7 +91,9 @@ def main(argv: list[str] | None = None) -> int:
     everything: dict = {}
     for name in classes:
         for seed in args.seeds:
-            scene = scene_for(args.work_path, name, seed, args.image_width)
+            scene = scene_for(
+                args.work_path, name, seed, args.image_width, args.horizontal_fov_deg
+            )
             model = external.camera_model_of(scene)
             results = {}
             for run in runs:
