@@ -1,0 +1,245 @@
+"""The second workflow end to end: :func:`georegister` (nothing written yet).
+
+1. Read the SfM model and the control points (in the map's CRS where a map
+   is given, else the points' own projected CRS or their UTM zone).
+2. The model's vertical from its images' VPs; the model rotated upright.
+3. Control points triangulated in the upright model; the 4-DOF similarity
+   (closed form with two, robust least squares with more; 7-DOF without a
+   vertical). Check points (``check_points``) are triangulated and scored
+   but not used.
+4. The model moved into a local frame of the map (``georef.json``:
+   ``world_abs = model_xyz + origin``), the control points added to
+   points3D with their tracks at their GIVEN coordinates.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import pycolmap
+
+from obliq_colmap import __version__
+from obliq_colmap.colmap_io import Georef
+from obliq_colmap.control import ControlPoints
+from obliq_colmap.control.read import read_control_points
+from obliq_colmap.control.triangulate import require_usable, triangulate_control_points
+from obliq_colmap.errors import InputError
+
+from .options import GeoregisterOptions
+from .residuals import point_residuals, summarise
+from .similarity import Similarity, similarity_7dof, similarity_upright
+from .vertical import ModelVertical, model_vertical
+
+logger = logging.getLogger(__name__)
+
+
+@dataclass
+class GeoregisterResult:
+    """The model in the local frame of ``georef``, and the report."""
+
+    reconstruction: pycolmap.Reconstruction
+    georef: Georef
+    report: dict
+
+
+def read_sfm_model(path: Path) -> pycolmap.Reconstruction:
+    """A COLMAP model folder (binary or text), or one clear error."""
+    path = Path(path)
+    if not path.is_dir():
+        raise InputError(path, "SfM model folder not found")
+    try:
+        rec = pycolmap.Reconstruction(str(path))
+    except Exception as exc:  # noqa: BLE001 - pycolmap raises bare errors
+        raise InputError(path, f"not a readable COLMAP model: {exc}") from None
+    if rec.num_reg_images() < 2:
+        raise InputError(
+            path, f"the model has {rec.num_reg_images()} registered images"
+        )
+    return rec
+
+
+def _map_crs(options: GeoregisterOptions) -> str | None:
+    if options.crs is not None or options.cadastre_path is None:
+        return options.crs
+    from obliq_colmap.cadastre import load_cadastre
+
+    return load_cadastre(options.cadastre_path).crs
+
+
+def _read_control(rec, options: GeoregisterOptions) -> ControlPoints:
+    sizes = {
+        rec.images[i].name: (rec.images[i].camera.width, rec.images[i].camera.height)
+        for i in rec.reg_image_ids()
+    }
+    control = read_control_points(
+        options.control_points_path,
+        sizes,
+        _map_crs(options),
+        options.sigma_horizontal_m,
+        options.sigma_vertical_m,
+    )
+    unknown = sorted(set(options.check_points) - set(control.names()))
+    if unknown:
+        raise InputError(
+            options.control_points_path,
+            f"--check_points names {', '.join(unknown)}, not in the file "
+            f"(its points: {', '.join(control.names())})",
+        )
+    return control
+
+
+def _upright(rec, vertical: ModelVertical | None) -> np.ndarray:
+    """Rotate the model upright in place; the (3, 3) rotation applied."""
+    if vertical is None:
+        return np.eye(3)
+    R = vertical.upright_rotation()
+    rec.transform(pycolmap.Sim3d(1.0, pycolmap.Rotation3d(R), np.zeros(3)))
+    return R
+
+
+def _fit(tri, control, use, vertical) -> Similarity:
+    given = control.xyz()[use]
+    sh = np.array([p.sigma_horizontal_m for p in control.points])[use]
+    sv = np.array([p.sigma_vertical_m for p in control.points])[use]
+    if vertical is not None:
+        return similarity_upright(tri.xyz[use], given, sh, sv)
+    return similarity_7dof(tri.xyz[use], given)
+
+
+def _origin(control: ControlPoints, use: np.ndarray) -> np.ndarray:
+    xyz = control.xyz()[use]
+    z = xyz[np.isfinite(xyz[:, 2]), 2]
+    return np.array(
+        [
+            np.round(xyz[:, 0].mean()),
+            np.round(xyz[:, 1].mean()),
+            np.round(z.mean()) if len(z) else 0.0,
+        ]
+    )
+
+
+def _add_control_points(rec, control, tri, given_local) -> int:
+    """Control points into points3D at their given position, with their tracks."""
+    added = 0
+    for k in range(len(control)):
+        if not tri.usable[k] or not np.all(np.isfinite(given_local[k])):
+            continue
+        track = pycolmap.Track()
+        for image_id, xy in zip(tri.image_ids[k], tri.observations_px[k], strict=True):
+            image = rec.images[int(image_id)]
+            image.points2D.append(pycolmap.Point2D(np.asarray(xy, float)))
+            track.add_element(int(image_id), image.num_points2D() - 1)
+        rec.add_point3D(given_local[k], track, np.array([255, 0, 255], np.uint8))
+        added += 1
+    return added
+
+
+def georegister(
+    input_path: Path, image_path: Path, options: GeoregisterOptions
+) -> GeoregisterResult:
+    """Bring an SfM model onto the map (see the module docstring)."""
+    if options.control_points_path is None and options.cadastre_path is None:
+        raise InputError(None, "give --control_points_path, --cadastre_path or both")
+    if options.control_points_path is None:
+        raise InputError(
+            options.cadastre_path,
+            "the automatic mode (--cadastre_path without --control_points_path) "
+            "is not available yet; give --control_points_path",
+        )
+    if options.block_adjustment:
+        raise InputError(None, "--block_adjustment 1 is not available yet; run with 0")
+    rec = read_sfm_model(input_path)
+    control = _read_control(rec, options)
+    # usable points first: a file that cannot work fails before stage 1 runs
+    tri = triangulate_control_points(rec, control)
+    check = np.array([p.name in options.check_points for p in control.points])
+    use = tri.usable & ~check
+    require_usable(dataclasses.replace(tri, usable=use), 2, options.control_points_path)
+    vertical = model_vertical(rec, Path(image_path), options.vertical, options.progress)
+    if vertical is None:
+        logger.warning("fewer than %d images with a vertical VP: 7-DOF similarity",
+                       options.vertical.min_images)  # fmt: skip
+        require_usable(
+            dataclasses.replace(tri, usable=use & np.isfinite(control.xyz()[:, 2])),
+            3,
+            options.control_points_path,
+            "3D control points (no vertical from the images)",
+        )
+    R_up = _upright(rec, vertical)
+    tri.xyz = tri.xyz @ R_up.T
+    sim = _fit(tri, control, use, vertical)
+    origin = _origin(control, use)
+    to_local = pycolmap.Sim3d(
+        sim.scale, pycolmap.Rotation3d(sim.rotation), sim.translation - origin
+    )
+    rec.transform(to_local)
+    given_local = control.xyz() - origin
+    tri_local = sim.apply(tri.xyz) - origin
+    roles = {
+        p.name: ("check" if c else "control")
+        for p, c in zip(control.points, check, strict=True)
+    }
+    rows = point_residuals(rec, control, tri, given_local, tri_local, roles)
+    added = _add_control_points(rec, control, tri, given_local)
+    georef = Georef(
+        origin=origin,
+        crs=control.crs,
+        extra={
+            "vertical_datum": "the control points' heights, unchanged",
+            "software": f"obliq-colmap {__version__}",
+        },
+    )
+    report = {
+        "input_path": str(input_path),
+        "control_points_path": str(options.control_points_path),
+        "vertical": _vertical_report(vertical, R_up),
+        "similarity": _similarity_report(sim, control.names(), use),
+        "control_points": summarise(rows, "control"),
+        "check_points": summarise(rows, "check"),
+        "points": rows,
+        "num_control_points_written": added,
+    }
+    return GeoregisterResult(rec, georef, report)
+
+
+def _similarity_report(sim: Similarity, names: list[str], use: np.ndarray) -> dict:
+    inlier = np.zeros(len(use), bool)
+    inlier[np.flatnonzero(use)] = sim.inliers
+    return {
+        "scale": sim.scale,
+        "heading_deg": sim.heading_deg,
+        "translation": sim.translation.tolist(),
+        "points_used": [n for n, i in zip(names, inlier, strict=True) if i],
+        "points_rejected": [
+            n for n, u, i in zip(names, use, inlier, strict=True) if u and not i
+        ],
+    }
+
+
+def _finite(x: float) -> float | None:
+    return float(x) if np.isfinite(x) else None
+
+
+def _vertical_report(vertical: ModelVertical | None, R_up: np.ndarray) -> dict:
+    if vertical is None:
+        return {"status": "unknown: too few vertical VPs"}
+    return {
+        "down_in_input_frame": vertical.down.tolist(),
+        "sd_deg": vertical.sd_deg,
+        "num_images": vertical.num_used,
+        "images": {
+            im.name: {
+                "status": im.status,
+                "residual_deg": None
+                if not np.isfinite(im.residual_deg)
+                else im.residual_deg,
+                "sd_deg": None if not np.isfinite(im.sd_deg) else im.sd_deg,
+            }
+            for im in vertical.images
+        },
+        "upright_rotation": R_up.tolist(),
+    }
