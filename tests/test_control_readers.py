@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import logging
 from pathlib import Path
 
@@ -141,3 +142,31 @@ def test_georegister_with_a_bad_gcp_file_exits_2(tmp_path, capsys):
     )  # fmt: skip
     assert rc == 2 and not out.exists()
     assert "unknown projection" in capsys.readouterr().err
+
+
+def test_evaluate_with_control_points_scores_any_model(tmp_path, capsys):
+    """Check points in a model that is already in the points' frame."""
+    rec, cam, points = _synthetic_model(seed=2)
+    model = tmp_path / "model"
+    model.mkdir()
+    rec.write_binary(str(model))
+    lines = ["EPSG:32632"]
+    truth = points + np.array([0.0, 0.0, 0.0])
+    for k, X in enumerate(truth):
+        for i in rec.reg_image_ids():
+            uv = cam.img_from_cam((rec.images[i].cam_from_world() * X)[None])[0] - 0.5
+            lines.append(f"{X[0]} {X[1]} {X[2] + (0.3 if k == 0 else 0)} "
+                         f"{uv[0]} {uv[1]} im{i - 1}.jpg g{k}")  # fmt: skip
+    gcp = _write(tmp_path, "\n".join(lines) + "\n")
+    out = tmp_path / "r.json"
+    rc = main(["evaluate", "--input_path", str(model), "--control_points_path",
+               str(gcp), "--output_path", str(out)])  # fmt: skip
+    assert rc == 0
+    report = json.loads(out.read_text())
+    rows = {r["name"]: r for r in report["points"]}
+    # g0's given height is 0.3 m too high: the triangulation says so
+    assert rows["g0"]["vertical_m"] == pytest.approx(-0.3, abs=1e-6)
+    assert all(rows[f"g{k}"]["horizontal_m"] < 1e-6 for k in range(6))
+    assert max(rows["g1"]["reprojection_px"]) < 1e-6
+    assert report["check_points"]["num_points"] == 6
+    assert "g0" in capsys.readouterr().out

@@ -26,11 +26,11 @@ from obliq_colmap import __version__
 from obliq_colmap.colmap_io import Georef
 from obliq_colmap.control import ControlPoints
 from obliq_colmap.control.read import read_control_points
+from obliq_colmap.control.residuals import point_residuals, summarise
 from obliq_colmap.control.triangulate import require_usable, triangulate_control_points
 from obliq_colmap.errors import InputError
 
 from .options import GeoregisterOptions
-from .residuals import point_residuals, summarise
 from .similarity import Similarity, similarity_7dof, similarity_upright
 from .vertical import ModelVertical, model_vertical
 
