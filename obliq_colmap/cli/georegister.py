@@ -59,8 +59,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument("--crs", help="output CRS (default: the map's / the points')")
     parser.add_argument(
-        "--block_adjustment", type=int, choices=(0, 1), default=0,
-        help="bundle block adjustment after the similarity (not available yet)",
+        "--block_adjustment", type=int, choices=(0, 1), default=1,
+        help="bundle block adjustment after the similarity: SfM tracks, control "
+        "points weighted by their accuracy, each image's vertical VP; the lens "
+        "refined (default 1)",
     )  # fmt: skip
     parser.add_argument("--no_progress", action="store_true")
 

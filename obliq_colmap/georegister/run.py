@@ -30,6 +30,7 @@ from obliq_colmap.control.residuals import point_residuals, summarise
 from obliq_colmap.control.triangulate import require_usable, triangulate_control_points
 from obliq_colmap.errors import InputError
 
+from .block import BlockAdjustmentSummary, adjust_block
 from .options import GeoregisterOptions
 from .similarity import Similarity, similarity_7dof, similarity_upright
 from .vertical import ModelVertical, model_vertical
@@ -122,19 +123,21 @@ def _origin(control: ControlPoints, use: np.ndarray) -> np.ndarray:
     )
 
 
-def _add_control_points(rec, control, tri, given_local) -> int:
-    """Control points into points3D at their given position, with their tracks."""
-    added = 0
+def _add_control_points(rec, control, tri, given_local, tri_local) -> dict[str, int]:
+    """Control points into points3D at their given position (a 2D point at its
+    triangulated height), with their tracks: name -> point3D_id."""
+    added = {}
     for k in range(len(control)):
-        if not tri.usable[k] or not np.all(np.isfinite(given_local[k])):
+        if not tri.usable[k]:
             continue
+        where = np.where(np.isfinite(given_local[k]), given_local[k], tri_local[k])
         track = pycolmap.Track()
         for image_id, xy in zip(tri.image_ids[k], tri.observations_px[k], strict=True):
             image = rec.images[int(image_id)]
             image.points2D.append(pycolmap.Point2D(np.asarray(xy, float)))
             track.add_element(int(image_id), image.num_points2D() - 1)
-        rec.add_point3D(given_local[k], track, np.array([255, 0, 255], np.uint8))
-        added += 1
+        rec.add_point3D(where, track, np.array([255, 0, 255], np.uint8))
+        added[control.points[k].name] = max(rec.point3D_ids())
     return added
 
 
@@ -150,8 +153,6 @@ def georegister(
             "the automatic mode (--cadastre_path without --control_points_path) "
             "is not available yet; give --control_points_path",
         )
-    if options.block_adjustment:
-        raise InputError(None, "--block_adjustment 1 is not available yet; run with 0")
     rec = read_sfm_model(input_path)
     control = _read_control(rec, options)
     # usable points first: a file that cannot work fails before stage 1 runs
@@ -183,8 +184,13 @@ def georegister(
         p.name: ("check" if c else "control")
         for p, c in zip(control.points, check, strict=True)
     }
+    added = _add_control_points(rec, control, tri, given_local, tri_local)
+    block = None
+    if options.block_adjustment:
+        block = _adjust(rec, control, added, use, vertical, options, origin)
+        tri = triangulate_control_points(rec, control)
+        tri_local = tri.xyz
     rows = point_residuals(rec, control, tri, given_local, tri_local, roles)
-    added = _add_control_points(rec, control, tri, given_local)
     georef = Georef(
         origin=origin,
         crs=control.crs,
@@ -201,9 +207,30 @@ def georegister(
         "control_points": summarise(rows, "control"),
         "check_points": summarise(rows, "check"),
         "points": rows,
-        "num_control_points_written": added,
+        "num_control_points_written": len(added),
+        "block_adjustment": None if block is None else dataclasses.asdict(block),
     }
     return GeoregisterResult(rec, georef, report)
+
+
+def _adjust(
+    rec, control, added, use, vertical, options, origin
+) -> BlockAdjustmentSummary:
+    """The block adjustment with the used control points' priors and every
+    image's VP that the vertical kept (weight > 0)."""
+    priors = {}
+    for k, point in enumerate(control.points):
+        if use[k] and point.name in added:
+            sig = np.array([point.sigma_horizontal_m] * 2 + [point.sigma_vertical_m])
+            given = point.xyz - origin
+            sig[2] = sig[2] if np.isfinite(given[2]) else np.inf
+            priors[added[point.name]] = (given, sig)
+    verticals = {}
+    if vertical is not None:
+        for im in vertical.images:
+            if im.weight > 0 and im.down_camera is not None:
+                verticals[im.image_id] = (im.down_camera, im.sd_deg)
+    return adjust_block(rec, priors, verticals, options.block)
 
 
 def _similarity_report(sim: Similarity, names: list[str], use: np.ndarray) -> dict:
