@@ -10,6 +10,7 @@ from obliq_colmap.control.model import (
     DEFAULT_SIGMA_VERTICAL_M,
 )
 from obliq_colmap.georegister.block import BlockAdjustmentOptions
+from obliq_colmap.registration import RegistrationOptions
 
 #: ``--camera_kind``: which prior stage 1 searches the vertical VP with.
 CAMERA_KINDS = ("terrestrial", "oblique", "auto")
@@ -52,6 +53,8 @@ class GeoregisterOptions:
     #: the bundle block adjustment after the similarity (``block``)
     block_adjustment: bool = True
     block: BlockAdjustmentOptions = field(default_factory=BlockAdjustmentOptions)
+    #: the automatic mode: stage 2 per image (its pairs then fit jointly)
+    registration: RegistrationOptions = field(default_factory=RegistrationOptions)
     cadastre_path: Path | None = None
     control_points_path: Path | None = None
     priors_path: Path | None = None

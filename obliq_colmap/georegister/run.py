@@ -16,7 +16,6 @@ from __future__ import annotations
 
 import dataclasses
 import logging
-from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -31,36 +30,12 @@ from obliq_colmap.control.triangulate import require_usable, triangulate_control
 from obliq_colmap.errors import InputError
 
 from .block import BlockAdjustmentSummary, adjust_block
+from .common import GeoregisterResult, read_sfm_model, upright, vertical_report
 from .options import GeoregisterOptions
 from .similarity import Similarity, similarity_7dof, similarity_upright
-from .vertical import ModelVertical, model_vertical
+from .vertical import model_vertical
 
 logger = logging.getLogger(__name__)
-
-
-@dataclass
-class GeoregisterResult:
-    """The model in the local frame of ``georef``, and the report."""
-
-    reconstruction: pycolmap.Reconstruction
-    georef: Georef
-    report: dict
-
-
-def read_sfm_model(path: Path) -> pycolmap.Reconstruction:
-    """A COLMAP model folder (binary or text), or one clear error."""
-    path = Path(path)
-    if not path.is_dir():
-        raise InputError(path, "SfM model folder not found")
-    try:
-        rec = pycolmap.Reconstruction(str(path))
-    except Exception as exc:  # noqa: BLE001 - pycolmap raises bare errors
-        raise InputError(path, f"not a readable COLMAP model: {exc}") from None
-    if rec.num_reg_images() < 2:
-        raise InputError(
-            path, f"the model has {rec.num_reg_images()} registered images"
-        )
-    return rec
 
 
 def _map_crs(options: GeoregisterOptions) -> str | None:
@@ -91,15 +66,6 @@ def _read_control(rec, options: GeoregisterOptions) -> ControlPoints:
             f"(its points: {', '.join(control.names())})",
         )
     return control
-
-
-def _upright(rec, vertical: ModelVertical | None) -> np.ndarray:
-    """Rotate the model upright in place; the (3, 3) rotation applied."""
-    if vertical is None:
-        return np.eye(3)
-    R = vertical.upright_rotation()
-    rec.transform(pycolmap.Sim3d(1.0, pycolmap.Rotation3d(R), np.zeros(3)))
-    return R
 
 
 def _fit(tri, control, use, vertical) -> Similarity:
@@ -148,11 +114,9 @@ def georegister(
     if options.control_points_path is None and options.cadastre_path is None:
         raise InputError(None, "give --control_points_path, --cadastre_path or both")
     if options.control_points_path is None:
-        raise InputError(
-            options.cadastre_path,
-            "the automatic mode (--cadastre_path without --control_points_path) "
-            "is not available yet; give --control_points_path",
-        )
+        from .run_automatic import georegister_automatic
+
+        return georegister_automatic(input_path, image_path, options)
     rec = read_sfm_model(input_path)
     control = _read_control(rec, options)
     # usable points first: a file that cannot work fails before stage 1 runs
@@ -170,7 +134,7 @@ def georegister(
             options.control_points_path,
             "3D control points (no vertical from the images)",
         )
-    R_up = _upright(rec, vertical)
+    R_up = upright(rec, vertical)
     tri.xyz = tri.xyz @ R_up.T
     sim = _fit(tri, control, use, vertical)
     origin = _origin(control, use)
@@ -202,7 +166,7 @@ def georegister(
     report = {
         "input_path": str(input_path),
         "control_points_path": str(options.control_points_path),
-        "vertical": _vertical_report(vertical, R_up),
+        "vertical": vertical_report(vertical, R_up),
         "similarity": _similarity_report(sim, control.names(), use),
         "control_points": summarise(rows, "control"),
         "check_points": summarise(rows, "check"),
@@ -244,29 +208,4 @@ def _similarity_report(sim: Similarity, names: list[str], use: np.ndarray) -> di
         "points_rejected": [
             n for n, u, i in zip(names, use, inlier, strict=True) if u and not i
         ],
-    }
-
-
-def _finite(x: float) -> float | None:
-    return float(x) if np.isfinite(x) else None
-
-
-def _vertical_report(vertical: ModelVertical | None, R_up: np.ndarray) -> dict:
-    if vertical is None:
-        return {"status": "unknown: too few vertical VPs"}
-    return {
-        "down_in_input_frame": vertical.down.tolist(),
-        "sd_deg": vertical.sd_deg,
-        "num_images": vertical.num_used,
-        "images": {
-            im.name: {
-                "status": im.status,
-                "residual_deg": None
-                if not np.isfinite(im.residual_deg)
-                else im.residual_deg,
-                "sd_deg": None if not np.isfinite(im.sd_deg) else im.sd_deg,
-            }
-            for im in vertical.images
-        },
-        "upright_rotation": R_up.tolist(),
     }

@@ -40,6 +40,10 @@ class ImageVertical:
     sd_deg: float
     residual_deg: float = float("nan")
     weight: float = 0.0
+    #: (N, 2, 2) stage 1's vertical segments (undistorted pixels) and the
+    #: (3, 3) pinhole matrix they are in
+    segments: np.ndarray | None = None
+    K: np.ndarray | None = None
 
 
 @dataclass
@@ -109,8 +113,16 @@ def image_vertical(
         return ImageVertical(image_id, image.name, status, None, None, np.inf)
     R = image.cam_from_world().rotation.matrix()
     d = np.asarray(best.vertical_direction, float)
+    segs = None if best.vertical_segments is None else best.vertical_segments.endpoints
     return ImageVertical(
-        image_id, image.name, "ok", d, R.T @ d, float(best.direction_std_deg)
+        image_id,
+        image.name,
+        "ok",
+        d,
+        R.T @ d,
+        float(best.direction_std_deg),
+        segments=segs,
+        K=camera.K,
     )
 
 
