@@ -6,8 +6,9 @@ import numpy as np
 import pytest
 
 from obliq_colmap.errors import InputError
+from obliq_colmap.geometry import rotation_aligning
 from obliq_colmap.georegister.similarity import similarity_7dof, similarity_upright
-from obliq_colmap.georegister.vertical import robust_mean_direction, rotation_between
+from obliq_colmap.georegister.vertical import robust_mean_direction
 
 
 def _truth(rng, n):
@@ -54,7 +55,7 @@ def test_2d_points_give_horizontal_rows_only():
 def test_7dof_umeyama_is_exact():
     rng = np.random.default_rng(7)
     model = rng.uniform(-10, 10, (5, 3))
-    R = rotation_between(np.array([0.0, 0.3, 1.0]), np.array([1.0, 0.0, 0.2]))
+    R = rotation_aligning(np.array([0.0, 0.3, 1.0]), np.array([1.0, 0.0, 0.2]))
     target = 0.7 * model @ R.T + [1.0, 2.0, 3.0]
     sim = similarity_7dof(model, target)
     assert sim.scale == pytest.approx(0.7, rel=1e-12)
@@ -67,7 +68,7 @@ def test_robust_mean_direction_ignores_a_wrong_image():
     down /= np.linalg.norm(down)
     sd = np.full(9, 0.1)
     d = down + np.radians(0.1) * rng.normal(size=(9, 3))
-    d[0] = rotation_between(down, [0.2, 0.0, -1.0]) @ down  # 11 deg off: wrong VP
+    d[0] = rotation_aligning(down, [0.2, 0.0, -1.0]) @ down  # 11 deg off: wrong VP
     d /= np.linalg.norm(d, axis=1, keepdims=True)
     mean, ang, w, sd_mean = robust_mean_direction(d, sd, 3.0)
     err = np.degrees(np.arccos(np.clip(mean @ down, -1, 1)))

@@ -19,7 +19,7 @@ import numpy as np
 import pycolmap
 from tqdm import tqdm
 
-from obliq_colmap.geometry import Camera
+from obliq_colmap.geometry import Camera, rotation_aligning
 from obliq_colmap.images import read_image
 from obliq_colmap.vanishing import VanishingOptions, VPPrior, detect_vertical_vp
 
@@ -60,19 +60,7 @@ class ModelVertical:
 
     def upright_rotation(self) -> np.ndarray:
         """(3, 3) R with ``R @ down = (0, 0, -1)``, the smallest such rotation."""
-        return rotation_between(self.down, np.array([0.0, 0.0, -1.0]))
-
-
-def rotation_between(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """(3, 3) smallest rotation taking unit vector a to unit vector b."""
-    a, b = a / np.linalg.norm(a), b / np.linalg.norm(b)
-    v, c = np.cross(a, b), float(a @ b)
-    if c < -1.0 + 1e-12:  # opposite: any half-turn about an axis normal to a
-        axis = np.cross(a, [1.0, 0, 0] if abs(a[0]) < 0.9 else [0, 1.0, 0])
-        axis /= np.linalg.norm(axis)
-        return 2.0 * np.outer(axis, axis) - np.eye(3)
-    vx = np.array([[0, -v[2], v[1]], [v[2], 0, -v[0]], [-v[1], v[0], 0]])
-    return np.eye(3) + vx + vx @ vx / (1.0 + c)
+        return rotation_aligning(self.down, np.array([0.0, 0.0, -1.0]))
 
 
 def _camera(cam: pycolmap.Camera) -> Camera:

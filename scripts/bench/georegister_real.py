@@ -48,8 +48,9 @@ from pathlib import Path
 import numpy as np
 import pycolmap
 
+from obliq_colmap.geometry import rotation_aligning
 from obliq_colmap.georegister.options import VerticalOptions
-from obliq_colmap.georegister.vertical import model_vertical, rotation_between
+from obliq_colmap.georegister.vertical import model_vertical
 
 REPO = Path(__file__).resolve().parents[2]
 DATA = REPO.parent / "shared" / "data"
@@ -97,7 +98,7 @@ def relevelled_truth(images: Path) -> tuple[pycolmap.Reconstruction, float]:
     angle (deg) it was tilted by."""
     gt = pycolmap.Reconstruction(str(HJ / "gt_colmap_halfres_text"))
     v = model_vertical(gt, images, VerticalOptions(camera_kind="terrestrial"), False)
-    R = rotation_between(v.down, np.array([0.0, 0.0, -1.0]))
+    R = rotation_aligning(v.down, np.array([0.0, 0.0, -1.0]))
     tilt = float(np.degrees(np.arccos(np.clip(v.down @ [0, 0, 1.0], -1, 1))))
     gt.transform(pycolmap.Sim3d(1.0, pycolmap.Rotation3d(R), np.zeros(3)))
     return gt, tilt
