@@ -103,6 +103,8 @@ class Inputs:
     #: the map options the run read the map with (its area among them): the
     #: workers read the same map with them
     cadastre_options: CadastreOptions | None = None
+    #: the priors give positions only (their rotations are placeholders)
+    position_only: bool = False
 
 
 @dataclass

@@ -50,6 +50,7 @@ def _bool01(text: str) -> bool:
 OPTION_OF_FIELD = {
     "prior_position_sigma_m": "--prior_position_sigma",
     "area_margin_m": "--cadastre_margin",
+    "heading_step_deg": "--heading_step",
     "prior_rotation_sigma_deg": "--prior_rotation_sigma",
     "prior_focal_sigma": "--prior_focal_sigma",
     "ground_height": "--ground_height",
@@ -104,6 +105,16 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--camera_path",
         help="intrinsics for text priors: a COLMAP model, cameras.txt/.bin or "
         "database (a model listing the images assigns cameras by name)",
+    )
+    io.add_argument(
+        "--heading_step",
+        type=float,
+        default=PipelineOptions.heading_step_deg,
+        metavar="DEG",
+        help="priors with positions only (geo.txt, database pose priors): each "
+        "image's heading is searched on a grid of this step through stage 2, "
+        "its tilt from its vanishing point (default %(default)g; 0 refuses "
+        "such priors)",
     )
     io.add_argument(
         "--camera_params",
@@ -312,6 +323,7 @@ def run(args: argparse.Namespace) -> int:
     try:
         options = PipelineOptions(
             stop_after=args.stop_after,
+            heading_step_deg=args.heading_step,
             priors=PriorsOptions(
                 camera_path=args.camera_path, camera_params=args.camera_params
             ),

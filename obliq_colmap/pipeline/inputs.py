@@ -14,12 +14,15 @@ from obliq_colmap.cadastre import CadastreOptions, build_cadastre, read_footprin
 from obliq_colmap.errors import InputError
 from obliq_colmap.pipeline.options import PipelineOptions
 from obliq_colmap.pipeline.workers import ImageTask
-from obliq_colmap.priors import read_priors
+from obliq_colmap.priors import prior_format, read_priors
 from obliq_colmap.state import Inputs
 
 __all__ = ["image_tasks", "load_inputs"]
 
 logger = logging.getLogger(__name__)
+
+#: Prior formats that carry camera positions but no rotations.
+POSITION_ONLY_FORMATS = ("geo", "database")
 
 
 def load_inputs(
@@ -42,6 +45,14 @@ def load_inputs(
     prior_options = options.priors
     if prior_options.crs is None and footprints.crs is not None:
         prior_options = dataclasses.replace(prior_options, crs=footprints.crs)
+    # positions only (geo.txt, database priors): a heading search, unless off
+    position_only = prior_format(Path(input_path)) in POSITION_ONLY_FORMATS
+    if position_only and options.heading_step_deg > 0:
+        prior_options = dataclasses.replace(prior_options, require_rotation=False)
+        logger.info(
+            "%s: positions only: each image's heading is searched every %g deg",
+            input_path, options.heading_step_deg,
+        )  # fmt: skip
     priors_abs = read_priors(input_path, image_path, prior_options)
     if not priors_abs.images:
         raise InputError(input_path, "the priors model has no images")
@@ -74,6 +85,7 @@ def load_inputs(
         cameras,
         Path(input_path),
         cadastre_options,
+        position_only,
     )
 
 
@@ -105,6 +117,7 @@ def image_tasks(inputs: Inputs, options: PipelineOptions) -> list[ImageTask]:
             registration=options.registration,
             refine=options.refine_segments,
             model=inputs.cameras[im.camera_id].model,
+            heading_step_deg=options.heading_step_deg if inputs.position_only else 0.0,
         )
         for im in sorted(inputs.priors.images.values(), key=lambda im: im.image_id)
     ]
