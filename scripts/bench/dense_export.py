@@ -5,7 +5,8 @@
         [--output_path R.json] [--strip IMAGE ...]
 
 OUT_MODEL is ``register``'s result on SCENE (a synthetic scene: its true
-cameras and city give each image's true depth map); without it ``register``
+cameras and city give each image's true depth map; an external scene: the
+true depths of the building corners visible in each image); without it ``register``
 is run on SCENE into a temporary folder. Measured per image, on the written
 workspace (``dense.json`` and :func:`check_workspace`):
 
@@ -40,15 +41,40 @@ from obliq_colmap.dense.support import read_points
 from obliq_colmap.synthetic import load_scene
 
 
+def true_depths(scene_path: Path):
+    """name -> (K,) true depths of what the image sees: the depth map of a
+    scene of ours, else (external scenes) the true depths of the building
+    corners ``gt_visibility.json`` lists as visible in the true image."""
+    vis_file = scene_path / "gt_visibility.json"
+    if not vis_file.is_file():
+        scene = load_scene(scene_path)
+
+        def of_scene(name: str) -> np.ndarray:
+            depth = scene.depth(name)
+            return depth[np.isfinite(depth)]
+
+        return of_scene
+    visible = json.loads(vis_file.read_text())["images"]
+    corners = np.array(
+        json.loads((scene_path / "gt_buildings.json").read_text())["corners"]
+    )
+    gt = read_model(scene_path / "gt")
+
+    def of_corners(name: str) -> np.ndarray:
+        pose = gt.image_by_name(name).cam_from_world
+        return pose.transform(corners[np.asarray(visible[name], int)])[:, 2]
+
+    return of_corners
+
+
 def measure(workspace: Path, scene_path: Path) -> dict:
     """Per image and overall figures (see the module docstring)."""
-    scene = load_scene(scene_path)
+    depths = true_depths(scene_path)
     check = check_workspace(workspace)
     table = json.loads((workspace / "dense.json").read_text())["images"]
     rows = {}
     for name, row in table.items():
-        depth = scene.depth(name)
-        d = depth[np.isfinite(depth)]
+        d = depths(name)
         r = {
             "status": row["status"],
             "own": row["num_points_own"],
@@ -112,6 +138,7 @@ def main(argv: list[str] | None = None) -> int:
         "--scene", type=Path, default=Path("data_samples/oblique_small")
     )
     parser.add_argument("--output_path", type=Path)
+    parser.add_argument("--image_path", type=Path, help="default SCENE/images")
     parser.add_argument(
         "--strip", nargs="*", default=[], help="images to strip of their points"
     )
@@ -132,7 +159,9 @@ def main(argv: list[str] | None = None) -> int:
         if args.strip:
             model = strip_images(model, args.strip, Path(tmp) / "stripped")
         t0 = time.perf_counter()
-        export_dense(model, args.scene / "images", Path(tmp) / "dense")
+        export_dense(
+            model, args.image_path or args.scene / "images", Path(tmp) / "dense"
+        )
         seconds = time.perf_counter() - t0
         result = {
             "export_s": round(seconds, 2),
