@@ -54,8 +54,9 @@ RUN_SCRIPT = """\
 # COLMAP dense reconstruction of this workspace ({kind}). patch_match_stereo
 # needs a COLMAP built with CUDA and an NVIDIA GPU. The result (fused.ply) is
 # in the model's local frame: world_abs = xyz + origin (georef.json).
+# COLMAP_EXE_PATH: the folder of the colmap binary (default: colmap on PATH).
 set -e
-COLMAP=${{COLMAP_EXE_PATH:-colmap}}
+COLMAP=${{COLMAP_EXE_PATH:+$COLMAP_EXE_PATH/}}colmap
 "$COLMAP" patch_match_stereo --workspace_path . --workspace_format COLMAP \\
   --PatchMatchStereo.max_image_size 2000 --PatchMatchStereo.geom_consistency {geom}
 "$COLMAP" stereo_fusion --workspace_path . --workspace_format COLMAP \\
