@@ -151,6 +151,12 @@ def test_export_dense_layout_depth_ranges_and_georef(tiny_model, tmp_path, caplo
     assert sorted(p.name for p in (out / "images").iterdir()) == [
         f"img_{i}.jpg" for i in range(1, 6)
     ]
+    script = out / "run-colmap-geometric.sh"
+    assert subprocess.run(["sh", "-n", str(script)]).returncode == 0
+    commands = [
+        ln for ln in script.read_text().splitlines() if ln.startswith('"$COLMAP"')
+    ]
+    assert len(commands) == 2  # patch_match_stereo, stereo_fusion: not joined
     georef = json.loads((out / "georef.json").read_text())
     np.testing.assert_array_equal(georef["origin"], ORIGIN)
     assert georef["crs"] == "EPSG:25832"

@@ -6,8 +6,10 @@ Modules, in reading order: ``options`` (:class:`DenseOptions`),
 model: per-image depth ranges and source images, re-implemented on arrays so
 that the workspace can be checked without a GPU), ``support`` (observations
 of the block's points in the frustum of an image with too few of its own),
-``workspace`` (:func:`export_dense`: undistortion with pycolmap, the stereo
-configuration, ``georef.json`` and ``dense.json``).
+``config`` (patch-match.cfg, fusion.cfg and the run scripts), ``check``
+(a written workspace checked with those rules), ``workspace``
+(:func:`export_dense`: undistortion with pycolmap, the stereo configuration,
+``georef.json`` and ``dense.json``).
 """
 
 from obliq_colmap.dense.options import DenseOptions

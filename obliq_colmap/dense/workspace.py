@@ -23,11 +23,13 @@ from obliq_colmap import __version__
 from obliq_colmap.colmap_io import (
     GEOREF_FILE,
     Block,
+    Georef,
     read_georef,
     read_model,
     to_reconstruction,
 )
 from obliq_colmap.dense.check import check_workspace
+from obliq_colmap.dense.config import write_run_scripts, write_stereo_config
 from obliq_colmap.dense.mvs_rules import (
     MvsModel,
     depth_ranges,
@@ -45,23 +47,6 @@ __all__ = ["DENSE_REPORT_FILE", "export_dense"]
 logger = logging.getLogger(__name__)
 
 DENSE_REPORT_FILE = "dense.json"
-
-#: COLMAP's dense commands on a workspace (run from inside it). pycolmap
-#: 4.2.1 writes its scripts with a line continuation after each command's
-#: last option, which joins the commands; these are written instead.
-RUN_SCRIPT = """\
-#!/bin/sh
-# COLMAP dense reconstruction of this workspace ({kind}). patch_match_stereo
-# needs a COLMAP built with CUDA and an NVIDIA GPU. The result (fused.ply) is
-# in the model's local frame: world_abs = xyz + origin (georef.json).
-# COLMAP_EXE_PATH: the folder of the colmap binary (default: colmap on PATH).
-set -e
-COLMAP=${{COLMAP_EXE_PATH:+$COLMAP_EXE_PATH/}}colmap
-"$COLMAP" patch_match_stereo --workspace_path . --workspace_format COLMAP \\
-  --PatchMatchStereo.max_image_size 2000 --PatchMatchStereo.geom_consistency {geom}
-"$COLMAP" stereo_fusion --workspace_path . --workspace_format COLMAP \\
-  --input_type {kind} --output_path ./fused.ply
-"""
 
 
 def _check_images(block: Block, input_path: Path, image_path: Path) -> None:
@@ -111,31 +96,6 @@ def _keep_images(
         keep &= ~lonely
 
 
-def _write_stereo_config(
-    stereo: Path,
-    model: MvsModel,
-    keep: np.ndarray,
-    sources: list[np.ndarray],
-    num_src_images: int,
-) -> None:
-    """patch-match.cfg and fusion.cfg. All images kept: COLMAP's own
-    ``__auto__`` selection; otherwise explicit source lists, so that no
-    image left out (without a depth map) is used as a source."""
-    all_kept = bool(keep.all())
-    lines, fused = [], []
-    for k in np.flatnonzero(keep):
-        name = model.names[k]
-        src = (
-            f"__auto__, {num_src_images}"
-            if all_kept
-            else ", ".join(model.names[j] for j in sources[k])
-        )
-        lines += [name, src]
-        fused.append(name)
-    (stereo / "patch-match.cfg").write_text("\n".join(lines) + "\n")
-    (stereo / "fusion.cfg").write_text("\n".join(fused) + "\n")
-
-
 def _image_table(
     model: MvsModel,
     keep: np.ndarray,
@@ -159,6 +119,74 @@ def _image_table(
             "source_images": [model.names[j] for j in sources[k]] if keep[k] else [],
         }
     return table
+
+
+def _with_support(
+    rec, block: Block, input_path: Path, tmpdir: Path, min_num_points: int
+) -> tuple[Path, MvsModel, dict[str, int]]:
+    """The model the workspace is made from: ``input_path`` itself, or, where
+    images have fewer than ``min_num_points`` points, a copy in ``tmpdir``
+    with the block's points in their frustum added (:mod:`.support`).
+
+    Returns (model folder, its MvsModel, image name -> points added).
+    """
+    import pycolmap
+
+    model = mvs_model(rec)
+    _, counts = depth_ranges(model)
+    weak = [
+        block.image_by_name(n).image_id
+        for n, c in zip(model.names, counts, strict=True)
+        if c < min_num_points
+    ]
+    if not weak:
+        return input_path, model, {}
+    points = read_points(rec)
+    support = add_frustum_support(block, points, weak)
+    added = {block.images[i].name: n for i, n in support.items()}
+    to_reconstruction(block, points).write_binary(str(tmpdir))
+    logger.info(
+        "depth-range support: %s", ", ".join(f"{n} +{a}" for n, a in added.items())
+    )
+    return tmpdir, mvs_model(pycolmap.Reconstruction(str(tmpdir))), added
+
+
+def _write_workspace(
+    tmp: Path,
+    source_model: Path,
+    image_path: Path,
+    model: MvsModel,
+    keep: np.ndarray,
+    sources: list[np.ndarray],
+    georef: Georef,
+    options: DenseOptions,
+) -> None:
+    """Undistort into ``tmp`` and write the configuration, scripts and
+    georef.json; then check the result with COLMAP's rules."""
+    import pycolmap
+
+    pycolmap.undistort_images(
+        tmp,
+        source_model,
+        image_path,
+        num_patch_match_src_images=options.num_src_images,
+        undistort_options=pycolmap.UndistortCameraOptions(
+            max_image_size=options.max_image_size
+        ),
+    )
+    write_stereo_config(
+        tmp / "stereo",
+        [
+            (model.names[k], [model.names[j] for j in sources[k]])
+            for k in np.flatnonzero(keep)
+        ],
+        options.num_src_images if keep.all() else None,
+    )
+    write_run_scripts(tmp)
+    (tmp / GEOREF_FILE).write_text(json.dumps(georef.to_json(), indent=2) + "\n")
+    check = check_workspace(tmp, options.min_triangulation_angle_deg)
+    if not check.ok:  # a bug here, not a user mistake
+        raise RuntimeError("dense workspace invalid: " + "; ".join(check.problems))
 
 
 def export_dense(
@@ -185,27 +213,12 @@ def export_dense(
     georef = read_georef(input_path)
     _check_images(block, input_path, image_path)
     rec = pycolmap.Reconstruction(str(input_path))
-    model = mvs_model(rec)
-    _, counts = depth_ranges(model)
-    own = {n: int(c) for n, c in zip(model.names, counts, strict=True)}
-    weak = [
-        block.image_by_name(n).image_id
-        for n, c in own.items()
-        if c < options.min_num_points
-    ]
+    original = mvs_model(rec)
+    own = dict(zip(original.names, depth_ranges(original)[1].tolist(), strict=True))
     with tempfile.TemporaryDirectory(prefix="obliq-dense-") as tmpdir:
-        source_model, added = input_path, {}
-        if weak:
-            points = read_points(rec)
-            support = add_frustum_support(block, points, weak)
-            added = {block.images[i].name: n for i, n in support.items()}
-            source_model = Path(tmpdir)
-            to_reconstruction(block, points).write_binary(str(source_model))
-            model = mvs_model(pycolmap.Reconstruction(str(source_model)))
-            logger.info(
-                "depth-range support: %s",
-                ", ".join(f"{n} +{a}" for n, a in added.items()),
-            )
+        source_model, model, added = _with_support(
+            rec, block, input_path, Path(tmpdir), options.min_num_points
+        )
         keep, sources, reasons = _keep_images(model, options)
         for name, why in reasons.items():
             logger.warning("%s: left out of the dense workspace: %s", name, why)
@@ -217,30 +230,9 @@ def export_dense(
         summary = _summary(input_path, image_path, georef, options, keep)
         summary["images"] = _image_table(model, keep, sources, reasons, own, added)
         with folder as tmp:
-            pycolmap.undistort_images(
-                tmp,
-                source_model,
-                image_path,
-                num_patch_match_src_images=options.num_src_images,
-                undistort_options=pycolmap.UndistortCameraOptions(
-                    max_image_size=options.max_image_size
-                ),
+            _write_workspace(
+                tmp, source_model, image_path, model, keep, sources, georef, options
             )
-            _write_stereo_config(
-                tmp / "stereo", model, keep, sources, options.num_src_images
-            )
-            for kind, geom in (("geometric", "true"), ("photometric", "false")):
-                (tmp / f"run-colmap-{kind}.sh").write_text(
-                    RUN_SCRIPT.format(kind=kind, geom=geom)
-                )
-            (tmp / GEOREF_FILE).write_text(
-                json.dumps(georef.to_json(), indent=2) + "\n"
-            )
-            check = check_workspace(tmp, options.min_triangulation_angle_deg)
-            if not check.ok:  # a bug here, not a user mistake
-                raise RuntimeError(
-                    "dense workspace invalid: " + "; ".join(check.problems)
-                )
             (tmp / DENSE_REPORT_FILE).write_text(json.dumps(summary, indent=2) + "\n")
     return summary
 
@@ -248,10 +240,11 @@ def export_dense(
 def _summary(
     input_path: Path,
     image_path: Path,
-    georef,
+    georef: Georef,
     options: DenseOptions,
     keep: np.ndarray,
 ) -> dict[str, Any]:
+    """dense.json without its per-image table."""
     return {
         "software": f"obliq-colmap {__version__}",
         "input_path": str(input_path),
