@@ -60,29 +60,36 @@ def _project(block: Block, i: int, X: np.ndarray) -> tuple[np.ndarray, np.ndarra
     return np.flatnonzero(ok), px[ok]
 
 
-@pytest.fixture
-def tiny_model(tmp_path) -> tuple[Path, Path]:
-    """The written model (local frame, georef.json) and its image folder."""
+def _write_tiny(folder: Path, subfolders: bool = False) -> tuple[Path, Path]:
+    """The tiny model (local frame, georef.json) and its image folder under
+    ``folder``; with ``subfolders`` the images are named ``head<c>/img_<i>.jpg``."""
     X, block = _scene()
+    if subfolders:
+        for im in block.images.values():
+            im.name = f"head{im.camera_id}/{im.name}"
     obs: list[list] = [[] for _ in X]
     for i in (1, 2, 3):
         for k, p in zip(*_project(block, i, X), strict=True):
             obs[k].append((i, p))
     points = [Point3D(x, o) for x, o in zip(X, obs, strict=True) if o]
-    model = write_result(
-        tmp_path / "model", block, Georef(ORIGIN, "EPSG:25832"), points
-    )
-    images = tmp_path / "images"
-    images.mkdir()
+    model = write_result(folder / "model", block, Georef(ORIGIN, "EPSG:25832"), points)
+    images = folder / "images"
     # smooth texture: a warp off by 1 px changes it by ~15 grey levels
     v, u = np.mgrid[0:H, 0:W]
     for im in block.images.values():
         i = im.image_id
         rgb = [np.sin(u / 7 + i), np.cos(v / 5 + i), np.sin((u + v) / 9)]
+        (images / im.name).parent.mkdir(parents=True, exist_ok=True)
         cv2.imwrite(
             str(images / im.name), (127 + 100 * np.stack(rgb, -1)).astype(np.uint8)
         )
     return model, images
+
+
+@pytest.fixture
+def tiny_model(tmp_path) -> tuple[Path, Path]:
+    """The tiny model and its image folder."""
+    return _write_tiny(tmp_path)
 
 
 def test_depth_ranges_follow_colmaps_rule():
@@ -215,6 +222,17 @@ def test_export_dense_all_kept_uses_colmaps_auto_selection(tiny_model, tmp_path)
     config = read_patch_match_cfg(out / "stereo/patch-match.cfg")
     assert len(config) == 4 and all(src == ["__auto__", "7"] for _, src in config)
     assert check_workspace(out).ok
+
+
+def test_image_names_with_folders(tmp_path):
+    """Image names with a folder (one per head, as COLMAP allows): the
+    workspace mirrors the folders, also where COLMAP writes depth maps."""
+    model, images = _write_tiny(tmp_path, subfolders=True)
+    ws = tmp_path / "dense"
+    summary = export_dense(model, images, ws, DenseOptions(min_num_points=10))
+    assert summary["num_kept"] == 4
+    assert (ws / "images/head2/img_1.jpg").is_file()
+    assert check_workspace(ws).ok
 
 
 def test_max_image_size_scales_the_undistorted_images(tiny_model, tmp_path):

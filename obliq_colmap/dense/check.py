@@ -77,6 +77,9 @@ def check_workspace(
             continue
         if not (ws / "images" / ref).is_file():
             out.problems.append(f"{ref}: no undistorted image file")
+        if not (ws / "stereo/depth_maps" / ref).parent.is_dir():
+            # COLMAP writes depth maps there and does not make the folder
+            out.problems.append(f"{ref}: no folder for its depth map")
         k = index[ref]
         if spec[0] == "__auto__":
             if auto is None:
