@@ -24,6 +24,7 @@ from obliq_colmap.dense.mvs_rules import (
     pair_statistics,
     source_images,
 )
+from obliq_colmap.dense.support import read_points
 from obliq_colmap.geometry import Camera, Pose
 
 ORIGIN = np.array([512300.0, 5643900.0, 149.0])
@@ -224,6 +225,34 @@ def test_export_dense_all_kept_uses_colmaps_auto_selection(tiny_model, tmp_path)
     assert check_workspace(out).ok
 
 
+def test_two_view_points_are_left_out_by_default(tmp_path):
+    """Wrong matches seen in two images (5, more than COLMAP's 1 %),
+    triangulated 3 km below the ground, stretch those images' depth range
+    to 1.25 x their depth; with the default minimum track length (3) they
+    are left out and the range is the scene's (depths 88-100 m)."""
+    import pycolmap
+
+    model, images = _write_tiny(tmp_path)
+    _, block = _scene()
+    bad = np.column_stack([np.linspace(-2, 2, 5), np.zeros(5), np.full(5, -3000.0)])
+    wrong = [
+        Point3D(x, [(i, _project(block, i, x[None])[1][0]) for i in (1, 2)])
+        for x in bad
+    ]
+    points = read_points(pycolmap.Reconstruction(str(model)))
+    bad_model = write_result(tmp_path / "bad", block, Georef(ORIGIN), points + wrong)
+    far = {}
+    for n in (2, 3):
+        options = DenseOptions(min_num_points=10, min_track_length=n)
+        table = export_dense(bad_model, images, tmp_path / f"d{n}", options)["images"]
+        far[n] = {
+            k: r["depth_range_m"][1] for k, r in table.items() if r["depth_range_m"]
+        }
+    assert far[2]["img_1.jpg"] == pytest.approx(1.25 * 3100, rel=1e-3)
+    assert far[3]["img_1.jpg"] == pytest.approx(1.25 * 100, rel=1e-3)
+    assert far[2]["img_3.jpg"] == far[3]["img_3.jpg"] == pytest.approx(125, rel=1e-3)
+
+
 def test_image_names_with_folders(tmp_path):
     """Image names with a folder (one per head, as COLMAP allows): the
     workspace mirrors the folders, also where COLMAP writes depth maps."""
@@ -409,7 +438,8 @@ def test_sample_workspace_matches_colmaps_image_undistorter(sample_model, tmp_pa
     import pycolmap
 
     ws, ref = tmp_path / "dense", tmp_path / "colmap"
-    export_dense(sample_model, SAMPLE / "images", ws)
+    # every point kept, as image_undistorter does
+    export_dense(sample_model, SAMPLE / "images", ws, DenseOptions(min_track_length=2))
     ref.mkdir()
     res = _colmap(
         "image_undistorter",

@@ -3,7 +3,7 @@ registration.
 
     obliq-colmap export_dense --input_path OUT_MODEL --image_path DIR
                               --output_path DENSE_DIR [--max_image_size N]
-                              [--min_num_points 20]
+                              [--min_num_points 20] [--min_track_length 3]
 
 DENSE_DIR gets COLMAP's ``image_undistorter`` layout (images/, sparse/,
 stereo/ with patch-match.cfg and fusion.cfg), ``georef.json`` and
@@ -40,12 +40,21 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="points an image needs in front of it for its depth range "
         f"(default {DenseOptions.min_num_points})",
     )
+    parser.add_argument(
+        "--min_track_length",
+        type=int,
+        default=DenseOptions.min_track_length,
+        help="leave points seen in fewer images out of the workspace "
+        f"(default {DenseOptions.min_track_length}; 2 keeps all, as COLMAP)",
+    )
 
 
 def run(args: argparse.Namespace) -> int:
     try:
         options = DenseOptions(
-            max_image_size=args.max_image_size, min_num_points=args.min_num_points
+            max_image_size=args.max_image_size,
+            min_num_points=args.min_num_points,
+            min_track_length=args.min_track_length,
         )
     except ValueError as exc:  # an option out of range: a user mistake
         raise InputError(None, str(exc)) from None

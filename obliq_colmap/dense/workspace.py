@@ -121,34 +121,55 @@ def _image_table(
     return table
 
 
-def _with_support(
-    rec, block: Block, input_path: Path, tmpdir: Path, min_num_points: int
-) -> tuple[Path, MvsModel, dict[str, int]]:
-    """The model the workspace is made from: ``input_path`` itself, or, where
-    images have fewer than ``min_num_points`` points, a copy in ``tmpdir``
-    with the block's points in their frustum added (:mod:`.support`).
+def _workspace_model(
+    rec, block: Block, input_path: Path, tmpdir: Path, options: DenseOptions
+) -> tuple[Path, MvsModel, dict[str, int], dict[str, int], int]:
+    """The model the workspace is made from: ``input_path`` itself, or a copy
+    in ``tmpdir`` without the points of tracks shorter than
+    ``min_track_length`` and, for images left with fewer than
+    ``min_num_points`` points, with the block's points in their frustum
+    added (:mod:`.support`).
 
-    Returns (model folder, its MvsModel, image name -> points added).
+    Returns (model folder, its MvsModel, image name -> own points in front
+    of it, image name -> points added, number of points dropped).
     """
     import pycolmap
 
     model = mvs_model(rec)
-    _, counts = depth_ranges(model)
+    length = np.bincount(model.el_point, minlength=len(model.xyz))
+    long_enough = length >= options.min_track_length
+    el = long_enough[model.el_point]
+    kept = MvsModel(
+        model.names, model.R, model.t, model.xyz, model.el_point[el], model.el_image[el]
+    )
+    counts = depth_ranges(kept)[1]
+    own = dict(zip(model.names, counts.tolist(), strict=True))
     weak = [
         block.image_by_name(n).image_id
-        for n, c in zip(model.names, counts, strict=True)
-        if c < min_num_points
+        for n, c in own.items()
+        if c < options.min_num_points
     ]
-    if not weak:
-        return input_path, model, {}
-    points = read_points(rec)
-    support = add_frustum_support(block, points, weak)
-    added = {block.images[i].name: n for i, n in support.items()}
+    dropped = int(np.sum(~long_enough))
+    if not weak and not dropped:
+        return input_path, model, own, {}, 0
+    points = [p for p, ok in zip(read_points(rec), long_enough, strict=True) if ok]
+    added = {
+        block.images[i].name: n
+        for i, n in add_frustum_support(block, points, weak).items()
+    }
     to_reconstruction(block, points).write_binary(str(tmpdir))
-    logger.info(
-        "depth-range support: %s", ", ".join(f"{n} +{a}" for n, a in added.items())
-    )
-    return tmpdir, mvs_model(pycolmap.Reconstruction(str(tmpdir))), added
+    if dropped:
+        logger.info(
+            "%d point(s) seen in fewer than %d images left out of the workspace",
+            dropped,
+            options.min_track_length,
+        )
+    if added:
+        logger.info(
+            "depth-range support: %s", ", ".join(f"{n} +{a}" for n, a in added.items())
+        )
+    model = mvs_model(pycolmap.Reconstruction(str(tmpdir)))
+    return tmpdir, model, own, added, dropped
 
 
 def _write_workspace(
@@ -213,11 +234,9 @@ def export_dense(
     georef = read_georef(input_path)
     _check_images(block, input_path, image_path)
     rec = pycolmap.Reconstruction(str(input_path))
-    original = mvs_model(rec)
-    own = dict(zip(original.names, depth_ranges(original)[1].tolist(), strict=True))
     with tempfile.TemporaryDirectory(prefix="obliq-dense-") as tmpdir:
-        source_model, model, added = _with_support(
-            rec, block, input_path, Path(tmpdir), options.min_num_points
+        source_model, model, own, added, dropped = _workspace_model(
+            rec, block, input_path, Path(tmpdir), options
         )
         keep, sources, reasons = _keep_images(model, options)
         for name, why in reasons.items():
@@ -228,6 +247,7 @@ def export_dense(
                 "no image has a depth range and a source image; nothing written",
             )
         summary = _summary(input_path, image_path, georef, options, keep)
+        summary["num_points_dropped"] = dropped
         summary["images"] = _image_table(model, keep, sources, reasons, own, added)
         with folder as tmp:
             _write_workspace(
@@ -254,6 +274,7 @@ def _summary(
         "options": {
             "max_image_size": options.max_image_size,
             "min_num_points": options.min_num_points,
+            "min_track_length": options.min_track_length,
             "num_src_images": options.num_src_images,
             "min_triangulation_angle_deg": options.min_triangulation_angle_deg,
         },

@@ -35,7 +35,7 @@ import numpy as np
 
 from obliq_colmap.cli import main as cli_main
 from obliq_colmap.colmap_io import read_georef, read_model, write_result
-from obliq_colmap.dense import export_dense
+from obliq_colmap.dense import DenseOptions, export_dense
 from obliq_colmap.dense.check import check_workspace
 from obliq_colmap.dense.support import read_points
 from obliq_colmap.synthetic import load_scene
@@ -140,6 +140,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--output_path", type=Path)
     parser.add_argument("--image_path", type=Path, help="default SCENE/images")
     parser.add_argument(
+        "--min_track_length", type=int, default=DenseOptions.min_track_length
+    )
+    parser.add_argument(
         "--strip", nargs="*", default=[], help="images to strip of their points"
     )
     args = parser.parse_args(argv)
@@ -160,7 +163,10 @@ def main(argv: list[str] | None = None) -> int:
             model = strip_images(model, args.strip, Path(tmp) / "stripped")
         t0 = time.perf_counter()
         export_dense(
-            model, args.image_path or args.scene / "images", Path(tmp) / "dense"
+            model,
+            args.image_path or args.scene / "images",
+            Path(tmp) / "dense",
+            DenseOptions(min_track_length=args.min_track_length),
         )
         seconds = time.perf_counter() - t0
         result = {
