@@ -61,6 +61,12 @@ def _project(block: Block, i: int, X: np.ndarray) -> tuple[np.ndarray, np.ndarra
     return np.flatnonzero(ok), px[ok]
 
 
+def pycolmap_reconstruction(path: Path):
+    import pycolmap
+
+    return pycolmap.Reconstruction(str(path))
+
+
 def _write_tiny(folder: Path, subfolders: bool = False) -> tuple[Path, Path]:
     """The tiny model (local frame, georef.json) and its image folder under
     ``folder``; with ``subfolders`` the images are named ``head<c>/img_<i>.jpg``."""
@@ -251,6 +257,29 @@ def test_two_view_points_are_left_out_by_default(tmp_path):
     assert far[2]["img_1.jpg"] == pytest.approx(1.25 * 3100, rel=1e-3)
     assert far[3]["img_1.jpg"] == pytest.approx(1.25 * 100, rel=1e-3)
     assert far[2]["img_3.jpg"] == far[3]["img_3.jpg"] == pytest.approx(125, rel=1e-3)
+
+
+def test_an_absolute_model_is_warned_about_float32(tmp_path, caplog):
+    """The same scene in absolute UTM coordinates: COLMAP's MVS (float32)
+    keeps 0.5 m at 5.6e6 m; the export says so (and still writes it)."""
+    model, images = _write_tiny(tmp_path)
+    _, block = _scene()
+    points = read_points(pycolmap_reconstruction(model))
+    for p in points:
+        p.xyz = p.xyz + ORIGIN
+    absolute = write_result(
+        tmp_path / "abs", block.shifted(-ORIGIN), Georef(np.zeros(3)), points
+    )
+    local = export_dense(
+        model, images, tmp_path / "d1", DenseOptions(min_num_points=10)
+    )
+    assert local["float32_step_m"] < 1e-5
+    assert "float32" not in caplog.text
+    summary = export_dense(
+        absolute, images, tmp_path / "d2", DenseOptions(min_num_points=10)
+    )
+    assert summary["float32_step_m"] == 0.5
+    assert "float32" in caplog.text
 
 
 def test_image_names_with_folders(tmp_path):

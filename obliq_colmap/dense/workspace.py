@@ -65,6 +65,18 @@ def _check_images(block: Block, input_path: Path, image_path: Path) -> None:
         )
 
 
+#: Coarsest float32 step (m) of the model's coordinates that COLMAP's MVS
+#: (float32 throughout) keeps without a warning.
+FLOAT32_STEP_M = 1e-3
+
+
+def _float32_step(model: MvsModel) -> float:
+    """The float32 spacing (m) at the model's largest coordinate (camera
+    centres and points): what COLMAP's MVS can resolve there."""
+    coords = np.concatenate([model.centers.ravel(), model.xyz.ravel()])
+    return float(np.spacing(np.float32(np.abs(coords).max(initial=0.0))))
+
+
 def _keep_images(
     model: MvsModel, options: DenseOptions
 ) -> tuple[np.ndarray, list[np.ndarray], dict[str, str]]:
@@ -248,6 +260,14 @@ def export_dense(
             )
         summary = _summary(input_path, image_path, georef, options, keep)
         summary["num_points_dropped"] = dropped
+        summary["float32_step_m"] = step = _float32_step(model)
+        if step > FLOAT32_STEP_M:
+            logger.warning(
+                "%s: coordinates this far from the origin keep %.3g m in COLMAP's "
+                "float32 MVS; register writes a local frame (georef.json) for this",
+                input_path,
+                step,
+            )
         summary["images"] = _image_table(model, keep, sources, reasons, own, added)
         with folder as tmp:
             _write_workspace(
