@@ -48,6 +48,10 @@ logger = logging.getLogger(__name__)
 
 DENSE_REPORT_FILE = "dense.json"
 
+#: Coarsest float32 step (m) of the model's coordinates that COLMAP's MVS
+#: (float32 throughout) keeps without a warning.
+FLOAT32_STEP_M = 1e-3
+
 
 def _check_images(block: Block, input_path: Path, image_path: Path) -> None:
     """pycolmap's undistorter only logs a missing image: refuse first."""
@@ -63,11 +67,6 @@ def _check_images(block: Block, input_path: Path, image_path: Path) -> None:
             f"{len(missing)} image(s) of the model {input_path} have no file "
             f"here: {shown}",
         )
-
-
-#: Coarsest float32 step (m) of the model's coordinates that COLMAP's MVS
-#: (float32 throughout) keeps without a warning.
-FLOAT32_STEP_M = 1e-3
 
 
 def _float32_step(model: MvsModel) -> float:
@@ -86,7 +85,7 @@ def _keep_images(
 
     Returns keep (I,) bool, sources per image (indices), name -> reason.
     """
-    ranges, counts = depth_ranges(model)
+    _, counts = depth_ranges(model)
     shared, angle = pair_statistics(model)
     reasons = {
         model.names[k]: f"{counts[k]} point(s) in front of it, fewer than "
@@ -102,8 +101,9 @@ def _keep_images(
             return keep, sources, reasons
         for k in np.flatnonzero(lonely):
             reasons[model.names[k]] = (
-                "no source image (no image shares its points under "
-                f"{options.min_triangulation_angle_deg:g} deg)"
+                "no source image (no kept image shares its points at a "
+                f"triangulation angle of {options.min_triangulation_angle_deg:g} deg "
+                "or more)"
             )
         keep &= ~lonely
 
