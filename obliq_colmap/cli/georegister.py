@@ -59,8 +59,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument("--crs", help="output CRS (default: the map's / the points')")
     parser.add_argument(
-        "--block_adjustment", type=int, choices=(0, 1), default=0,
-        help="bundle block adjustment after the similarity (not available yet)",
+        "--block_adjustment", type=int, choices=(0, 1), default=1,
+        help="bundle block adjustment after the similarity: SfM tracks, control "
+        "points weighted by their accuracy, each image's vertical VP; the lens "
+        "refined (default 1)",
     )  # fmt: skip
     parser.add_argument("--no_progress", action="store_true")
 
@@ -89,14 +91,19 @@ def run(args: argparse.Namespace) -> int:
             json.dumps(result.georef.to_json(), indent=2) + "\n"
         )
         (tmp / REPORT_FILE).write_text(json.dumps(result.report, indent=2) + "\n")
-    cp = result.report["control_points"]
-    logger.info(
-        "georegister: %d control points, horizontal %.3f m, vertical %s m "
-        "(median), %s px; wrote %s",
-        cp.get("num_points", 0),
-        cp.get("horizontal_m_median", float("nan")),
-        cp.get("vertical_m_median"),
-        cp.get("reprojection_px_median"),
-        args.output_path,
-    )
+    report = result.report
+    if "placement" in report:
+        pl = report["placement"]
+        logger.info(
+            "georegister (automatic): %d segment-corner pairs, rms %.3f deg; wrote %s",
+            pl["num_pairs"], pl["rms_deg"], args.output_path,
+        )  # fmt: skip
+    else:
+        cp = report["control_points"]
+        logger.info(
+            "georegister: %d control points, horizontal %.3f m median; wrote %s",
+            cp.get("num_points", 0),
+            cp.get("horizontal_m_median", float("nan")),
+            args.output_path,
+        )
     return 0

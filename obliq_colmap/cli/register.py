@@ -49,6 +49,7 @@ def _bool01(text: str) -> bool:
 #: value out of range is reported with the option the user typed.
 OPTION_OF_FIELD = {
     "prior_position_sigma_m": "--prior_position_sigma",
+    "area_margin_m": "--cadastre_margin",
     "prior_rotation_sigma_deg": "--prior_rotation_sigma",
     "prior_focal_sigma": "--prior_focal_sigma",
     "ground_height": "--ground_height",
@@ -84,6 +85,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="the projected CRS of the priors (e.g. EPSG:25832): the map is"
         " reprojected into it (default: the map's own projected CRS, or the UTM"
         " zone of a longitude/latitude map); recorded in georef.json",
+    )
+    io.add_argument(
+        "--cadastre_margin",
+        type=float,
+        default=CadastreOptions.area_margin_m,
+        metavar="M",
+        help="read the map within this distance (m) of the prior camera centres "
+        "(default %(default)g; raise it for flights above ~1,200 m)",
     )
     io.add_argument(
         "--input_path",
@@ -306,7 +315,7 @@ def run(args: argparse.Namespace) -> int:
             priors=PriorsOptions(
                 camera_path=args.camera_path, camera_params=args.camera_params
             ),
-            cadastre=CadastreOptions(crs=args.crs),
+            cadastre=CadastreOptions(crs=args.crs, area_margin_m=args.cadastre_margin),
             num_workers=args.num_workers,
             dask_scheduler=args.dask_scheduler,
             camera_model=args.camera_model,

@@ -9,6 +9,8 @@ from obliq_colmap.control.model import (
     DEFAULT_SIGMA_HORIZONTAL_M,
     DEFAULT_SIGMA_VERTICAL_M,
 )
+from obliq_colmap.georegister.block import BlockAdjustmentOptions
+from obliq_colmap.registration import RegistrationOptions
 
 #: ``--camera_kind``: which prior stage 1 searches the vertical VP with.
 CAMERA_KINDS = ("terrestrial", "oblique", "auto")
@@ -48,8 +50,11 @@ class GeoregisterOptions:
     sigma_vertical_m: float = DEFAULT_SIGMA_VERTICAL_M
     #: target CRS of the output (default: the control points' / map's).
     crs: str | None = None
-    #: bundle block adjustment after the similarity (not available yet).
-    block_adjustment: bool = False
+    #: the bundle block adjustment after the similarity (``block``)
+    block_adjustment: bool = True
+    block: BlockAdjustmentOptions = field(default_factory=BlockAdjustmentOptions)
+    #: the automatic mode: stage 2 per image (its pairs then fit jointly)
+    registration: RegistrationOptions = field(default_factory=RegistrationOptions)
     cadastre_path: Path | None = None
     control_points_path: Path | None = None
     priors_path: Path | None = None

@@ -16,7 +16,6 @@ from __future__ import annotations
 
 import dataclasses
 import logging
-from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -26,40 +25,17 @@ from obliq_colmap import __version__
 from obliq_colmap.colmap_io import Georef
 from obliq_colmap.control import ControlPoints
 from obliq_colmap.control.read import read_control_points
+from obliq_colmap.control.residuals import point_residuals, summarise
 from obliq_colmap.control.triangulate import require_usable, triangulate_control_points
 from obliq_colmap.errors import InputError
 
+from .block import BlockAdjustmentSummary, adjust_block
+from .common import GeoregisterResult, read_sfm_model, upright, vertical_report
 from .options import GeoregisterOptions
-from .residuals import point_residuals, summarise
 from .similarity import Similarity, similarity_7dof, similarity_upright
-from .vertical import ModelVertical, model_vertical
+from .vertical import model_vertical
 
 logger = logging.getLogger(__name__)
-
-
-@dataclass
-class GeoregisterResult:
-    """The model in the local frame of ``georef``, and the report."""
-
-    reconstruction: pycolmap.Reconstruction
-    georef: Georef
-    report: dict
-
-
-def read_sfm_model(path: Path) -> pycolmap.Reconstruction:
-    """A COLMAP model folder (binary or text), or one clear error."""
-    path = Path(path)
-    if not path.is_dir():
-        raise InputError(path, "SfM model folder not found")
-    try:
-        rec = pycolmap.Reconstruction(str(path))
-    except Exception as exc:  # noqa: BLE001 - pycolmap raises bare errors
-        raise InputError(path, f"not a readable COLMAP model: {exc}") from None
-    if rec.num_reg_images() < 2:
-        raise InputError(
-            path, f"the model has {rec.num_reg_images()} registered images"
-        )
-    return rec
 
 
 def _map_crs(options: GeoregisterOptions) -> str | None:
@@ -92,15 +68,6 @@ def _read_control(rec, options: GeoregisterOptions) -> ControlPoints:
     return control
 
 
-def _upright(rec, vertical: ModelVertical | None) -> np.ndarray:
-    """Rotate the model upright in place; the (3, 3) rotation applied."""
-    if vertical is None:
-        return np.eye(3)
-    R = vertical.upright_rotation()
-    rec.transform(pycolmap.Sim3d(1.0, pycolmap.Rotation3d(R), np.zeros(3)))
-    return R
-
-
 def _fit(tri, control, use, vertical) -> Similarity:
     given = control.xyz()[use]
     sh = np.array([p.sigma_horizontal_m for p in control.points])[use]
@@ -122,19 +89,21 @@ def _origin(control: ControlPoints, use: np.ndarray) -> np.ndarray:
     )
 
 
-def _add_control_points(rec, control, tri, given_local) -> int:
-    """Control points into points3D at their given position, with their tracks."""
-    added = 0
+def _add_control_points(rec, control, tri, given_local, tri_local) -> dict[str, int]:
+    """Control points into points3D at their given position (a 2D point at its
+    triangulated height), with their tracks: name -> point3D_id."""
+    added = {}
     for k in range(len(control)):
-        if not tri.usable[k] or not np.all(np.isfinite(given_local[k])):
+        if not tri.usable[k]:
             continue
+        where = np.where(np.isfinite(given_local[k]), given_local[k], tri_local[k])
         track = pycolmap.Track()
         for image_id, xy in zip(tri.image_ids[k], tri.observations_px[k], strict=True):
             image = rec.images[int(image_id)]
             image.points2D.append(pycolmap.Point2D(np.asarray(xy, float)))
             track.add_element(int(image_id), image.num_points2D() - 1)
-        rec.add_point3D(given_local[k], track, np.array([255, 0, 255], np.uint8))
-        added += 1
+        rec.add_point3D(where, track, np.array([255, 0, 255], np.uint8))
+        added[control.points[k].name] = max(rec.point3D_ids())
     return added
 
 
@@ -145,13 +114,9 @@ def georegister(
     if options.control_points_path is None and options.cadastre_path is None:
         raise InputError(None, "give --control_points_path, --cadastre_path or both")
     if options.control_points_path is None:
-        raise InputError(
-            options.cadastre_path,
-            "the automatic mode (--cadastre_path without --control_points_path) "
-            "is not available yet; give --control_points_path",
-        )
-    if options.block_adjustment:
-        raise InputError(None, "--block_adjustment 1 is not available yet; run with 0")
+        from .run_automatic import georegister_automatic
+
+        return georegister_automatic(input_path, image_path, options)
     rec = read_sfm_model(input_path)
     control = _read_control(rec, options)
     # usable points first: a file that cannot work fails before stage 1 runs
@@ -169,7 +134,7 @@ def georegister(
             options.control_points_path,
             "3D control points (no vertical from the images)",
         )
-    R_up = _upright(rec, vertical)
+    R_up = upright(rec, vertical)
     tri.xyz = tri.xyz @ R_up.T
     sim = _fit(tri, control, use, vertical)
     origin = _origin(control, use)
@@ -183,8 +148,13 @@ def georegister(
         p.name: ("check" if c else "control")
         for p, c in zip(control.points, check, strict=True)
     }
+    added = _add_control_points(rec, control, tri, given_local, tri_local)
+    block = None
+    if options.block_adjustment:
+        block = _adjust(rec, control, added, use, vertical, options, origin)
+        tri = triangulate_control_points(rec, control)
+        tri_local = tri.xyz
     rows = point_residuals(rec, control, tri, given_local, tri_local, roles)
-    added = _add_control_points(rec, control, tri, given_local)
     georef = Georef(
         origin=origin,
         crs=control.crs,
@@ -196,14 +166,35 @@ def georegister(
     report = {
         "input_path": str(input_path),
         "control_points_path": str(options.control_points_path),
-        "vertical": _vertical_report(vertical, R_up),
+        "vertical": vertical_report(vertical, R_up),
         "similarity": _similarity_report(sim, control.names(), use),
         "control_points": summarise(rows, "control"),
         "check_points": summarise(rows, "check"),
         "points": rows,
-        "num_control_points_written": added,
+        "num_control_points_written": len(added),
+        "block_adjustment": None if block is None else dataclasses.asdict(block),
     }
     return GeoregisterResult(rec, georef, report)
+
+
+def _adjust(
+    rec, control, added, use, vertical, options, origin
+) -> BlockAdjustmentSummary:
+    """The block adjustment with the used control points' priors and every
+    image's VP that the vertical kept (weight > 0)."""
+    priors = {}
+    for k, point in enumerate(control.points):
+        if use[k] and point.name in added:
+            sig = np.array([point.sigma_horizontal_m] * 2 + [point.sigma_vertical_m])
+            given = point.xyz - origin
+            sig[2] = sig[2] if np.isfinite(given[2]) else np.inf
+            priors[added[point.name]] = (given, sig)
+    verticals = {}
+    if vertical is not None:
+        for im in vertical.images:
+            if im.weight > 0 and im.down_camera is not None:
+                verticals[im.image_id] = (im.down_camera, im.sd_deg)
+    return adjust_block(rec, priors, verticals, options.block)
 
 
 def _similarity_report(sim: Similarity, names: list[str], use: np.ndarray) -> dict:
@@ -217,29 +208,4 @@ def _similarity_report(sim: Similarity, names: list[str], use: np.ndarray) -> di
         "points_rejected": [
             n for n, u, i in zip(names, use, inlier, strict=True) if u and not i
         ],
-    }
-
-
-def _finite(x: float) -> float | None:
-    return float(x) if np.isfinite(x) else None
-
-
-def _vertical_report(vertical: ModelVertical | None, R_up: np.ndarray) -> dict:
-    if vertical is None:
-        return {"status": "unknown: too few vertical VPs"}
-    return {
-        "down_in_input_frame": vertical.down.tolist(),
-        "sd_deg": vertical.sd_deg,
-        "num_images": vertical.num_used,
-        "images": {
-            im.name: {
-                "status": im.status,
-                "residual_deg": None
-                if not np.isfinite(im.residual_deg)
-                else im.residual_deg,
-                "sd_deg": None if not np.isfinite(im.sd_deg) else im.sd_deg,
-            }
-            for im in vertical.images
-        },
-        "upright_rotation": R_up.tolist(),
     }

@@ -40,6 +40,10 @@ class ImageVertical:
     sd_deg: float
     residual_deg: float = float("nan")
     weight: float = 0.0
+    #: (N, 2, 2) stage 1's vertical segments (undistorted pixels) and the
+    #: (3, 3) pinhole matrix they are in
+    segments: np.ndarray | None = None
+    K: np.ndarray | None = None
 
 
 @dataclass
@@ -109,8 +113,16 @@ def image_vertical(
         return ImageVertical(image_id, image.name, status, None, None, np.inf)
     R = image.cam_from_world().rotation.matrix()
     d = np.asarray(best.vertical_direction, float)
+    segs = None if best.vertical_segments is None else best.vertical_segments.endpoints
     return ImageVertical(
-        image_id, image.name, "ok", d, R.T @ d, float(best.direction_std_deg)
+        image_id,
+        image.name,
+        "ok",
+        d,
+        R.T @ d,
+        float(best.direction_std_deg),
+        segments=segs,
+        K=camera.K,
     )
 
 
@@ -121,23 +133,30 @@ def robust_mean_direction(
 
     Returns the unit mean (3,), (N,) angles from it (deg), (N,) final weights
     and the mean's sd (deg). Weights: ``1 / sd_i^2`` (the floor of 0.01 deg
-    keeps one over-confident image from dominating) times a Cauchy factor with
-    the scale ``outlier_sigmas`` times the robust spread of the angles.
+    keeps one over-confident image from dominating) times a robust factor of
+    the image's angle from the mean: Cauchy first (it converges from the
+    plain mean), then Tukey's biweight, which gives an image beyond
+    ``outlier_sigmas`` robust spreads no weight at all (a Cauchy weight of
+    0.5 % on a VP 11 deg off still moved the mean by 0.05 deg).
     """
     base = 1.0 / np.maximum(sd_deg, 0.01) ** 2
     mean = d.sum(0)
     mean /= np.linalg.norm(mean)
     w = base
-    for _ in range(iterations):
+    for it in range(2 * iterations):
         ang = np.degrees(np.arccos(np.clip(d @ mean, -1.0, 1.0)))
         spread = max(1.4826 * float(np.median(ang)), float(np.median(sd_deg)), 1e-3)
-        w = base / (1.0 + (ang / (outlier_sigmas * spread)) ** 2)
+        u = ang / (outlier_sigmas * spread)
+        if it < iterations:
+            w = base / (1.0 + u**2)
+        else:
+            w = base * np.where(u < 1.0, (1.0 - u**2) ** 2, 0.0)
         new = (w[:, None] * d).sum(0)
         new /= np.linalg.norm(new)
-        if np.degrees(np.arccos(np.clip(new @ mean, -1.0, 1.0))) < 1e-6:
-            mean = new
-            break
+        done = np.degrees(np.arccos(np.clip(new @ mean, -1.0, 1.0))) < 1e-7
         mean = new
+        if done and it >= iterations:
+            break
     ang = np.degrees(np.arccos(np.clip(d @ mean, -1.0, 1.0)))
     # sd of the weighted mean: each image's own sd or the spread, whichever
     # is larger (their errors are not independent of the model's own)

@@ -161,7 +161,7 @@ def write_gcp_list(path: Path, points: list[tuple], crs: str) -> None:
     path.write_text("\n".join(lines) + "\n")
 
 
-def run_georegister(sfm_path, images, gcp, out, check_points=()) -> dict:
+def run_georegister(sfm_path, images, gcp, out, check_points=(), extra=()) -> dict:
     if out.exists():
         shutil.rmtree(out)
     cmd = [sys.executable, "-m", "obliq_colmap", "georegister",
@@ -170,6 +170,7 @@ def run_georegister(sfm_path, images, gcp, out, check_points=()) -> dict:
            "--no_progress"]  # fmt: skip
     if check_points:
         cmd += ["--check_points", ",".join(check_points)]
+    cmd += list(extra)
     t0 = time.perf_counter()
     proc = subprocess.run(cmd, capture_output=True, text=True)
     wall = time.perf_counter() - t0
@@ -265,13 +266,15 @@ def herzjesu(work: Path) -> dict:
         "sfm_points": sfm_rec.num_points3D(),
         "truth_relevelled_by_deg": levelled_by,
     }
-    for n_ctrl in (2, 3):
+    for n_ctrl, block in ((2, 0), (3, 0), (2, 1), (3, 1)):
         gcp = work / f"gcp_{n_ctrl}.txt"
         write_gcp_list(gcp, points, "EPSG:32632")
         checks = checks_of(points, n_ctrl)
-        result = work / f"georegistered_{n_ctrl}"
-        r = run_georegister(sfm_path, images, gcp, result, checks)
-        out[f"{n_ctrl}_control_points"] = {
+        label = f"{n_ctrl}_control_points" + ("_block_adjustment" if block else "")
+        result = work / f"georegistered_{label}"
+        extra = ("--block_adjustment", "1") if block else ()
+        r = run_georegister(sfm_path, images, gcp, result, checks, extra)
+        out[label] = {
             "cameras": camera_errors(result, truth),
             "check_points": r["report"]["check_points"],
             "control_points": r["report"]["control_points"],

@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pycolmap
 
-from obliq_colmap.control import ControlPoints
-from obliq_colmap.control.triangulate import ControlTriangulation
+from .model import ControlPoints
+from .triangulate import ControlTriangulation
 
 
 def point_residuals(
