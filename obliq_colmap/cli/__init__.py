@@ -32,6 +32,7 @@ SUBCOMMANDS: dict[str, tuple[str, str]] = {
         "export_products",
         "terrain grid, building heights, LoD1 model, map discrepancies",
     ),
+    "export_dense": ("export_dense", "write a COLMAP dense-matching workspace"),
 }
 
 logger = logging.getLogger("obliq_colmap")
