@@ -170,3 +170,26 @@ def test_evaluate_with_control_points_scores_any_model(tmp_path, capsys):
     assert max(rows["g1"]["reprojection_px"]) < 1e-6
     assert report["check_points"]["num_points"] == 6
     assert "g0" in capsys.readouterr().out
+
+
+def test_georegister_with_fewer_than_two_usable_points_exits_2(tmp_path, capsys):
+    """One point seen twice, one seen once, one in an image the model lacks."""
+    rec, cam, points = _synthetic_model(seed=3)
+    model = tmp_path / "model"
+    model.mkdir()
+    rec.write_binary(str(model))
+    lines = ["EPSG:32632"]
+    for k, X in enumerate(points[:2]):
+        for i in list(rec.reg_image_ids())[: 2 - k]:
+            uv = cam.img_from_cam((rec.images[i].cam_from_world() * X)[None])[0]
+            lines.append(f"{X[0]} {X[1]} {X[2]} {uv[0]} {uv[1]} im{i - 1}.jpg g{k}")
+    lines.append("1 2 3 10 10 elsewhere.jpg g9")
+    gcp = _write(tmp_path, "\n".join(lines) + "\n")
+    out = tmp_path / "out"
+    argv = ["georegister", "--input_path", str(model), "--image_path", str(tmp_path),
+            "--control_points_path", str(gcp), "--output_path", str(out)]  # fmt: skip
+    assert main(argv) == 2 and not out.exists()
+    err = capsys.readouterr().err
+    assert "1 usable control points" in err and str(gcp) in err
+    assert main([*argv, "--check_points", "nope"]) == 2
+    assert "nope" in capsys.readouterr().err
