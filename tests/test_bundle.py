@@ -1201,7 +1201,7 @@ def test_exact_vps_pin_the_tilt_the_map_leaves_loose(noisy):
     P = dataclasses.replace(
         noisy.problem, vertical_vps=vps, vertical_vp_covariances=covs
     )
-    free = solve_bundle(P, BundleOptions())
+    free = solve_bundle(P, BundleOptions(vp_observations=False))
     held = solve_bundle(P, BundleOptions(vp_observations=True))
     err = {
         name: np.median(
@@ -1313,7 +1313,9 @@ def test_vps_evaluated_only_do_not_move_the_fit(noisy):
     and each VP's residual at the solution without it is simply its residual
     there (weight 0: nothing to take out)."""
     P = _noisy_vp_problem(noisy, 0.02, 0.02 / np.sqrt(2.0))
-    base = solve_bundle(P, BundleOptions(compute_precision=False))
+    base = solve_bundle(
+        P, BundleOptions(vp_observations=False, compute_precision=False)
+    )
     out = solve_bundle(
         P, BundleOptions(vp_observations=True, vp_in_fit=False, compute_precision=False)
     )

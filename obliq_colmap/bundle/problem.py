@@ -105,7 +105,7 @@ class BundleOptions:
     #: sees it and the VP's direction through the camera's current intrinsics.
     #: It holds each image's tilt, which the map's constraints leave loose
     #: along the block's weak vertical mode (tilt, height, focal).
-    vp_observations: bool = False
+    vp_observations: bool = True
     #: Factor on stage 1's stated standard deviation of each VP (its
     #: covariance times the square): estimated between the rounds
     #: (:func:`~obliq_colmap.adjustment.with_variance_components`), since the
