@@ -83,6 +83,24 @@ class Similarity:
         T_local = pose_abs.translation + pose_abs.rotation @ self.origin
         return Pose(R, self.scale * T_local - R @ self.translation)
 
+    def inverse_pose(self, pose_sfm: Pose) -> Pose:
+        """A cam_from_world of the SfM frame back in the ABSOLUTE frame."""
+        R = pose_sfm.rotation @ self.rotation
+        T_local = (pose_sfm.translation + pose_sfm.rotation @ self.translation) / (
+            self.scale
+        )
+        return Pose(R, T_local - R @ self.origin)
+
+    def inverse_block(self, block: Block) -> Block:
+        """A block of the SfM frame in the ABSOLUTE frame (same ids and cameras)."""
+        images = {
+            i: ImageRecord(
+                im.image_id, im.name, im.camera_id, self.inverse_pose(im.cam_from_world)
+            )
+            for i, im in block.images.items()
+        }
+        return Block(dict(block.cameras), images)
+
     def to_json(self) -> dict:
         return {
             "transform": "X_sfm = scale * rotation @ (X_abs - origin) + translation",
