@@ -45,6 +45,7 @@ from obliq_colmap.synthetic.render import render_depth, render_image
 from obliq_colmap.synthetic.street import (
     street_block,
     street_control_points,
+    with_facade_points,
     write_gcp_list,
 )
 from obliq_colmap.synthetic.truth import (
@@ -239,7 +240,10 @@ def generate_scene(
     with folder as tmp:
         image_dir = tmp / "images"
         image_dir.mkdir()
-        initargs = (city, corners, options, seed, str(image_dir))
+        # a street's control points include facade points, tested with the rest
+        street = options.scene_kind == "street"
+        tested = with_facade_points(city, corners) if street else corners
+        initargs = (city, tested, options, seed, str(image_dir))
         with WorkerPool(
             workers,
             _init_worker,
@@ -263,16 +267,19 @@ def generate_scene(
             "corner_building": [int(b) for b in corners["building"]],
             "corner_kind": list(corners["kind"]),
             "buildings": buildings_table(city),
-            "visible_corners": {name: vis for name, vis, _ in results},
+            "visible_corners": {
+                name: [i for i in vis if i < len(corners["xyz"])]
+                for name, vis, _ in results
+            },
         }
         (tmp / "gt_buildings.json").write_text(json.dumps(gt_doc) + "\n")
         n_gcp = 0
-        if options.scene_kind == "street":
+        if street:
             control = street_control_points(
                 city,
-                corners,
+                tested,
                 gt_local,
-                gt_doc["visible_corners"],
+                {name: vis for name, vis, _ in results},
                 options.street_gcp_spacing_m,
             )
             write_gcp_list(tmp / "gcp_list.txt", control)

@@ -25,7 +25,7 @@ from obliq_colmap.geometry import Pose, project, rotation_from_axis_angle
 from obliq_colmap.synthetic import city as C
 from obliq_colmap.synthetic.cameras import stream
 from obliq_colmap.synthetic.scene_io import SyntheticScene
-from obliq_colmap.synthetic.street import street_control_points, write_gcp_list
+from obliq_colmap.synthetic.street import read_gcp_list, write_gcp_list
 from obliq_colmap.synthetic.truth import points_visible
 
 #: random stream of the SfM-like model (beside the scene's own streams).
@@ -184,20 +184,15 @@ def scene_control_points(
 ) -> ControlPoints:
     """The true control points of a scene (ABSOLUTE, exact observations).
 
-    Street scenes: their ~30 m spaced points. Oblique scenes: ground corners
-    of mapped buildings seen in >= 3 images, ``num_control_points`` of them
-    by farthest-point sampling (a block's corners, as a surveyor spreads them).
+    Street scenes: their ~30 m spaced points (``gcp_list.txt``). Oblique
+    scenes: ground corners of mapped buildings seen in >= 3 images,
+    ``num_control_points`` of them by farthest-point sampling (a block's
+    corners, as a surveyor spreads them).
     """
     corners = C.corners(scene.city)
     visible = scene.buildings["visible_corners"]
     if scene.options.scene_kind == "street":
-        return street_control_points(
-            scene.city,
-            corners,
-            scene.gt_local,
-            visible,
-            scene.options.street_gcp_spacing_m,
-        )
+        return read_gcp_list(scene.path / "gcp_list.txt")
     n_views = np.zeros(len(corners["xyz"]), int)
     for idx in visible.values():
         n_views[np.asarray(idx, int)] += 1

@@ -34,6 +34,9 @@ from obliq_colmap.synthetic.options import SceneOptions
 
 #: fewest images a control point must be seen in to be chosen.
 MIN_GCP_VIEWS = 3
+#: height above the ground of the facade points of building corners (a
+#: surveyor's reflectorless shot above the parked cars), m.
+FACADE_POINT_HEIGHT_M = 3.0
 
 
 @dataclass(frozen=True)
@@ -111,6 +114,28 @@ def street_block(city: City, options: SceneOptions, seed: int) -> Block:
     return block
 
 
+def with_facade_points(city: City, corners: dict) -> dict:
+    """``corners`` plus, for every ground corner, the point on the building's
+    vertical corner edge :data:`FACADE_POINT_HEIGHT_M` above it (kind
+    "facade"), for walls at least 1 m taller than that. Same keys as
+    :func:`obliq_colmap.synthetic.city.corners`; the new points come last.
+    """
+    top = {b.id: b.base_z + b.height_m for b in city.buildings}
+    kind = np.asarray(corners["kind"])
+    z_top = np.array([top[b] for b in corners["building"]], float)
+    sel = (kind == "ground") & (
+        z_top - corners["xyz"][:, 2] >= FACADE_POINT_HEIGHT_M + 1.0
+    )
+    xyz = corners["xyz"][sel] + [0.0, 0.0, FACADE_POINT_HEIGHT_M]
+    return {
+        "xyz": np.concatenate([corners["xyz"], xyz]),
+        "building": np.concatenate([corners["building"], corners["building"][sel]]),
+        "kind": list(corners["kind"]) + ["facade"] * int(sel.sum()),
+        "dir_a": np.concatenate([corners["dir_a"], corners["dir_a"][sel]]),
+        "dir_b": np.concatenate([corners["dir_b"], corners["dir_b"][sel]]),
+    }
+
+
 def street_control_points(
     city: City,
     corners: dict,
@@ -120,14 +145,15 @@ def street_control_points(
 ) -> ControlPoints:
     """Control points about ``spacing_m`` apart along the walk, true positions.
 
-    Candidates are the ground and eave corners of mapped buildings visible
-    in at least :data:`MIN_GCP_VIEWS` images. Walking along the street, the
-    next point is the best-seen candidate within 10 m past the previous one
-    plus ``spacing_m``, alternately preferring ground and eave corners.
+    Candidates are the ground, eave and facade corners of mapped buildings
+    visible in at least :data:`MIN_GCP_VIEWS` images. Walking along the
+    street, the next point is the best-seen candidate within 10 m past the
+    previous one plus ``spacing_m``, alternately preferring ground and
+    facade corners.
 
     Parameters
     ----------
-    corners : :func:`obliq_colmap.synthetic.city.corners` of ``city`` (local).
+    corners : :func:`with_facade_points` of ``city``'s corners (local).
     gt_local : the true walk (local frame).
     visible : image name -> indices into ``corners`` visible in it.
 
@@ -144,7 +170,9 @@ def street_control_points(
     kind = np.asarray(corners["kind"])
     mapped = np.array([in_map[b] for b in corners["building"]], bool)
     cand = np.nonzero(
-        mapped & (n_views >= MIN_GCP_VIEWS) & np.isin(kind, ("ground", "eave"))
+        mapped
+        & (n_views >= MIN_GCP_VIEWS)
+        & np.isin(kind, ("ground", "eave", "facade"))
     )[0]
     walk = choose_street(city)
     s = xyz[cand, :2] @ walk.direction
@@ -156,7 +184,7 @@ def street_control_points(
             break
         s_ahead = s[s >= target]
         near = ahead[s_ahead < s_ahead.min() + 10.0]
-        prefer = "ground" if len(chosen) % 2 == 0 else "eave"
+        prefer = "ground" if len(chosen) % 2 == 0 else "facade"
         score = n_views[near] + 1000 * (kind[near] == prefer)
         best = int(near[np.argmax(score)])
         chosen.append(best)
@@ -193,3 +221,20 @@ def write_gcp_list(path: str | Path, control: ControlPoints) -> int:
             )
     Path(path).write_text("\n".join(lines) + "\n")
     return len(lines) - 1
+
+
+def read_gcp_list(path: str | Path) -> ControlPoints:
+    """Read back a file of :func:`write_gcp_list` (its own projection and columns).
+
+    Observations in COLMAP pixels; not a general reader of the format (the
+    ``control`` package has that).
+    """
+    lines = [x.split() for x in Path(path).read_text().splitlines() if x.strip()]
+    points: dict[str, ControlPoint] = {}
+    for row in lines[1:]:
+        name = row[6]
+        if name not in points:
+            points[name] = ControlPoint(name, np.array(row[:3], float))
+        xy = np.array(row[3:5], float) + 0.5
+        points[name].observations.append(ControlObservation(row[5], xy))
+    return ControlPoints(list(points.values()), " ".join(lines[0]))

@@ -1,0 +1,208 @@
+"""The georegister benchmark on synthetic scenes (issue 27, item 7c and the targets).
+
+What it measures: for each scene kind (``paper``: the oblique block as an
+SfM-like model; ``street``: a phone walking a street) a synthetic scene is
+generated (kept under ``--work_path``, reused when present) and its SfM-like
+model written (true cameras and tracks with 0.5 px noise, moved by a random
+similarity; control points with 0.05 m and 0.5 px noise). Then, per mode:
+
+- ``gcp2``, ``gcp3``: ``obliq-colmap georegister`` with the 2 (3) control
+  points farthest apart;
+- ``auto``: ``georegister`` with the cadastre and no control point;
+- ``reference3``: NOT the command: the control points triangulated in the
+  SfM-like model and a least-squares similarity (Umeyama) on 3 of them, no
+  vertical and no bundle; the floor the noise of the data allows, and the
+  check that the scoring runs end to end.
+
+Every result is scored against the truth (``georef_score.score_block``):
+the block's vertical and heading errors (deg), median rotation (deg) and
+centre (m) errors per image, median of the per-image mean corner deviations
+(px, issue 25's measure) and the fraction of images below 2 px. A mode whose
+command is not available (``georegister`` not in the CLI yet) is reported
+as such.
+
+The exact command (from the repository root; ~1 min per street scene, a few
+for paper, on 2 shared cores)::
+
+    python scripts/bench/georegister.py --work_path W [--scene paper street]
+        [--mode gcp2 gcp3 auto reference3] [--seed 1] [--paper_width 1002]
+        [--output_path bench_georegister.json]
+
+Figures go to docs/STATUS.md (issue 27) and docs/journal/georegister-bench.md.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+from obliq_colmap.cli import SUBCOMMANDS
+from obliq_colmap.colmap_io import Block, read_model
+from obliq_colmap.control.model import ControlPoints
+from obliq_colmap.evaluate import read_absolute_block
+from obliq_colmap.synthetic import generate_scene, load_scene, preset
+from obliq_colmap.synthetic.georef_score import score_block
+from obliq_colmap.synthetic.sfm_like import (
+    SfmLikeOptions,
+    Similarity,
+    noisy_control_points,
+    read_similarity,
+    scene_control_points,
+    write_sfm_like,
+)
+from obliq_colmap.synthetic.street import write_gcp_list
+
+MODES = ("gcp2", "gcp3", "auto", "reference3")
+
+
+def farthest_subset(control: ControlPoints, k: int) -> ControlPoints:
+    """The ``k`` points spread farthest: the farthest pair, then max-min distance."""
+    xyz = control.xyz()
+    d = np.linalg.norm(xyz[:, None] - xyz[None], axis=2)
+    i, j = np.unravel_index(np.argmax(d), d.shape)
+    chosen = [int(i), int(j)]
+    while len(chosen) < min(k, len(xyz)):
+        chosen.append(int(np.argmax(d[:, chosen].min(1))))
+    return ControlPoints([control.points[c] for c in chosen], control.crs)
+
+
+def triangulate(block: Block, control: ControlPoints) -> np.ndarray:
+    """(N, 3) linear (DLT) triangulation of each point in ``block``'s frame."""
+    by_name = {im.name: im for im in block.images.values()}
+    out = []
+    for p in control.points:
+        rows = []
+        for ob in p.observations:
+            im = by_name[ob.image_name]
+            uv = block.cameras[im.camera_id].cam_from_img(ob.xy[None])[0]
+            P = im.cam_from_world.matrix()
+            rows += [uv[0] * P[2] - P[0], uv[1] * P[2] - P[1]]
+        X = np.linalg.svd(np.asarray(rows))[2][-1]
+        out.append(X[:3] / X[3])
+    return np.asarray(out)
+
+
+def umeyama(src: np.ndarray, dst: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
+    """Least-squares similarity ``dst ~ s R src + t`` of (N, 3) points, N >= 3."""
+    ms, md = src.mean(0), dst.mean(0)
+    A, B = src - ms, dst - md
+    U, S, Vt = np.linalg.svd(B.T @ A)
+    D = np.diag([1.0, 1.0, np.sign(np.linalg.det(U @ Vt))])
+    R = U @ D @ Vt
+    s = float(np.trace(np.diag(S) @ D) / (A**2).sum())
+    return s, R, md - s * R @ ms
+
+
+def reference_block(model: Path, control: ControlPoints, origin: np.ndarray) -> Block:
+    """The SfM-like model placed by a similarity on its triangulated control points."""
+    block = read_model(model)
+    src = triangulate(block, control)
+    s, R, t = umeyama(src, control.xyz() - origin)
+    # X_local = s R X_sfm + t  <=>  X_sfm = (1/s) R^T (X_local - t)
+    inverse = Similarity(1.0 / s, R.T, -R.T @ t / s, origin)
+    return inverse.inverse_block(block)
+
+
+def ensure_scene(work: Path, kind: str, seed: int, paper_width: int) -> Path:
+    path = work / f"{kind}_seed{seed}"
+    if not (path / "scene.json").is_file():
+        overrides = {"image_width_px": paper_width} if kind == "paper" else {}
+        generate_scene(
+            path, preset(kind, **overrides), seed=seed, preset=kind, num_workers=2
+        )
+    return path
+
+
+def run_mode(mode: str, scene_path: Path, model: Path, work: Path, control) -> dict:
+    """Run one mode; returns the score or the reason it did not run."""
+    out = work / f"out_{mode}"
+    if mode == "reference3":
+        scene = load_scene(scene_path)
+        sub = farthest_subset(control, 3)
+        est = reference_block(model, sub, scene.origin)
+        return {"status": "ok", **score_block(est, scene)}
+    if "georegister" not in SUBCOMMANDS:
+        return {"status": "georegister not in the CLI yet"}
+    cmd = [
+        sys.executable,
+        "-m",
+        "obliq_colmap",
+        "georegister",
+        "--input_path",
+        str(model),
+        "--image_path",
+        str(scene_path / "images"),
+        "--output_path",
+        str(out),
+    ]
+    if mode == "auto":
+        cmd += ["--cadastre_path", str(scene_path / "cadastre.geojson")]
+    else:
+        gcp = work / f"{mode}.txt"
+        write_gcp_list(gcp, farthest_subset(control, int(mode[-1])))
+        cmd += ["--control_points_path", str(gcp)]
+    t0 = time.perf_counter()
+    proc = subprocess.run(cmd, capture_output=True, text=True)
+    if proc.returncode != 0:
+        return {"status": f"exit {proc.returncode}", "stderr": proc.stderr[-2000:]}
+    est, _ = read_absolute_block(out)
+    score = score_block(est, load_scene(scene_path))
+    return {"status": "ok", "time_s": time.perf_counter() - t0, **score}
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--work_path", required=True, type=Path)
+    ap.add_argument("--scene", nargs="+", default=["paper", "street"])
+    ap.add_argument("--mode", nargs="+", default=list(MODES), choices=MODES)
+    ap.add_argument("--seed", type=int, default=1)
+    ap.add_argument("--paper_width", type=int, default=1002)
+    ap.add_argument("--output_path", type=Path, default=None)
+    args = ap.parse_args(argv)
+    args.work_path.mkdir(parents=True, exist_ok=True)
+    options = SfmLikeOptions()
+    results = {}
+    for kind in args.scene:
+        scene_path = ensure_scene(args.work_path, kind, args.seed, args.paper_width)
+        scene = load_scene(scene_path)
+        work = args.work_path / f"{kind}_seed{args.seed}_runs"
+        work.mkdir(parents=True, exist_ok=True)
+        model = work / "sfm_like"
+        if not (model / "sfm_frame.json").is_file():
+            write_sfm_like(model, scene, options, seed=args.seed)
+        sim = read_similarity(model)
+        control = noisy_control_points(
+            scene_control_points(scene, options), options, args.seed
+        )
+        print(
+            f"{kind}: {len(scene.gt.images)} images, {len(control)} control "
+            f"points, similarity scale {sim.scale:.3f}"
+        )
+        for mode in args.mode:
+            res = run_mode(mode, scene_path, model, work, control)
+            results[f"{kind}/{mode}"] = res
+            if res["status"] != "ok":
+                print(f"  {mode:11s} {res['status']}")
+                continue
+            print(
+                f"  {mode:11s} vertical {res['vertical_error_deg']:.4f} deg, heading "
+                f"{res['heading_error_deg']:+.4f} deg, rotation median "
+                f"{res['rotation_error_median_deg']:.4f} deg, centre median "
+                f"{res['center_error_median_m']:.3f} m (max "
+                f"{res['center_error_max_m']:.3f}), deviation median "
+                f"{res['deviation_median_px']:.2f} px, below 2 px "
+                f"{100 * res['below_2px']:.0f} % of {res['num_images']}"
+            )
+    if args.output_path:
+        args.output_path.write_text(json.dumps(results, indent=1, default=float))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
