@@ -303,3 +303,76 @@ def read_similarity(model_path: str | Path) -> Similarity:
         np.asarray(doc["translation"], float),
         np.asarray(doc["origin"], float),
     )
+
+
+def write_pycolmap_sfm(
+    output_path: str | Path,
+    scene: SyntheticScene,
+    options: SfmLikeOptions | None = None,
+    *,
+    seed: int = 0,
+    overlap: int = 10,
+    num_threads: int = 2,
+) -> Path:
+    """A real SfM model of the scene's images by pycolmap, as a user makes one.
+
+    SIFT on the CPU (one shared SIMPLE_RADIAL camera, intrinsics unknown),
+    sequential matching over ``overlap`` neighbours (images in walking or
+    file order), incremental mapping; the largest reconstruction is written
+    with the same ``gcp_list.txt`` / ``gcp_true.txt`` as :func:`write_sfm_like`.
+
+    Raises
+    ------
+    RuntimeError
+        pycolmap reconstructed nothing.
+    """
+    import pycolmap
+
+    options = options or SfmLikeOptions()
+    control = scene_control_points(scene, options)
+    with AtomicFolder(Path(output_path)) as tmp:
+        work = tmp / "work"
+        work.mkdir()
+        database = work / "database.db"
+        reader = pycolmap.ImageReaderOptions()
+        reader.camera_model = "SIMPLE_RADIAL"
+        extraction = pycolmap.FeatureExtractionOptions()
+        extraction.num_threads = num_threads
+        extraction.use_gpu = False
+        pycolmap.extract_features(
+            database,
+            scene.path / "images",
+            camera_mode=pycolmap.CameraMode.SINGLE,
+            reader_options=reader,
+            extraction_options=extraction,
+            device=pycolmap.Device.cpu,
+        )
+        matching = pycolmap.FeatureMatchingOptions()
+        matching.num_threads = num_threads
+        matching.use_gpu = False
+        pairing = pycolmap.SequentialPairingOptions()
+        pairing.overlap = overlap
+        pycolmap.match_sequential(
+            database,
+            matching_options=matching,
+            pairing_options=pairing,
+            device=pycolmap.Device.cpu,
+        )
+        mapping = pycolmap.IncrementalPipelineOptions()
+        mapping.num_threads = num_threads
+        mapping.random_seed = seed
+        recs = pycolmap.incremental_mapping(
+            database, scene.path / "images", work / "sparse", options=mapping
+        )
+        if not recs:
+            raise RuntimeError(f"pycolmap reconstructed nothing from {scene.path}")
+        rec = max(recs.values(), key=lambda r: r.num_reg_images())
+        rec.write_binary(str(tmp))
+        write_gcp_list(
+            tmp / "gcp_list.txt", noisy_control_points(control, options, seed)
+        )
+        write_gcp_list(tmp / "gcp_true.txt", control)
+        for f in sorted(work.rglob("*"), reverse=True):
+            f.unlink() if f.is_file() else f.rmdir()
+        work.rmdir()
+    return Path(output_path)

@@ -52,8 +52,8 @@ from obliq_colmap.synthetic.sfm_like import (
     SfmLikeOptions,
     Similarity,
     noisy_control_points,
-    read_similarity,
     scene_control_points,
+    write_pycolmap_sfm,
     write_sfm_like,
 )
 from obliq_colmap.synthetic.street import write_gcp_list
@@ -73,12 +73,20 @@ def farthest_subset(control: ControlPoints, k: int) -> ControlPoints:
 
 
 def triangulate(block: Block, control: ControlPoints) -> np.ndarray:
-    """(N, 3) linear (DLT) triangulation of each point in ``block``'s frame."""
+    """(N, 3) linear (DLT) triangulation of each point in ``block``'s frame.
+
+    Observations in images the block lacks are skipped; NaN for a point seen
+    in fewer than 2 of its images.
+    """
     by_name = {im.name: im for im in block.images.values()}
     out = []
     for p in control.points:
         rows = []
-        for ob in p.observations:
+        seen = [ob for ob in p.observations if ob.image_name in by_name]
+        if len(seen) < 2:
+            out.append(np.full(3, np.nan))
+            continue
+        for ob in seen:
             im = by_name[ob.image_name]
             uv = block.cameras[im.camera_id].cam_from_img(ob.xy[None])[0]
             P = im.cam_from_world.matrix()
@@ -103,7 +111,10 @@ def reference_block(model: Path, control: ControlPoints, origin: np.ndarray) -> 
     """The SfM-like model placed by a similarity on its triangulated control points."""
     block = read_model(model)
     src = triangulate(block, control)
-    s, R, t = umeyama(src, control.xyz() - origin)
+    ok = np.isfinite(src).all(1)
+    if ok.sum() < 3:
+        raise ValueError(f"{ok.sum()} control points triangulated in {model}")
+    s, R, t = umeyama(src[ok], control.xyz()[ok] - origin)
     # X_local = s R X_sfm + t  <=>  X_sfm = (1/s) R^T (X_local - t)
     inverse = Similarity(1.0 / s, R.T, -R.T @ t / s, origin)
     return inverse.inverse_block(block)
@@ -156,11 +167,33 @@ def run_mode(mode: str, scene_path: Path, model: Path, work: Path, control) -> d
     return {"status": "ok", "time_s": time.perf_counter() - t0, **score}
 
 
+def print_result(mode: str, res: dict) -> None:
+    if res["status"] != "ok":
+        print(f"  {mode:11s} {res['status']}")
+        return
+    print(
+        f"  {mode:11s} vertical {res['vertical_error_deg']:.4f} deg, heading "
+        f"{res['heading_error_deg']:+.4f} deg, rotation median "
+        f"{res['rotation_error_median_deg']:.4f} deg, centre median "
+        f"{res['center_error_median_m']:.3f} m (max "
+        f"{res['center_error_max_m']:.3f}), deviation median "
+        f"{res['deviation_median_px']:.2f} px, below 2 px "
+        f"{100 * res['below_2px']:.0f} % of {res['num_images']}"
+    )
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--work_path", required=True, type=Path)
     ap.add_argument("--scene", nargs="+", default=["paper", "street"])
     ap.add_argument("--mode", nargs="+", default=list(MODES), choices=MODES)
+    ap.add_argument(
+        "--sfm",
+        nargs="+",
+        default=["sfm_like"],
+        choices=("sfm_like", "pycolmap"),
+        help="input models: the SfM-like model and/or pycolmap's SfM of the images",
+    )
     ap.add_argument("--seed", type=int, default=1)
     ap.add_argument("--paper_width", type=int, default=1002)
     ap.add_argument("--output_path", type=Path, default=None)
@@ -171,34 +204,29 @@ def main(argv: list[str] | None = None) -> int:
     for kind in args.scene:
         scene_path = ensure_scene(args.work_path, kind, args.seed, args.paper_width)
         scene = load_scene(scene_path)
-        work = args.work_path / f"{kind}_seed{args.seed}_runs"
-        work.mkdir(parents=True, exist_ok=True)
-        model = work / "sfm_like"
-        if not (model / "sfm_frame.json").is_file():
-            write_sfm_like(model, scene, options, seed=args.seed)
-        sim = read_similarity(model)
-        control = noisy_control_points(
-            scene_control_points(scene, options), options, args.seed
-        )
-        print(
-            f"{kind}: {len(scene.gt.images)} images, {len(control)} control "
-            f"points, similarity scale {sim.scale:.3f}"
-        )
-        for mode in args.mode:
-            res = run_mode(mode, scene_path, model, work, control)
-            results[f"{kind}/{mode}"] = res
-            if res["status"] != "ok":
-                print(f"  {mode:11s} {res['status']}")
-                continue
-            print(
-                f"  {mode:11s} vertical {res['vertical_error_deg']:.4f} deg, heading "
-                f"{res['heading_error_deg']:+.4f} deg, rotation median "
-                f"{res['rotation_error_median_deg']:.4f} deg, centre median "
-                f"{res['center_error_median_m']:.3f} m (max "
-                f"{res['center_error_max_m']:.3f}), deviation median "
-                f"{res['deviation_median_px']:.2f} px, below 2 px "
-                f"{100 * res['below_2px']:.0f} % of {res['num_images']}"
+        work_root = args.work_path / f"{kind}_seed{args.seed}_runs"
+        for sfm in args.sfm:
+            work = work_root / sfm
+            work.mkdir(parents=True, exist_ok=True)
+            model = work / "model"
+            t0 = time.perf_counter()
+            if not (model / "gcp_list.txt").is_file():
+                write = write_sfm_like if sfm == "sfm_like" else write_pycolmap_sfm
+                write(model, scene, options, seed=args.seed)
+            n_reg = len(read_model(model).images)
+            control = noisy_control_points(
+                scene_control_points(scene, options), options, args.seed
             )
+            print(
+                f"{kind} / {sfm}: {n_reg} of {len(scene.gt.images)} images in the "
+                f"model ({time.perf_counter() - t0:.0f} s), {len(control)} control "
+                "points"
+            )
+            for mode in args.mode:
+                res = run_mode(mode, scene_path, model, work, control)
+                res["num_images_in_model"] = n_reg
+                results[f"{kind}/{sfm}/{mode}"] = res
+                print_result(mode, res)
     if args.output_path:
         args.output_path.write_text(json.dumps(results, indent=1, default=float))
     return 0
