@@ -317,9 +317,10 @@ def write_pycolmap_sfm(
     """A real SfM model of the scene's images by pycolmap, as a user makes one.
 
     SIFT on the CPU (one shared SIMPLE_RADIAL camera, intrinsics unknown),
-    sequential matching over ``overlap`` neighbours (images in walking or
-    file order), incremental mapping; the largest reconstruction is written
-    with the same ``gcp_list.txt`` / ``gcp_true.txt`` as :func:`write_sfm_like`.
+    sequential matching over ``overlap`` neighbours in walking order (street
+    scenes; exhaustive otherwise), incremental mapping; the largest
+    reconstruction is written with the same ``gcp_list.txt`` /
+    ``gcp_true.txt`` as :func:`write_sfm_like`.
 
     Raises
     ------
@@ -350,14 +351,19 @@ def write_pycolmap_sfm(
         matching = pycolmap.FeatureMatchingOptions()
         matching.num_threads = num_threads
         matching.use_gpu = False
-        pairing = pycolmap.SequentialPairingOptions()
-        pairing.overlap = overlap
-        pycolmap.match_sequential(
-            database,
-            matching_options=matching,
-            pairing_options=pairing,
-            device=pycolmap.Device.cpu,
-        )
+        if scene.options.scene_kind == "street":
+            pairing = pycolmap.SequentialPairingOptions()
+            pairing.overlap = overlap
+            pycolmap.match_sequential(
+                database,
+                matching_options=matching,
+                pairing_options=pairing,
+                device=pycolmap.Device.cpu,
+            )
+        else:  # a flight's file order is no sequence
+            pycolmap.match_exhaustive(
+                database, matching_options=matching, device=pycolmap.Device.cpu
+            )
         mapping = pycolmap.IncrementalPipelineOptions()
         mapping.num_threads = num_threads
         mapping.random_seed = seed
