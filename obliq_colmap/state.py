@@ -25,7 +25,7 @@ from pathlib import Path
 import numpy as np
 
 from obliq_colmap.bundle import BundleResult
-from obliq_colmap.cadastre import Cadastre
+from obliq_colmap.cadastre import Cadastre, CadastreOptions
 from obliq_colmap.colmap_io import Block
 from obliq_colmap.geometry import Camera, Pose
 from obliq_colmap.lines import Segments
@@ -100,6 +100,11 @@ class Inputs:
     priors: Block  # local frame
     cameras: dict[int, Camera]  # in the result's camera model
     priors_path: Path | None = None  # the priors model, for messages
+    #: the map options the run read the map with (its area among them): the
+    #: workers read the same map with them
+    cadastre_options: CadastreOptions | None = None
+    #: the priors give positions only (their rotations are placeholders)
+    position_only: bool = False
 
 
 @dataclass

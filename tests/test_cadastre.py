@@ -776,3 +776,18 @@ def test_the_view_box_keeps_every_corner_the_whole_map_test_finds(margin_px):
         )
         assert len(whole) > 0
         np.testing.assert_array_equal(fast, whole)
+
+
+def test_area_keeps_the_block_part_of_a_city_map(tmp_path):
+    """A city-wide map: only the footprints near the block are cleaned."""
+    near = [_square_feature(500_000 + 20 * k, 5_600_000) for k in range(5)]
+    far = [_square_feature(520_000 + 20 * k, 5_620_000) for k in range(50)]
+    path = _write(tmp_path / "city.geojson", _collection(near + far))
+    whole = load_cadastre(path)
+    assert whole.num_buildings == 55
+    area = (499_900.0, 5_599_900.0, 500_200.0, 5_600_100.0)
+    cad = load_cadastre(path, CadastreOptions(area=area))
+    assert cad.num_buildings == 5
+    assert cad.report.num_features == 55  # the file's count stays in the report
+    with pytest.raises(InputError, match="another CRS"):
+        load_cadastre(path, CadastreOptions(area=(0.0, 0.0, 100.0, 100.0)))

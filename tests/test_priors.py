@@ -342,6 +342,7 @@ def test_cli_errors_exit_2(tmp_path, capsys):
         "--input_path", str(geo),
         "--camera_params", "1200,500,333.5",
         "--output_path", str(tmp_path / "result"),
+        "--heading_step", "0",  # no heading search: positions only refused
     ]  # fmt: skip
     assert main(reg) == 2
     err = capsys.readouterr().err

@@ -30,6 +30,7 @@ def test_unknown_district_lists_the_allowed():
         SceneOptions(district="suburb")
 
 
+@pytest.mark.slow
 def test_industrial_district_has_halls():
     city = _city("industrial")
     halls = [b for b in city.buildings if b.style[0] > b.height_m]  # one storey
@@ -40,12 +41,14 @@ def test_industrial_district_has_halls():
     assert np.median(areas) > 600.0  # halls, not houses
 
 
+@pytest.mark.slow
 def test_highrise_district_has_towers():
     city = _city("highrise")
     heights = np.array([b.height_m for b in city.buildings])
     assert (heights >= 40.0).sum() >= 2
 
 
+@pytest.mark.slow
 def test_houses_district_is_mostly_pitched_roofs():
     city = _city("houses")
     pitched = np.mean([b.roof in ("gabled", "hipped") for b in city.buildings])

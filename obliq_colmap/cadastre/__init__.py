@@ -60,13 +60,16 @@ Modules, in reading order:
   feature parsing, the metric check and the local origin.
 - ``clean``: steps 3-5, repair / dissolve, ring cleaning, turn angles,
   corners and edges, party walls.
-- ``load``: :func:`load_cadastre`, the five steps in order.
+- ``load``: :func:`load_cadastre`, the five steps in order; split as
+  :func:`read_footprints` (step 1) and :func:`build_cadastre` (steps 2-5,
+  keeping only ``CadastreOptions.area``) for callers that need the map's
+  CRS before they know the area (``register``: the priors).
 - ``visibility``: frustum, facing walls, :func:`visible_corners`,
   :func:`visible_edge_parts`, :func:`visible_edges`, the wall clipping.
 - ``write``: :func:`write_geojson`.
 """
 
-from .load import load_cadastre
+from .load import Footprints, build_cadastre, load_cadastre, read_footprints
 from .model import SHARED_WALL_FRACTION, Cadastre
 from .options import CadastreOptions, CadastreReport
 from .read import GEOGRAPHIC_CRS, normalize_crs
@@ -85,7 +88,10 @@ __all__ = [
     "CadastreOptions",
     "CadastreReport",
     "GroundHeight",
+    "Footprints",
+    "build_cadastre",
     "load_cadastre",
+    "read_footprints",
     "normalize_crs",
     "visible_corners",
     "visible_edge_parts",

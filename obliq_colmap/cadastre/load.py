@@ -5,6 +5,7 @@ from __future__ import annotations
 import logging
 import time
 from collections.abc import Sequence
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -28,6 +29,18 @@ from .read import (
 logger = logging.getLogger(__name__)
 
 
+@dataclass
+class Footprints:
+    """The map's features, parsed and in a projected CRS (steps 1 of
+    :func:`load_cadastre`), before cleaning."""
+
+    path: Path
+    crs: str | None
+    features: list[Feature]
+    report: CadastreReport
+    t_start: float
+
+
 def load_cadastre(
     path: str | Path,
     options: CadastreOptions | None = None,
@@ -39,14 +52,16 @@ def load_cadastre(
     ----------
     path : str or Path
         GeoJSON FeatureCollection of Polygon / MultiPolygon features in a
-        projected metric CRS. Other geometry types and null geometries are
-        skipped with a warning.
+        projected metric CRS (or Shapefile / GeoPackage, or RFC 7946
+        longitude / latitude, reprojected). Other geometry types and null
+        geometries are skipped with a warning.
     options : CadastreOptions, optional
         Cleaning options; the defaults suit 1 cm to 10 cm cadastral maps.
+        ``options.area`` keeps only the features within those bounds.
     origin : (2,) or (3,) array-like, optional
         Absolute coordinates (m) of the local origin, e.g. to share a frame
-        with a priors model. Default: the centre of the map's bounds rounded to
-        ``options.origin_rounding_m``, with z = 0.
+        with a priors model. Default: the centre of the kept features'
+        bounds rounded to ``options.origin_rounding_m``, with z = 0.
 
     Returns
     -------
@@ -59,16 +74,20 @@ def load_cadastre(
         Naming the file (and the feature's index and id where one is at fault):
         missing or unreadable file, not JSON, not a FeatureCollection, no
         polygon features, malformed coordinates, invalid geometry that cannot
-        be repaired (or ``repair_invalid`` is False), coordinates in degrees.
+        be repaired (or ``repair_invalid`` is False), coordinates in degrees,
+        no feature within ``options.area``.
     """
-    t_start = time.perf_counter()
     options = CadastreOptions() if options is None else options
+    return build_cadastre(read_footprints(path, options), options, origin)
+
+
+def read_footprints(path: str | Path, options: CadastreOptions) -> Footprints:
+    """Step 1 of :func:`load_cadastre`: parse the features, reproject them."""
+    t_start = time.perf_counter()
     path = Path(path)
     doc = read_document(path)
     crs = parse_crs(path, doc.get("crs"))
     report = CadastreReport(num_features=len(doc["features"]))
-
-    # 1. Parse the features (absolute coordinates).
     features: list[Feature] = []
     skipped: dict[str, list[int]] = {}
     for index, raw in enumerate(doc["features"]):
@@ -95,6 +114,44 @@ def load_cadastre(
     features, crs = to_projected(
         path, crs, features, options.crs, options.allow_degree_range
     )
+    return Footprints(path, crs, features, report, t_start)
+
+
+def _within_area(fp: Footprints, area) -> list[Feature]:
+    """The features whose bounding box meets ``area`` (absolute bounds)."""
+    bounds = shapely.bounds([f.geometry for f in fp.features])  # (N, 4)
+    xmin, ymin, xmax, ymax = area
+    keep = (
+        (bounds[:, 2] >= xmin)
+        & (bounds[:, 0] <= xmax)
+        & (bounds[:, 3] >= ymin)
+        & (bounds[:, 1] <= ymax)
+    )
+    if not keep.any():
+        raise InputError(
+            fp.path,
+            f"none of its {len(fp.features)} footprints lies within the block's "
+            f"area ({xmin:.0f}, {ymin:.0f}) - ({xmax:.0f}, {ymax:.0f}) "
+            f"{fp.crs or ''} (is the map in another CRS than the priors?)",
+        )
+    if not keep.all():
+        logger.info(
+            "%s: %d of %d footprints within the block's area",
+            fp.path.name, int(keep.sum()), len(keep),
+        )  # fmt: skip
+    return [f for f, k in zip(fp.features, keep, strict=True) if k]
+
+
+def build_cadastre(
+    fp: Footprints,
+    options: CadastreOptions,
+    origin: Sequence[float] | np.ndarray | None = None,
+) -> Cadastre:
+    """Steps 2-5 of :func:`load_cadastre` on parsed footprints."""
+    path, crs, report = fp.path, fp.crs, fp.report
+    features = fp.features
+    if options.area is not None:
+        features = _within_area(fp, options.area)
     bounds = check_metric(path, crs, features, options)
 
     # 2. Local frame.
@@ -132,7 +189,7 @@ def load_cadastre(
 
     # 5. Corners, edges, party walls, spatial index.
     cadastre = assemble(crs, origin3, polygons, owners, options)
-    report.seconds = time.perf_counter() - t_start
+    report.seconds = time.perf_counter() - fp.t_start
     cadastre.report = report
     logger.info(
         "cadastre %s: %d features -> %d buildings, %d corners (%d reflex), "

@@ -53,6 +53,17 @@ class CadastreOptions:
         The projected CRS to bring the map into (``register --crs``, e.g.
         "EPSG:25832": the priors' CRS); None keeps a projected map's own and
         takes the UTM zone of its centre for one in longitude / latitude.
+    area : (xmin, ymin, xmax, ymax) or None
+        Absolute bounds (in the map's projected CRS) of the part of the map
+        to keep: features whose bounding box misses it are dropped before
+        cleaning, so a city-wide map costs what the block's part of it
+        costs. ``register`` sets it from the prior camera centres and
+        ``area_margin_m``; None keeps the whole map.
+    area_margin_m : float
+        ``register``: the map is kept within this distance of the prior
+        camera centres. An oblique camera 1,000 m above ground at 45 deg
+        with a 30 deg field of view sees ~2.4 km far; 3,000 m covers
+        flights up to ~1,200 m.
     """
 
     min_edge_length_m: float = 0.05
@@ -66,6 +77,8 @@ class CadastreOptions:
     origin_rounding_m: float = 100.0
     allow_degree_range: bool = False
     crs: str | None = None
+    area: tuple[float, float, float, float] | None = None
+    area_margin_m: float = 3000.0
 
     def __post_init__(self) -> None:
         for name in (
@@ -76,6 +89,7 @@ class CadastreOptions:
             "grid_size_m",
             "shared_edge_tolerance_m",
             "origin_rounding_m",
+            "area_margin_m",
         ):
             value = getattr(self, name)
             if not (

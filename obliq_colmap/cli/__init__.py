@@ -24,10 +24,15 @@ SUBCOMMANDS: dict[str, tuple[str, str]] = {
     "register": ("register", "register oblique images to a cadastral map"),
     "export": ("export", "write a result model as absolute, OPK or text"),
     "report": ("report", "write an HTML report of a registration"),
+    "georegister": (
+        "georegister",
+        "bring an existing COLMAP SfM model onto the map (control points)",
+    ),
     "export_products": (
         "export_products",
         "terrain grid, building heights, LoD1 model, map discrepancies",
     ),
+    "export_dense": ("export_dense", "write a COLMAP dense-matching workspace"),
 }
 
 logger = logging.getLogger("obliq_colmap")

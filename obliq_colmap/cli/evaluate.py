@@ -1,4 +1,8 @@
-"""``obliq-colmap evaluate``: measure a result model against a scene's truth.
+"""``obliq-colmap evaluate``: measure a result model against a scene's truth,
+or any model against control points (check points, for real data).
+
+    obliq-colmap evaluate --input_path MODEL --control_points_path GCP_FILE
+                          [--check_points NAME,...] [--output_path report.json]
 
     obliq-colmap evaluate --input_path RESULT_MODEL --gt_path SCENE
                           [--baseline] [--across_vertical]
@@ -29,6 +33,10 @@ from obliq_colmap.evaluate import (
     evaluate_baseline,
     evaluate_model,
 )
+from obliq_colmap.evaluate.control import (
+    evaluate_control_points,
+    format_control_table,
+)
 from obliq_colmap.files import write_json_atomic
 
 
@@ -39,8 +47,19 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "optional with --baseline",
     )
     parser.add_argument(
+        "--control_points_path",
+        help="instead of --gt_path: control points (gcp_list.txt or "
+        "ground_control_points.json) triangulated in the model from their "
+        "observations and scored against their coordinates (m and px)",
+    )
+    parser.add_argument(
+        "--check_points",
+        default="",
+        help="with --control_points_path: the names reported as check points "
+        "(comma-separated; default all)",
+    )
+    parser.add_argument(
         "--gt_path",
-        required=True,
         help="scene folder with gt/, priors/ and gt_buildings.json (synthetic) "
         "or also gt_visibility.json (external format)",
     )
@@ -97,7 +116,30 @@ def _write_json(path: Path, data: dict) -> None:
     write_json_atomic(path, data, indent=2, allow_nan=False)
 
 
+def _run_control_points(args: argparse.Namespace) -> int:
+    if args.input_path is None:
+        raise InputError(None, "--control_points_path needs --input_path (the model)")
+    if args.output_path is not None and not Path(args.output_path).parent.is_dir():
+        raise InputError(
+            Path(args.output_path).parent,
+            "parent folder of --output_path does not exist",
+        )
+    checks = tuple(n for n in args.check_points.split(",") if n)
+    report = evaluate_control_points(args.input_path, args.control_points_path, checks)
+    print(f"# {args.input_path}: {args.control_points_path}")
+    print(format_control_table(report))
+    if args.output_path is not None:
+        _write_json(Path(args.output_path), report)
+    return 0
+
+
 def run(args: argparse.Namespace) -> int:
+    if (args.gt_path is None) == (args.control_points_path is None):
+        raise InputError(
+            None, "give exactly one of --gt_path and --control_points_path"
+        )
+    if args.control_points_path is not None:
+        return _run_control_points(args)
     if args.input_path is None and not args.baseline:
         raise InputError(None, "--input_path is required unless --baseline is given")
     try:

@@ -49,6 +49,8 @@ def _bool01(text: str) -> bool:
 #: value out of range is reported with the option the user typed.
 OPTION_OF_FIELD = {
     "prior_position_sigma_m": "--prior_position_sigma",
+    "area_margin_m": "--cadastre_margin",
+    "heading_step_deg": "--heading_step",
     "prior_rotation_sigma_deg": "--prior_rotation_sigma",
     "prior_focal_sigma": "--prior_focal_sigma",
     "ground_height": "--ground_height",
@@ -86,6 +88,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         " zone of a longitude/latitude map); recorded in georef.json",
     )
     io.add_argument(
+        "--cadastre_margin",
+        type=float,
+        default=CadastreOptions.area_margin_m,
+        metavar="M",
+        help="read the map within this distance (m) of the prior camera centres "
+        "(default %(default)g; raise it for flights above ~1,200 m)",
+    )
+    io.add_argument(
         "--input_path",
         required=True,
         help="priors in the map's frame: a COLMAP model folder, or an "
@@ -95,6 +105,16 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--camera_path",
         help="intrinsics for text priors: a COLMAP model, cameras.txt/.bin or "
         "database (a model listing the images assigns cameras by name)",
+    )
+    io.add_argument(
+        "--heading_step",
+        type=float,
+        default=PipelineOptions.heading_step_deg,
+        metavar="DEG",
+        help="priors with positions only (geo.txt, database pose priors): each "
+        "image's heading is searched on a grid of this step through stage 2, "
+        "its tilt from its vanishing point (default %(default)g; 0 refuses "
+        "such priors)",
     )
     io.add_argument(
         "--camera_params",
@@ -303,10 +323,11 @@ def run(args: argparse.Namespace) -> int:
     try:
         options = PipelineOptions(
             stop_after=args.stop_after,
+            heading_step_deg=args.heading_step,
             priors=PriorsOptions(
                 camera_path=args.camera_path, camera_params=args.camera_params
             ),
-            cadastre=CadastreOptions(crs=args.crs),
+            cadastre=CadastreOptions(crs=args.crs, area_margin_m=args.cadastre_margin),
             num_workers=args.num_workers,
             dask_scheduler=args.dask_scheduler,
             camera_model=args.camera_model,

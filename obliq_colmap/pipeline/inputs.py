@@ -10,16 +10,19 @@ from pathlib import Path
 
 import numpy as np
 
-from obliq_colmap.cadastre import load_cadastre
+from obliq_colmap.cadastre import CadastreOptions, build_cadastre, read_footprints
 from obliq_colmap.errors import InputError
 from obliq_colmap.pipeline.options import PipelineOptions
 from obliq_colmap.pipeline.workers import ImageTask
-from obliq_colmap.priors import read_priors
+from obliq_colmap.priors import prior_format, read_priors
 from obliq_colmap.state import Inputs
 
 __all__ = ["image_tasks", "load_inputs"]
 
 logger = logging.getLogger(__name__)
+
+#: Prior formats that carry camera positions but no rotations.
+POSITION_ONLY_FORMATS = ("geo", "database")
 
 
 def load_inputs(
@@ -36,17 +39,27 @@ def load_inputs(
         Any user mistake (missing files, unreadable map or model, degrees).
     """
     image_path, cadastre_path = Path(image_path), Path(cadastre_path)
-    cadastre = load_cadastre(cadastre_path, options.cadastre)
-    if cadastre.num_corners == 0:
-        raise InputError(cadastre_path, "the map has no usable footprints")
+    footprints = read_footprints(cadastre_path, options.cadastre)
     # Priors in geographic or another CRS (geo.txt, XMP, databases) go into
     # the map's CRS when the map declares one.
     prior_options = options.priors
-    if prior_options.crs is None and cadastre.crs is not None:
-        prior_options = dataclasses.replace(prior_options, crs=cadastre.crs)
+    if prior_options.crs is None and footprints.crs is not None:
+        prior_options = dataclasses.replace(prior_options, crs=footprints.crs)
+    # positions only (geo.txt, database priors): a heading search, unless off
+    position_only = prior_format(Path(input_path)) in POSITION_ONLY_FORMATS
+    if position_only and options.heading_step_deg > 0:
+        prior_options = dataclasses.replace(prior_options, require_rotation=False)
+        logger.info(
+            "%s: positions only: each image's heading is searched every %g deg",
+            input_path, options.heading_step_deg,
+        )  # fmt: skip
     priors_abs = read_priors(input_path, image_path, prior_options)
     if not priors_abs.images:
         raise InputError(input_path, "the priors model has no images")
+    cadastre_options = _with_block_area(options.cadastre, priors_abs)
+    cadastre = build_cadastre(footprints, cadastre_options)
+    if cadastre.num_corners == 0:
+        raise InputError(cadastre_path, "the map has no usable footprints")
     origin = np.array([cadastre.origin[0], cadastre.origin[1], 0.0])
     priors = priors_abs.shifted(origin)
     centres = np.array([im.cam_from_world.center for im in priors.images.values()])
@@ -65,8 +78,26 @@ def load_inputs(
             logger.info("camera %d: %s -> %s", cid, cam.model, model)
         cameras[cid] = cam.with_model(model)
     return Inputs(
-        image_path, cadastre_path, cadastre, priors, cameras, Path(input_path)
+        image_path,
+        cadastre_path,
+        cadastre,
+        priors,
+        cameras,
+        Path(input_path),
+        cadastre_options,
+        position_only,
     )
+
+
+def _with_block_area(options: CadastreOptions, priors_abs) -> CadastreOptions:
+    """The map options with ``area``: the prior camera centres' bounds widened
+    by ``area_margin_m`` (absolute coordinates, the map's CRS)."""
+    if options.area is not None:
+        return options
+    centres = np.array([im.cam_from_world.center for im in priors_abs.images.values()])
+    lo = centres[:, :2].min(axis=0) - options.area_margin_m
+    hi = centres[:, :2].max(axis=0) + options.area_margin_m
+    return dataclasses.replace(options, area=(lo[0], lo[1], hi[0], hi[1]))
 
 
 def image_tasks(inputs: Inputs, options: PipelineOptions) -> list[ImageTask]:
@@ -86,6 +117,7 @@ def image_tasks(inputs: Inputs, options: PipelineOptions) -> list[ImageTask]:
             registration=options.registration,
             refine=options.refine_segments,
             model=inputs.cameras[im.camera_id].model,
+            heading_step_deg=options.heading_step_deg if inputs.position_only else 0.0,
         )
         for im in sorted(inputs.priors.images.values(), key=lambda im: im.image_id)
     ]

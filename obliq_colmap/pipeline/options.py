@@ -39,6 +39,11 @@ class PipelineOptions:
     stop_after: str = "bundle"
     #: Camera source and CRS for prior formats that carry none (OPK text).
     priors: PriorsOptions = field(default_factory=PriorsOptions)
+    #: Priors with positions only (geo.txt, a database's pose priors): each
+    #: image's heading is searched on a grid of this step (deg) through stage
+    #: 2, its tilt and roll coming from its VP (stage 1 without an INS
+    #: prior). 0 refuses such priors.
+    heading_step_deg: float = 45.0
     #: Worker processes for the per-image stages; 0 = the available cores.
     num_workers: int = 0
     #: Run the per-image stages on a Dask cluster: a scheduler's address, or
@@ -126,6 +131,10 @@ class PipelineOptions:
     cadastre: CadastreOptions = field(default_factory=CadastreOptions)
 
     def __post_init__(self) -> None:
+        if not 0.0 <= self.heading_step_deg <= 90.0:
+            raise ValueError(
+                f"heading_step_deg must be in [0, 90], got {self.heading_step_deg}"
+            )
         if self.stop_after not in STOP_AFTER:
             raise ValueError(
                 f"stop_after={self.stop_after!r}; allowed: {', '.join(STOP_AFTER)}"

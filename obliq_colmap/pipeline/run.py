@@ -77,7 +77,7 @@ def run_register(
         cad.crs,
     )
     origin3 = np.array([cad.origin[0], cad.origin[1], 0.0])
-    init_args = (inputs.cadastre_path, options.cadastre, origin3)
+    init_args = (inputs.cadastre_path, inputs.cadastre_options, origin3)
     workers = min(options.workers, len(tasks))
     with worker_pool(
         workers, init_args, cad, options.progress, options.dask_scheduler

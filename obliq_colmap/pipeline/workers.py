@@ -18,7 +18,7 @@ from typing import Any
 import numpy as np
 
 from obliq_colmap.cadastre import Cadastre, CadastreOptions, load_cadastre
-from obliq_colmap.geometry import Camera, Pose
+from obliq_colmap.geometry import Camera, Pose, rotation_aligning, rotation_z
 from obliq_colmap.images import read_image
 from obliq_colmap.lines import RefineOptions, refine_segments
 from obliq_colmap.parallel import WorkerPool, image_seed
@@ -71,6 +71,9 @@ class ImageTask:
     model: str = ""
     #: Intrinsics stage 2 starts from (result model), None: the priors'.
     start: Camera | None = None
+    #: The prior has a position only: stage 1 with the aerial prior, stage 2
+    #: over headings every this many degrees (0: the prior's rotation).
+    heading_step_deg: float = 0.0
 
     # An image's random streams must not depend on the worker (or machine)
     # that runs it, nor on the other images or their ids in the run: stage
@@ -158,7 +161,10 @@ def initial_image(task: ImageTask) -> ImageOutcome:
         )
         return out
     out.time_s["read"] = time.perf_counter() - t0
-    prior = VPPrior.from_rotation(task.prior.rotation, task.cone_deg)
+    if task.heading_step_deg > 0:
+        prior = VPPrior.aerial()
+    else:
+        prior = VPPrior.from_rotation(task.prior.rotation, task.cone_deg)
     vp = detect_vertical_vp(img, task.seeded_vanishing, task.camera, prior)
     out.vp_status = vp.status
     out.line_segments = vp.segments
@@ -182,11 +188,60 @@ def initial_image(task: ImageTask) -> ImageOutcome:
         out.segments = vp.segments.endpoints if len(vp.segments) else out.segments
         options = _fallback_options(options)
     t1 = time.perf_counter()
-    result = _register(task, out.segments, out.vertical_direction, options)
+    if task.heading_step_deg > 0:
+        result = _heading_search(task, out.segments, out.vertical_direction, options)
+    else:
+        result = _register(task, out.segments, out.vertical_direction, options)
     out.time_s["registration"] = time.perf_counter() - t1
     set_registration(out, result)
     out.time_s["total"] = time.perf_counter() - t0
     return out
+
+
+def _heading_search(
+    task: ImageTask,
+    segments: np.ndarray,
+    vertical: np.ndarray | None,
+    options: RegistrationOptions,
+) -> RegistrationResult:
+    """Stage 2 from each heading of a grid when the prior has a position only.
+
+    The VP gives the camera's vertical (tilt and roll); a rotation about the
+    world's vertical keeps it, so the prior rotation of heading psi is
+    ``R0 @ R_z(psi)`` with ``R0`` the smallest rotation taking the world's
+    down to the observed one. Each start's search spans half a grid step
+    either side (``search_sigmas`` prior sigmas); the result with the most
+    inlier corners wins, and it must pass stage 2's chance test like any.
+    """
+    if vertical is None:
+        return RegistrationResult(
+            success=False,
+            cam_from_world=task.prior,
+            vertical_direction=np.array([0.0, 0.0, 1.0]),
+            message="no vertical vanishing point: with a position-only prior the "
+            "camera's tilt comes from it",
+        )
+    step = task.heading_step_deg
+    R0 = rotation_aligning(np.array([0.0, 0.0, -1.0]), vertical)
+    sigma = 0.6 * step / options.search_sigmas  # +-0.6 step: the starts overlap
+    opts = dataclasses.replace(options, prior_rotation_sigma_deg=sigma)
+    best = None
+    for psi in np.radians(np.arange(0.0, 360.0, step)):
+        prior = Pose.from_center(R0 @ rotation_z(psi), task.prior.center)
+        result = _register(
+            dataclasses.replace(task, prior=prior), segments, vertical, opts
+        )
+        if result.success and (best is None or result.num_inliers > best.num_inliers):
+            best = result
+    if best is None:
+        return RegistrationResult(
+            success=False,
+            cam_from_world=task.prior,
+            vertical_direction=vertical,
+            message=f"no heading of {int(360 / step)} tried (every {step:g} deg) "
+            "registers the image",
+        )
+    return best
 
 
 def _fallback_options(options: RegistrationOptions) -> RegistrationOptions:

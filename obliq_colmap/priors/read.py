@@ -138,7 +138,7 @@ def read_priors(
                 path,
                 f"{kind} priors give camera positions only; the registration needs "
                 "a rotation prior within a few degrees (an OPK file or a COLMAP "
-                "model)",
+                "model), or `register --heading_step DEG` to search the headings",
             )
         logger.warning("%s: positions only; rotations set to nadir", path)
         rotations = np.broadcast_to(NADIR, (len(names), 3, 3))
