@@ -8,7 +8,8 @@ similarity; control points with 0.05 m and 0.5 px noise). Then, per mode:
 
 - ``gcp2``, ``gcp3``: ``obliq-colmap georegister`` with the 2 (3) control
   points farthest apart;
-- ``auto``: ``georegister`` with the cadastre and no control point;
+- ``auto``: ``georegister`` with the cadastre and the scene's rough priors
+  (``--priors_path``), no control point;
 - ``oracle``: NOT the command: the similarity that fits the model's camera
   centres to the true ones (least squares); the best any georegistration of
   this model can do (zero for the SfM-like model, the SfM's own shape error
@@ -39,6 +40,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import shutil
 import subprocess
 import sys
 import time
@@ -157,6 +159,8 @@ def run_mode(mode: str, scene_path: Path, model: Path, work: Path, control) -> d
         return {"status": "ok", **score_block(oracle_block(model, scene), scene)}
     if "georegister" not in SUBCOMMANDS:
         return {"status": "georegister not in the CLI yet"}
+    if out.exists():  # a rerun: the command writes only into an empty folder
+        shutil.rmtree(out)
     cmd = [
         sys.executable,
         "-m",
@@ -171,6 +175,7 @@ def run_mode(mode: str, scene_path: Path, model: Path, work: Path, control) -> d
     ]
     if mode == "auto":
         cmd += ["--cadastre_path", str(scene_path / "cadastre.geojson")]
+        cmd += ["--priors_path", str(scene_path / "priors")]
     else:
         gcp = work / f"{mode}.txt"
         write_gcp_list(gcp, farthest_subset(control, int(mode[-1])))
