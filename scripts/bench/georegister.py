@@ -30,7 +30,8 @@ The exact command (from the repository root; ~1 min per street scene, a few
 for paper, on 2 shared cores)::
 
     python scripts/bench/georegister.py --work_path W [--scene paper street]
-        [--mode gcp2 gcp3 auto reference3] [--seed 1] [--paper_width 1002]
+        [--mode gcp2 gcp3 auto reference3 oracle] [--sfm sfm_like pycolmap]
+        [--camera_kind scene|auto] [--seed 1] [--paper_width 1002]
         [--output_path bench_georegister.json]
 
 Figures go to docs/STATUS.md (issue 27) and docs/journal/georegister-bench.md.
@@ -146,7 +147,14 @@ def ensure_scene(work: Path, kind: str, seed: int, paper_width: int) -> Path:
     return path
 
 
-def run_mode(mode: str, scene_path: Path, model: Path, work: Path, control) -> dict:
+def run_mode(
+    mode: str,
+    scene_path: Path,
+    model: Path,
+    work: Path,
+    control: ControlPoints,
+    camera_kind: str = "auto",
+) -> dict:
     """Run one mode; returns the score or the reason it did not run."""
     out = work / f"out_{mode}"
     if mode == "reference3":
@@ -173,6 +181,8 @@ def run_mode(mode: str, scene_path: Path, model: Path, work: Path, control) -> d
         "--output_path",
         str(out),
     ]
+    if camera_kind != "auto":
+        cmd += ["--camera_kind", camera_kind]
     if mode == "auto":
         cmd += ["--cadastre_path", str(scene_path / "cadastre.geojson")]
         cmd += ["--priors_path", str(scene_path / "priors")]
@@ -216,6 +226,13 @@ def main(argv: list[str] | None = None) -> int:
         choices=("sfm_like", "pycolmap"),
         help="input models: the SfM-like model and/or pycolmap's SfM of the images",
     )
+    ap.add_argument(
+        "--camera_kind",
+        default="scene",
+        choices=("scene", "auto", "terrestrial", "oblique"),
+        help="georegister --camera_kind; scene: terrestrial for a street, "
+        "oblique for a flight (what the user knows)",
+    )
     ap.add_argument("--seed", type=int, default=1)
     ap.add_argument("--paper_width", type=int, default=1002)
     ap.add_argument("--output_path", type=Path, default=None)
@@ -250,7 +267,11 @@ def main(argv: list[str] | None = None) -> int:
                 "points"
             )
             for mode in args.mode:
-                res = run_mode(mode, scene_path, model, work, control)
+                kind_arg = args.camera_kind
+                if kind_arg == "scene":
+                    kind_arg = "terrestrial" if kind == "street" else "oblique"
+                res = run_mode(mode, scene_path, model, work, control, kind_arg)
+                res["camera_kind"] = kind_arg
                 res["num_images_in_model"] = n_reg
                 results[f"{kind}/{sfm}/{mode}"] = res
                 print_result(mode, res)
