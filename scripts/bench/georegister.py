@@ -31,7 +31,8 @@ for paper, on 2 shared cores)::
 
     python scripts/bench/georegister.py --work_path W [--scene paper street]
         [--mode gcp2 gcp3 auto reference3 oracle] [--sfm sfm_like pycolmap]
-        [--camera_kind scene|auto] [--seed 1] [--paper_width 1002]
+        [--camera_kind scene|auto] [--block_adjustment 0|1] [--seed 1]
+        [--paper_width 1002]
         [--output_path bench_georegister.json]
 
 Figures go to docs/STATUS.md (issue 27) and docs/journal/georegister-bench.md.
@@ -154,6 +155,7 @@ def run_mode(
     work: Path,
     control: ControlPoints,
     camera_kind: str = "auto",
+    block_adjustment: int | None = None,
 ) -> dict:
     """Run one mode; returns the score or the reason it did not run."""
     out = work / f"out_{mode}"
@@ -181,6 +183,8 @@ def run_mode(
         "--output_path",
         str(out),
     ]
+    if block_adjustment is not None:
+        cmd += ["--block_adjustment", str(block_adjustment)]
     if camera_kind != "auto":
         cmd += ["--camera_kind", camera_kind]
     if mode == "auto":
@@ -233,6 +237,13 @@ def main(argv: list[str] | None = None) -> int:
         help="georegister --camera_kind; scene: terrestrial for a street, "
         "oblique for a flight (what the user knows)",
     )
+    ap.add_argument(
+        "--block_adjustment",
+        type=int,
+        choices=(0, 1),
+        default=None,
+        help="georegister --block_adjustment (default: the command's)",
+    )
     ap.add_argument("--seed", type=int, default=1)
     ap.add_argument("--paper_width", type=int, default=1002)
     ap.add_argument("--output_path", type=Path, default=None)
@@ -270,7 +281,15 @@ def main(argv: list[str] | None = None) -> int:
                 kind_arg = args.camera_kind
                 if kind_arg == "scene":
                     kind_arg = "terrestrial" if kind == "street" else "oblique"
-                res = run_mode(mode, scene_path, model, work, control, kind_arg)
+                res = run_mode(
+                    mode,
+                    scene_path,
+                    model,
+                    work,
+                    control,
+                    kind_arg,
+                    args.block_adjustment,
+                )
                 res["camera_kind"] = kind_arg
                 res["num_images_in_model"] = n_reg
                 results[f"{kind}/{sfm}/{mode}"] = res
