@@ -139,8 +139,12 @@ def city_extent(options: SceneOptions) -> tuple[float, float, float, float]:
     """(xmin, ymin, xmax, ymax) local metres that every camera footprint lies in.
 
     The image corners of the nominal cameras are intersected with a ground
-    plane lowered by the largest terrain drop, plus jitter and margin.
+    plane lowered by the largest terrain drop, plus jitter and margin. A
+    street scene's city is a square of ``street_city_half_size_m`` instead.
     """
+    if options.scene_kind == "street":
+        h = float(options.street_city_half_size_m)
+        return -h, -h, h, h
     geo = flight_geometry(options)
     f = geo.focal_ref_px
     w, h = REFERENCE_WIDTH_PX, REFERENCE_WIDTH_PX / options.image_aspect
@@ -178,6 +182,8 @@ def true_cameras(options: SceneOptions, seed: int) -> dict[int, Camera]:
         p = options.distortion_p
         if options.distortion == "none":
             params = [f, f, cx, cy]
+        elif options.distortion == "simple_radial":
+            params = [f, cx, cy, k1]
         elif options.distortion == "radial":
             params = [f, cx, cy, k1, k2]
         else:

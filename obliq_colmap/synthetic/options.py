@@ -27,12 +27,24 @@ DISTRICT_BLOCKS: dict[str, dict[str, float]] = {
 }  # fmt: skip
 
 #: Allowed values of ``SceneOptions.distortion`` and their COLMAP models.
-DISTORTION_MODELS = {"none": "PINHOLE", "radial": "RADIAL", "opencv": "OPENCV"}
+DISTORTION_MODELS = {
+    "none": "PINHOLE",
+    "simple_radial": "SIMPLE_RADIAL",
+    "radial": "RADIAL",
+    "opencv": "OPENCV",
+}
+
+#: Kinds of scene: an oblique flight (the default) or a walk along a street
+#: (:mod:`obliq_colmap.synthetic.street`).
+SCENE_KINDS = ("oblique", "street")
 
 
 @dataclass(kw_only=True, frozen=True)
 class SceneOptions:
     """All parameters of a synthetic scene (units in the names or comments)."""
+
+    #: "oblique" (the four-headed flight) or "street" (a walk, ``street_*``).
+    scene_kind: str = "oblique"
 
     # --- flight and cameras -------------------------------------------------
     #: images per viewing direction along the look direction (rows) ...
@@ -70,6 +82,26 @@ class SceneOptions:
     distortion_k2: float = 0.015
     #: tangential coefficients p1 = p, p2 = -p/2 of the "opencv" model.
     distortion_p: float = 3e-4
+
+    # --- street walk (scene_kind "street") -------------------------------
+    #: half side of the square the city is built in, m (the walk is near
+    #: its centre; the oblique flight's footprints set it otherwise).
+    street_city_half_size_m: float = 150.0
+    #: images along the walk and the step between them (the baseline), m.
+    street_num_images: int = 36
+    street_step_m: float = 2.0
+    #: camera height above the terrain, m.
+    street_camera_height_m: float = 1.6
+    #: horizontal angle of the view forward of the facade normal, and the
+    #: upward pitch of the optical axis, degrees.
+    street_forward_deg: float = 25.0
+    street_pitch_deg: float = 12.0
+    #: hand-held irregularity (standard deviations): angles in degrees,
+    #: position per axis in metres.
+    street_jitter_deg: float = 1.0
+    street_jitter_m: float = 0.1
+    #: spacing of the ground control points along the street, m.
+    street_gcp_spacing_m: float = 30.0
 
     # --- priors (rough GPS/INS) --------------------------------------------
     #: standard deviation of the prior camera centre per horizontal axis, m.
@@ -156,6 +188,12 @@ class SceneOptions:
                 f"distortion={self.distortion!r}; allowed: "
                 f"{', '.join(DISTORTION_MODELS)}"
             )
+        if self.scene_kind not in SCENE_KINDS:
+            raise ValueError(
+                f"scene_kind={self.scene_kind!r}; allowed: {', '.join(SCENE_KINDS)}"
+            )
+        if self.street_num_images < 2 or self.street_step_m <= 0:
+            raise ValueError("street_num_images must be >= 2, street_step_m > 0")
         if self.district not in DISTRICT_BLOCKS:
             raise ValueError(
                 f"district={self.district!r}; allowed: {', '.join(DISTRICT_BLOCKS)}"
@@ -232,6 +270,28 @@ PRESETS["houses"] = dataclasses.replace(
 )
 PRESETS["industrial"] = dataclasses.replace(PRESETS["paper"], district="industrial")
 PRESETS["highrise"] = dataclasses.replace(PRESETS["paper"], district="highrise")
+
+#: A phone walking along a street of terraces (issue 27): 4000x3000 sensor
+#: rendered at 800x600, about 66 deg across (a 26 mm equivalent lens),
+#: SIMPLE_RADIAL; no street trees (the walk is on the sidewalk they stand
+#: on); phone-grade priors.
+PRESETS["street"] = dataclasses.replace(
+    PRESETS["paper"],
+    scene_kind="street",
+    district="dense",
+    street_tree_fraction=0.0,
+    image_width_px=800,
+    image_aspect=4.0 / 3.0,
+    horizontal_fov_deg=66.0,
+    principal_point_offset_px=16.0,
+    focal_spread=0.0,
+    distortion="simple_radial",
+    distortion_k1=-0.03,
+    terrain_spacing_m=4.0,
+    prior_position_m=5.0,
+    prior_height_m=5.0,
+    prior_rotation_deg=5.0,
+)
 
 #: The scene classes of the benchmark matrix (scripts/bench/classes.py).
 SCENE_CLASSES = ("paper", "dense", "houses", "industrial", "highrise")

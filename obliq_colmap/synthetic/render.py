@@ -86,6 +86,55 @@ def face_planes(
     return np.stack([A, B, Cc], 1)
 
 
+def _cut_edges(Xc: np.ndarray, ia: np.ndarray, ib: np.ndarray) -> np.ndarray:
+    """(n, 3) points where the edges (ia, ib) of ``Xc`` cross z = NEAR_M.
+
+    Interpolated from the lower vertex index, so that two triangles sharing
+    an edge get bit-identical points (no cracks).
+    """
+    lo, hi = np.minimum(ia, ib), np.maximum(ia, ib)
+    A, B = Xc[lo], Xc[hi]
+    t = (A[:, 2] - NEAR_M) / (A[:, 2] - B[:, 2])
+    out = A + t[:, None] * (B - A)
+    out[:, 2] = NEAR_M
+    return out
+
+
+def clip_near(
+    Xc: np.ndarray, faces: np.ndarray, front: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """Clip triangles with one or two vertices in front of the near plane.
+
+    Parameters
+    ----------
+    Xc : (V, 3) camera-frame vertices.
+    faces : (n, 3) vertex indices; front : (n, 3) bool, vertex z > NEAR_M.
+
+    Returns
+    -------
+    P : (m, 3, 3) camera-frame triangles in front (the winding kept) ...
+    parent : (m,) ... and the row of ``faces`` each comes from.
+    """
+    one = front.sum(1) == 1
+    # Roll each triangle so that its odd vertex (the only one in front, or
+    # the only one behind) comes first; rolling keeps the winding.
+    odd = np.where(one[:, None], front, ~front)
+    k = np.argmax(odd, axis=1)
+    f = np.take_along_axis(faces, (k[:, None] + np.arange(3)) % 3, axis=1)
+    a, b, c = f[:, 0], f[:, 1], f[:, 2]
+    ab, ac = _cut_edges(Xc, a, b), _cut_edges(Xc, a, c)
+    n = np.arange(len(f))
+    # one in front: the triangle (a, ab, ac)
+    t1 = np.stack([Xc[a], ab, ac], 1)[one]
+    # two in front: the quad (ab, b, c, ac) as two triangles
+    two = ~one
+    t2 = np.stack([ab, Xc[b], Xc[c]], 1)[two]
+    t3 = np.stack([ab, Xc[c], ac], 1)[two]
+    P = np.concatenate([t1, t2, t3])
+    parent = np.concatenate([n[one], n[two], n[two]])
+    return P, parent
+
+
 def rasterize(city: City, pose: Pose, canvas: Canvas) -> Raster:
     """Z-buffer rasterisation of the city mesh into ``canvas``.
 
@@ -106,13 +155,20 @@ def rasterize(city: City, pose: Pose, canvas: Canvas) -> Raster:
     R, t = pose.rotation, pose.translation
     Xc = city.vertices @ R.T + t  # (V, 3) camera frame
     F = city.faces
-    z = Xc[F, 2]  # (F, 3)
-    keep = (z > NEAR_M).all(1)
+    front = Xc[F, 2] > NEAR_M  # (F, 3)
+    n_front = front.sum(1)
     # Back-face culling: the outward normal must point towards the camera.
     n_cam = city.face_normal @ R.T
-    keep &= np.einsum("ij,ij->i", n_cam, Xc[F[:, 0]]) < 0
-    idx = np.nonzero(keep)[0]
+    facing = np.einsum("ij,ij->i", n_cam, Xc[F[:, 0]]) < 0
+    idx = np.nonzero(facing & (n_front == 3))[0]
     P = Xc[F[idx]]  # (n, 3, 3)
+    # A camera inside the city (a street view) sees triangles cut by the
+    # near plane (the ground under its feet): clip them instead of dropping.
+    cut = np.nonzero(facing & (n_front > 0) & (n_front < 3))[0]
+    if len(cut):
+        P_cut, parent = clip_near(Xc, F[cut], front[cut])
+        idx = np.concatenate([idx, cut[parent]])
+        P = np.concatenate([P, P_cut])
     x = canvas.fx * P[..., 0] / P[..., 2] + canvas.cx
     y = canvas.fy * P[..., 1] / P[..., 2] + canvas.cy
     j0 = np.maximum(np.ceil(y.min(1) - 0.5), 0).astype(np.int64)

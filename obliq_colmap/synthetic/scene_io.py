@@ -10,6 +10,7 @@ origin``; the local frame is only used internally for float precision)::
                           camera z in another vertical datum
     gt/                   COLMAP binary model, exact (same ids and names)
     gt_buildings.json     true 3D corners, building table, visible corners
+    gcp_list.txt          street scenes: control points (OpenSfM format)
     scene.json            every parameter needed to rebuild the scene
 """
 
@@ -41,6 +42,12 @@ from obliq_colmap.synthetic.cameras import (
 )
 from obliq_colmap.synthetic.options import SceneOptions
 from obliq_colmap.synthetic.render import render_depth, render_image
+from obliq_colmap.synthetic.street import (
+    street_block,
+    street_control_points,
+    with_facade_points,
+    write_gcp_list,
+)
 from obliq_colmap.synthetic.truth import (
     vertical_edge_segments,
     vertical_vp,
@@ -207,7 +214,10 @@ def generate_scene(
     output_path = Path(output_path)
     folder = AtomicFolder(output_path)  # checks the output path before any work
     city = C.build_city(options, seed)
-    gt_local = true_block(options, seed)
+    if options.scene_kind == "street":
+        gt_local = street_block(city, options, seed)
+    else:
+        gt_local = true_block(options, seed)
     priors_local = prior_block(options, seed, gt_local)
     corners = C.corners(city)
     origin = city.origin
@@ -230,7 +240,10 @@ def generate_scene(
     with folder as tmp:
         image_dir = tmp / "images"
         image_dir.mkdir()
-        initargs = (city, corners, options, seed, str(image_dir))
+        # a street's control points include facade points, tested with the rest
+        street = options.scene_kind == "street"
+        tested = with_facade_points(city, corners) if street else corners
+        initargs = (city, tested, options, seed, str(image_dir))
         with WorkerPool(
             workers,
             _init_worker,
@@ -254,9 +267,23 @@ def generate_scene(
             "corner_building": [int(b) for b in corners["building"]],
             "corner_kind": list(corners["kind"]),
             "buildings": buildings_table(city),
-            "visible_corners": {name: vis for name, vis, _ in results},
+            "visible_corners": {
+                name: [i for i in vis if i < len(corners["xyz"])]
+                for name, vis, _ in results
+            },
         }
         (tmp / "gt_buildings.json").write_text(json.dumps(gt_doc) + "\n")
+        n_gcp = 0
+        if street:
+            control = street_control_points(
+                city,
+                tested,
+                gt_local,
+                {name: vis for name, vis, _ in results},
+                options.street_gcp_spacing_m,
+            )
+            write_gcp_list(tmp / "gcp_list.txt", control)
+            n_gcp = len(control)
         timings = np.array(
             [[t["raster"], t["shade"], t["post"]] for _, _, t in results]
         )
@@ -277,6 +304,7 @@ def generate_scene(
                 "map_features": int(n_features),
                 "corners": len(corners["xyz"]),
                 "triangles": len(city.faces),
+                "control_points": n_gcp,
             },
             "render_median_s": dict(
                 zip(

@@ -20,6 +20,22 @@ def depth_tolerance(camera: Camera, depth: np.ndarray) -> np.ndarray:
     return np.maximum(0.5, 3.0 * depth / camera.K[0, 0])
 
 
+def within_field(camera: Camera, pose: Pose, points: np.ndarray) -> np.ndarray:
+    """(N,) bool: in front and inside the image's field in UNDISTORTED terms.
+
+    A wide lens's radial polynomial folds points far outside the field back
+    into the image (SIMPLE_RADIAL with k = -0.03 beyond ~73 deg off axis, a
+    street camera's neighbours), so the pixel test alone is not enough.
+    """
+    X = pose.transform(np.asarray(points, float).reshape(-1, 3))
+    W, H = camera.width, camera.height
+    edge = camera.cam_from_img(np.array([[0, 0], [W, 0], [W, H], [0, H], [W / 2, 0]]))
+    r_max = 1.01 * np.linalg.norm(edge, axis=1).max()
+    with np.errstate(divide="ignore", invalid="ignore"):
+        r = np.linalg.norm(X[:, :2] / X[:, 2:], axis=1)
+    return (X[:, 2] > 0) & (r <= r_max)
+
+
 def points_visible(
     camera: Camera, pose: Pose, zbuffer: np.ndarray, points: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray]:
@@ -40,6 +56,8 @@ def points_visible(
             & (xy[:, 1] >= 0)
             & (xy[:, 1] < H)
         )
+    if camera.has_distortion:
+        inside &= within_field(camera, pose, points)
     vis = np.zeros(len(points), bool)
     i = np.nonzero(inside)[0]
     col = np.floor(xy[i, 0]).astype(int)
@@ -76,6 +94,8 @@ def visible_corners(
     H, W = zbuffer.shape
     with np.errstate(invalid="ignore"):
         inside = (xy[:, 0] >= 0) & (xy[:, 0] < W) & (xy[:, 1] >= 0) & (xy[:, 1] < H)
+    if camera.has_distortion:
+        inside &= within_field(camera, pose, xyz)
     vis = np.zeros(len(xyz), bool)
     for d in (corners["dir_a"], corners["dir_b"]):
         sample = xyz + np.column_stack([0.3 * d, dz])

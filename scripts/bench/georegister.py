@@ -1,0 +1,303 @@
+"""The georegister benchmark on synthetic scenes (issue 27, item 7c and the targets).
+
+What it measures: for each scene kind (``paper``: the oblique block as an
+SfM-like model; ``street``: a phone walking a street) a synthetic scene is
+generated (kept under ``--work_path``, reused when present) and its SfM-like
+model written (true cameras and tracks with 0.5 px noise, moved by a random
+similarity; control points with 0.05 m and 0.5 px noise). Then, per mode:
+
+- ``gcp2``, ``gcp3``: ``obliq-colmap georegister`` with the 2 (3) control
+  points farthest apart;
+- ``auto``: ``georegister`` with the cadastre and the scene's rough priors
+  (``--priors_path``), no control point;
+- ``oracle``: NOT the command: the similarity that fits the model's camera
+  centres to the true ones (least squares); the best any georegistration of
+  this model can do (zero for the SfM-like model, the SfM's own shape error
+  for pycolmap's);
+- ``reference3``: NOT the command: the control points triangulated in the
+  SfM-like model and a least-squares similarity (Umeyama) on 3 of them, no
+  vertical and no bundle; the floor the noise of the data allows, and the
+  check that the scoring runs end to end.
+
+Every result is scored against the truth (``georef_score.score_block``):
+the block's vertical and heading errors (deg), median rotation (deg) and
+centre (m) errors per image, median of the per-image mean corner deviations
+(px, issue 25's measure) and the fraction of images below 2 px. A mode whose
+command is not available (``georegister`` not in the CLI yet) is reported
+as such.
+
+The exact command (from the repository root; ~1 min per street scene, a few
+for paper, on 2 shared cores)::
+
+    python scripts/bench/georegister.py --work_path W [--scene paper street]
+        [--mode gcp2 gcp3 auto reference3 oracle] [--sfm sfm_like pycolmap]
+        [--camera_kind scene|auto] [--block_adjustment 0|1] [--seed 1]
+        [--paper_width 1002]
+        [--output_path bench_georegister.json]
+
+Figures go to docs/STATUS.md (issue 27) and docs/journal/georegister-bench.md.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import shutil
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+from obliq_colmap.cli import SUBCOMMANDS
+from obliq_colmap.colmap_io import Block, read_model
+from obliq_colmap.control.model import ControlPoints
+from obliq_colmap.evaluate import read_absolute_block
+from obliq_colmap.synthetic import generate_scene, load_scene, preset
+from obliq_colmap.synthetic.georef_score import score_block
+from obliq_colmap.synthetic.sfm_like import (
+    SfmLikeOptions,
+    Similarity,
+    noisy_control_points,
+    scene_control_points,
+    write_pycolmap_sfm,
+    write_sfm_like,
+)
+from obliq_colmap.synthetic.street import write_gcp_list
+
+MODES = ("gcp2", "gcp3", "auto", "reference3", "oracle")
+
+
+def farthest_subset(control: ControlPoints, k: int) -> ControlPoints:
+    """The ``k`` points spread farthest: the farthest pair, then max-min distance."""
+    xyz = control.xyz()
+    d = np.linalg.norm(xyz[:, None] - xyz[None], axis=2)
+    i, j = np.unravel_index(np.argmax(d), d.shape)
+    chosen = [int(i), int(j)]
+    while len(chosen) < min(k, len(xyz)):
+        chosen.append(int(np.argmax(d[:, chosen].min(1))))
+    return ControlPoints([control.points[c] for c in chosen], control.crs)
+
+
+def triangulate(block: Block, control: ControlPoints) -> np.ndarray:
+    """(N, 3) linear (DLT) triangulation of each point in ``block``'s frame.
+
+    Observations in images the block lacks are skipped; NaN for a point seen
+    in fewer than 2 of its images.
+    """
+    by_name = {im.name: im for im in block.images.values()}
+    out = []
+    for p in control.points:
+        rows = []
+        seen = [ob for ob in p.observations if ob.image_name in by_name]
+        if len(seen) < 2:
+            out.append(np.full(3, np.nan))
+            continue
+        for ob in seen:
+            im = by_name[ob.image_name]
+            uv = block.cameras[im.camera_id].cam_from_img(ob.xy[None])[0]
+            P = im.cam_from_world.matrix()
+            rows += [uv[0] * P[2] - P[0], uv[1] * P[2] - P[1]]
+        X = np.linalg.svd(np.asarray(rows))[2][-1]
+        out.append(X[:3] / X[3])
+    return np.asarray(out)
+
+
+def umeyama(src: np.ndarray, dst: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
+    """Least-squares similarity ``dst ~ s R src + t`` of (N, 3) points, N >= 3."""
+    ms, md = src.mean(0), dst.mean(0)
+    A, B = src - ms, dst - md
+    U, S, Vt = np.linalg.svd(B.T @ A)
+    D = np.diag([1.0, 1.0, np.sign(np.linalg.det(U @ Vt))])
+    R = U @ D @ Vt
+    s = float(np.trace(np.diag(S) @ D) / (A**2).sum())
+    return s, R, md - s * R @ ms
+
+
+def reference_block(model: Path, control: ControlPoints, origin: np.ndarray) -> Block:
+    """The SfM-like model placed by a similarity on its triangulated control points."""
+    block = read_model(model)
+    src = triangulate(block, control)
+    ok = np.isfinite(src).all(1)
+    if ok.sum() < 3:
+        raise ValueError(f"{ok.sum()} control points triangulated in {model}")
+    s, R, t = umeyama(src[ok], control.xyz()[ok] - origin)
+    # X_local = s R X_sfm + t  <=>  X_sfm = (1/s) R^T (X_local - t)
+    inverse = Similarity(1.0 / s, R.T, -R.T @ t / s, origin)
+    return inverse.inverse_block(block)
+
+
+def oracle_block(model: Path, scene) -> Block:
+    """The model placed by the similarity fitting its camera centres to the truth."""
+    block = read_model(model)
+    gt = {im.name: im.cam_from_world.center for im in scene.gt_local.images.values()}
+    names = [im.name for im in block.images.values()]
+    src = np.array([im.cam_from_world.center for im in block.images.values()])
+    s, R, t = umeyama(src, np.array([gt[n] for n in names]))
+    return Similarity(1.0 / s, R.T, -R.T @ t / s, scene.origin).inverse_block(block)
+
+
+def ensure_scene(work: Path, kind: str, seed: int, paper_width: int) -> Path:
+    path = work / f"{kind}_seed{seed}"
+    if not (path / "scene.json").is_file():
+        overrides = {"image_width_px": paper_width} if kind == "paper" else {}
+        generate_scene(
+            path, preset(kind, **overrides), seed=seed, preset=kind, num_workers=2
+        )
+    return path
+
+
+def run_mode(
+    mode: str,
+    scene_path: Path,
+    model: Path,
+    work: Path,
+    control: ControlPoints,
+    camera_kind: str = "auto",
+    block_adjustment: int | None = None,
+) -> dict:
+    """Run one mode; returns the score or the reason it did not run."""
+    out = work / f"out_{mode}"
+    if mode == "reference3":
+        scene = load_scene(scene_path)
+        sub = farthest_subset(control, 3)
+        est = reference_block(model, sub, scene.origin)
+        return {"status": "ok", **score_block(est, scene)}
+    if mode == "oracle":
+        scene = load_scene(scene_path)
+        return {"status": "ok", **score_block(oracle_block(model, scene), scene)}
+    if "georegister" not in SUBCOMMANDS:
+        return {"status": "georegister not in the CLI yet"}
+    if out.exists():  # a rerun: the command writes only into an empty folder
+        shutil.rmtree(out)
+    cmd = [
+        sys.executable,
+        "-m",
+        "obliq_colmap",
+        "georegister",
+        "--input_path",
+        str(model),
+        "--image_path",
+        str(scene_path / "images"),
+        "--output_path",
+        str(out),
+    ]
+    if block_adjustment is not None:
+        cmd += ["--block_adjustment", str(block_adjustment)]
+    if camera_kind != "auto":
+        cmd += ["--camera_kind", camera_kind]
+    if mode == "auto":
+        cmd += ["--cadastre_path", str(scene_path / "cadastre.geojson")]
+        cmd += ["--priors_path", str(scene_path / "priors")]
+    else:
+        gcp = work / f"{mode}.txt"
+        write_gcp_list(gcp, farthest_subset(control, int(mode[-1])))
+        cmd += ["--control_points_path", str(gcp)]
+    t0 = time.perf_counter()
+    proc = subprocess.run(cmd, capture_output=True, text=True)
+    if proc.returncode != 0:
+        return {"status": f"exit {proc.returncode}", "stderr": proc.stderr[-2000:]}
+    est, _ = read_absolute_block(out)
+    score = score_block(est, load_scene(scene_path))
+    return {"status": "ok", "time_s": time.perf_counter() - t0, **score}
+
+
+def print_result(mode: str, res: dict) -> None:
+    if res["status"] != "ok":
+        print(f"  {mode:11s} {res['status']}")
+        return
+    print(
+        f"  {mode:11s} vertical {res['vertical_error_deg']:.4f} deg, heading "
+        f"{res['heading_error_deg']:+.4f} deg, rotation median "
+        f"{res['rotation_error_median_deg']:.4f} deg, centre median "
+        f"{res['center_error_median_m']:.3f} m (max "
+        f"{res['center_error_max_m']:.3f}), deviation median "
+        f"{res['deviation_median_px']:.2f} px, below 2 px "
+        f"{100 * res['below_2px']:.0f} % of {res['num_images']}"
+    )
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--work_path", required=True, type=Path)
+    ap.add_argument("--scene", nargs="+", default=["paper", "street"])
+    ap.add_argument("--mode", nargs="+", default=list(MODES), choices=MODES)
+    ap.add_argument(
+        "--sfm",
+        nargs="+",
+        default=["sfm_like"],
+        choices=("sfm_like", "pycolmap"),
+        help="input models: the SfM-like model and/or pycolmap's SfM of the images",
+    )
+    ap.add_argument(
+        "--camera_kind",
+        default="scene",
+        choices=("scene", "auto", "terrestrial", "oblique"),
+        help="georegister --camera_kind; scene: terrestrial for a street, "
+        "oblique for a flight (what the user knows)",
+    )
+    ap.add_argument(
+        "--block_adjustment",
+        type=int,
+        choices=(0, 1),
+        default=None,
+        help="georegister --block_adjustment (default: the command's)",
+    )
+    ap.add_argument("--seed", type=int, default=1)
+    ap.add_argument("--paper_width", type=int, default=1002)
+    ap.add_argument("--output_path", type=Path, default=None)
+    args = ap.parse_args(argv)
+    args.work_path.mkdir(parents=True, exist_ok=True)
+    options = SfmLikeOptions()
+    results = {}
+    for kind in args.scene:
+        scene_path = ensure_scene(args.work_path, kind, args.seed, args.paper_width)
+        scene = load_scene(scene_path)
+        work_root = args.work_path / f"{kind}_seed{args.seed}_runs"
+        for sfm in args.sfm:
+            work = work_root / sfm
+            work.mkdir(parents=True, exist_ok=True)
+            model = work / "model"
+            t0 = time.perf_counter()
+            if not (model / "gcp_list.txt").is_file():
+                write = write_sfm_like if sfm == "sfm_like" else write_pycolmap_sfm
+                try:
+                    write(model, scene, options, seed=args.seed)
+                except RuntimeError as exc:
+                    print(f"{kind} / {sfm}: {exc}")
+                    results[f"{kind}/{sfm}"] = {"status": str(exc)}
+                    continue
+            n_reg = len(read_model(model).images)
+            control = noisy_control_points(
+                scene_control_points(scene, options), options, args.seed
+            )
+            print(
+                f"{kind} / {sfm}: {n_reg} of {len(scene.gt.images)} images in the "
+                f"model ({time.perf_counter() - t0:.0f} s), {len(control)} control "
+                "points"
+            )
+            for mode in args.mode:
+                kind_arg = args.camera_kind
+                if kind_arg == "scene":
+                    kind_arg = "terrestrial" if kind == "street" else "oblique"
+                res = run_mode(
+                    mode,
+                    scene_path,
+                    model,
+                    work,
+                    control,
+                    kind_arg,
+                    args.block_adjustment,
+                )
+                res["camera_kind"] = kind_arg
+                res["num_images_in_model"] = n_reg
+                results[f"{kind}/{sfm}/{mode}"] = res
+                print_result(mode, res)
+    if args.output_path:
+        args.output_path.write_text(json.dumps(results, indent=1, default=float))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
