@@ -62,7 +62,8 @@ def _adjusted(noise_px: float, seed: int = 4):
     }
     down_cam = {i: truth[i].rotation.matrix() @ np.array([0, 0, -1.0]) for i in truth}
     verticals = {i: (d, 0.05) for i, d in down_cam.items()}
-    summary = adjust_block(rec, control, verticals, BlockAdjustmentOptions())
+    options = BlockAdjustmentOptions(refine_focal_length=True)
+    summary = adjust_block(rec, control, verticals, options)
     errors = []
     for i, pose in truth.items():
         c = -pose.rotation.matrix().T @ pose.translation

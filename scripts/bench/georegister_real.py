@@ -273,7 +273,7 @@ def herzjesu(work: Path) -> dict:
         checks = checks_of(points, n_ctrl)
         label = f"{n_ctrl}_control_points" + ("_block_adjustment" if block else "")
         result = work / f"georegistered_{label}"
-        extra = ("--block_adjustment", "1") if block else ()
+        extra = ("--block_adjustment", str(block))
         r = run_georegister(sfm_path, images, gcp, result, checks, extra)
         out[label] = {
             "cameras": camera_errors(result, truth),
