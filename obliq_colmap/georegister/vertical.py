@@ -67,12 +67,9 @@ def _camera(cam: pycolmap.Camera) -> Camera:
     return Camera(cam.model.name, cam.width, cam.height, np.asarray(cam.params))
 
 
-def _priors(kind: str) -> list[VPPrior]:
-    if kind == "terrestrial":
-        return [VPPrior.none()]
-    if kind == "oblique":
-        return [VPPrior.aerial()]
-    return [VPPrior.none(), VPPrior.aerial()]
+def _priors(kind: str) -> list[tuple[str, VPPrior]]:
+    both = [("terrestrial", VPPrior.none()), ("oblique", VPPrior.aerial())]
+    return [kp for kp in both if kind in (kp[0], "auto")]
 
 
 def image_vertical(
@@ -80,35 +77,30 @@ def image_vertical(
     rec: pycolmap.Reconstruction,
     image_id: int,
     options: VerticalOptions,
+    prior: VPPrior,
 ) -> ImageVertical:
-    """Stage 1 on one registered image of the model."""
+    """Stage 1 on one registered image of the model, with one prior."""
     image = rec.images[image_id]
     gray, problem = read_image(image_path / image.name)
     if gray is None:
         logger.warning("%s: %s; no vertical from it", image.name, problem)
         return ImageVertical(image_id, image.name, "unreadable", None, None, np.inf)
     camera = _camera(image.camera)
-    best = None
-    for prior in _priors(options.camera_kind):
-        vopts = VanishingOptions(seed=options.seed)
-        res = detect_vertical_vp(gray, vopts, camera=camera, prior=prior)
-        if res.vertical_direction is None:
-            continue
-        if best is None or res.significance > best.significance:
-            best = res
-    if best is None or best.status != "ok":
-        status = "no_vp" if best is None else best.status
-        return ImageVertical(image_id, image.name, status, None, None, np.inf)
+    res = detect_vertical_vp(
+        gray, VanishingOptions(seed=options.seed), camera=camera, prior=prior
+    )
+    if res.vertical_direction is None or res.status != "ok":
+        return ImageVertical(image_id, image.name, res.status, None, None, np.inf)
     R = image.cam_from_world().rotation.matrix()
-    d = np.asarray(best.vertical_direction, float)
-    segs = None if best.vertical_segments is None else best.vertical_segments.endpoints
+    d = np.asarray(res.vertical_direction, float)
+    segs = None if res.vertical_segments is None else res.vertical_segments.endpoints
     return ImageVertical(
         image_id,
         image.name,
         "ok",
         d,
         R.T @ d,
-        float(best.direction_std_deg),
+        float(res.direction_std_deg),
         segments=segs,
         K=camera.K,
     )
@@ -153,33 +145,55 @@ def robust_mean_direction(
     return mean, ang, w, sd_mean
 
 
-def model_vertical(
-    rec: pycolmap.Reconstruction,
-    image_path: Path,
-    options: VerticalOptions,
-    progress: bool = True,
-) -> ModelVertical | None:
-    """The model's down direction from all its registered images (None: too few VPs)."""
-    ids = sorted(rec.reg_image_ids())
-    images = [
-        image_vertical(image_path, rec, i, options)
-        for i in tqdm(ids, desc="vertical VPs", disable=not progress or None)
-    ]
+def _combine(images: list[ImageVertical], options: VerticalOptions):
+    """The robust mean of the images' downs (None: too few); sets each
+    image's residual and weight. Returns (mean, sd, median residual)."""
     ok = [im for im in images if im.down_model is not None]
     if len(ok) < options.min_images:
         return None
     d = np.array([im.down_model for im in ok])
     # orient every image's "down" like the majority (stage 1 orients by the
     # image's y axis, which a camera held upside down would flip)
-    ref = d.sum(0)
-    d *= np.sign(d @ ref)[:, None]
+    d *= np.sign(d @ d.sum(0))[:, None]
     mean, ang, w, sd = robust_mean_direction(
         d, np.array([im.sd_deg for im in ok]), options.outlier_sigmas
     )
     for im, a, wk in zip(ok, ang, w, strict=True):
         im.residual_deg, im.weight = float(a), float(wk)
-    logger.info(
-        "vertical from %d of %d images: sd %.3f deg (median image residual %.3f deg)",
-        len(ok), len(images), sd, float(np.median(ang)),
-    )  # fmt: skip
-    return ModelVertical(mean, sd, images)
+    return mean, sd, float(np.median(ang))
+
+
+def model_vertical(
+    rec: pycolmap.Reconstruction,
+    image_path: Path,
+    options: VerticalOptions,
+    progress: bool = True,
+) -> ModelVertical | None:
+    """The model's down direction from all its registered images (None: too few VPs).
+
+    With ``camera_kind`` "auto" both priors run on every image and the kind
+    whose images agree is kept: the smallest median residual among the
+    kinds with at least half the most images. A per-image choice (the more significant
+    VP) picked a facade's horizontal pencil on oblique images of a model in
+    a random frame and put the vertical 45-90 deg off.
+    """
+    ids = sorted(rec.reg_image_ids())
+    found = []  # (images used, median residual, ModelVertical) per kind
+    for kind, prior in _priors(options.camera_kind):
+        bar = tqdm(ids, desc=f"vertical VPs ({kind})", disable=not progress or None)
+        images = [image_vertical(image_path, rec, i, options, prior) for i in bar]
+        got = _combine(images, options)
+        if got is None:
+            continue
+        used = sum(1 for im in images if im.weight > 0)
+        logger.info(
+            "vertical (%s prior) from %d of %d images: sd %.3f deg, median "
+            "residual %.3f deg", kind, used, len(images), got[1], got[2],
+        )  # fmt: skip
+        found.append((used, got[2], ModelVertical(got[0], got[1], images)))
+    if not found:
+        return None
+    # the images of the right kind agree (residuals of their VPs' sd); a
+    # wrong kind's VPs scatter by tens of degrees, however many it finds
+    most = max(f[0] for f in found)
+    return min((f for f in found if f[0] >= 0.5 * most), key=lambda f: f[1])[2]
