@@ -106,7 +106,9 @@ def run(args: argparse.Namespace) -> int:
         args.seed,
         options.image_width_px,
         options.image_height_px,
-        4 * options.grid_rows * options.grid_cols,
+        options.street_num_images
+        if options.scene_kind == "street"
+        else 4 * options.grid_rows * options.grid_cols,
         {k: v for k, v in dataclasses.asdict(options).items() if k in overrides}
         or "none",
     )
