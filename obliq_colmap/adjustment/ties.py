@@ -172,6 +172,19 @@ def _reprojection_errors(
     return err
 
 
+def _in_the_scene(xyz, poses, ground_z: float, options: TiePointOptions) -> np.ndarray:
+    """(T,) points between the ground (less a margin) and the cameras, and
+    within reach of a camera horizontally (:class:`TiePointOptions`)."""
+    C = np.stack([-p.rotation.matrix().T @ p.translation for p in poses])
+    height = max(float(np.median(C[:, 2])) - ground_z, 1.0)
+    z = xyz[:, 2]
+    ok = (z >= ground_z - options.max_below_ground_fraction * height) & (
+        z <= C[:, 2].min()
+    )
+    d = np.linalg.norm(xyz[:, None, :2] - C[None, :, :2], axis=2).min(axis=1)
+    return ok & (d <= options.max_distance_heights * height)
+
+
 def tie_points(
     gray_images: Sequence[np.ndarray],
     cameras: Sequence[pycolmap.Camera],
@@ -192,7 +205,7 @@ def tie_points(
     _, track = np.unique(track, return_inverse=True)
     xyz = triangulate_tie_tracks(cameras, poses, track, image, xy)
     err = _reprojection_errors(cameras, poses, xyz, track, image, xy)
-    bad_track = np.zeros(len(xyz), bool)
+    bad_track = ~_in_the_scene(xyz, poses, ground_z, options)
     bad_track[track[err > options.max_reproj_error_px]] = True
     keep = ~bad_track[track]
     keep &= (
