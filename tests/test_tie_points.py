@@ -173,3 +173,27 @@ def test_register_writes_tie_points_with_tracks(tmp_path):
     rec.update_point_3d_errors()
     assert rec.num_points3D() == len(run.points3D)
     assert rec.compute_mean_reprojection_error() < 1.0
+
+
+def test_a_tie_point_must_lie_in_the_scene():
+    """Between the ground (less 0.2 flying heights) and the cameras, and within
+    5 flying heights of one: a wrong match along an epipolar line lands
+    anywhere on it and reprojects well, so its position is what gives it away."""
+
+    from obliq_colmap.adjustment.ties import TiePointOptions, in_the_scene
+
+    poses = [
+        pycolmap.Rigid3d(pycolmap.Rotation3d(), -np.array([x, 0.0, 500.0]))
+        for x in (0.0, 200.0)
+    ]
+    xyz = np.array(
+        [
+            [100.0, 50.0, 10.0],  # on a roof: kept
+            [100.0, 50.0, -50.0],  # 50 m below the ground: kept (slope, datum)
+            [100.0, 50.0, -200.0],  # 200 m below: a wrong match
+            [100.0, 50.0, 600.0],  # above the cameras
+            [5000.0, 0.0, 0.0],  # 10 flying heights away
+        ]
+    )
+    ok = in_the_scene(xyz, poses, 0.0, TiePointOptions())
+    assert ok.tolist() == [True, True, False, False, False]

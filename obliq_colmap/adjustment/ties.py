@@ -172,7 +172,7 @@ def _reprojection_errors(
     return err
 
 
-def _in_the_scene(xyz, poses, ground_z: float, options: TiePointOptions) -> np.ndarray:
+def in_the_scene(xyz, poses, ground_z: float, options: TiePointOptions) -> np.ndarray:
     """(T,) points between the ground (less a margin) and the cameras, and
     within reach of a camera horizontally (:class:`TiePointOptions`)."""
     C = np.stack([-p.rotation.matrix().T @ p.translation for p in poses])
@@ -205,7 +205,7 @@ def tie_points(
     _, track = np.unique(track, return_inverse=True)
     xyz = triangulate_tie_tracks(cameras, poses, track, image, xy)
     err = _reprojection_errors(cameras, poses, xyz, track, image, xy)
-    bad_track = ~_in_the_scene(xyz, poses, ground_z, options)
+    bad_track = ~in_the_scene(xyz, poses, ground_z, options)
     bad_track[track[err > options.max_reproj_error_px]] = True
     keep = ~bad_track[track]
     keep &= (
