@@ -1,18 +1,30 @@
 """Second workflow (MetropoGIS): bring an existing COLMAP SfM model onto the map.
 
-Stages, in the order the pipeline runs them (issue 27):
+Entry: :func:`georegister` (``run``; ``obliq-colmap georegister``), the
+model in, a :class:`GeoregisterResult` out (the model in a local frame of
+the map, its ``Georef`` and the report), written by the command.
 
-1. ``vertical``: the model's up direction from the images' vertical
-   vanishing points (stage 1 with a terrestrial prior), and the rotation
-   that makes the model upright.
-2. ``similarity``: the remaining similarity (scale, heading, translation)
-   from control points: closed form with two, robust least squares with
-   three or more.
-3. ``automatic``: without control points, the block's 5-DOF similarity
-   from the cadastre (corner-to-vertical-line correspondences of all
-   images through stage 2's RANSAC).
-4. ``block``: the bundle block adjustment (SfM tracks, control points,
-   vertical VPs, cadastral lines) in the project's bundle.
-5. ``run``: :func:`georegister`, the whole job behind
-   ``obliq-colmap georegister``.
+Modules, in the order a run uses them:
+
+- ``options``: :class:`GeoregisterOptions`, :class:`VerticalOptions`.
+- ``common``: reading the SfM model, turning it upright, the result.
+- ``vertical``: the model's down direction from its images' vertical VPs
+  (stage 1; a robust mean on the sphere; ``--camera_kind auto`` keeps the
+  prior whose images agree).
+- ``similarity``: with control points, the 4-DOF similarity (closed form
+  from two, robust weighted least squares from more; 7-DOF without a
+  vertical).
+- ``block``: the bundle block adjustment on pycolmap's Ceres adjuster (the
+  SfM tracks, control point priors by their sigmas, each image's VP as an
+  observation of its vertical; principal point and distortion refined).
+- ``automatic`` and ``run_automatic``: without control points, stage 2 on
+  every image from the priors' positions, then one similarity fitted to all
+  their corner-to-ray pairs.
+- ``run``: :func:`georegister` (the control-point mode, and the dispatch).
 """
+
+from .common import GeoregisterResult
+from .options import GeoregisterOptions, VerticalOptions
+from .run import georegister
+
+__all__ = ["GeoregisterOptions", "GeoregisterResult", "VerticalOptions", "georegister"]
