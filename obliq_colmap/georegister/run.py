@@ -102,8 +102,8 @@ def _add_control_points(rec, control, tri, given_local, tri_local) -> dict[str, 
             image = rec.images[int(image_id)]
             image.points2D.append(pycolmap.Point2D(np.asarray(xy, float)))
             track.add_element(int(image_id), image.num_points2D() - 1)
-        rec.add_point3D(where, track, np.array([255, 0, 255], np.uint8))
-        added[control.points[k].name] = max(rec.point3D_ids())
+        pid = rec.add_point3D(where, track, np.array([255, 0, 255], np.uint8))
+        added[control.points[k].name] = int(pid)
     return added
 
 
@@ -151,7 +151,10 @@ def georegister(
     added = _add_control_points(rec, control, tri, given_local, tri_local)
     block = None
     if options.block_adjustment:
-        block = _adjust(rec, control, added, use, vertical, options, origin)
+        # the similarity's inliers only: a point it rejected would pull the block
+        inlier = np.zeros(len(use), bool)
+        inlier[np.flatnonzero(use)] = sim.inliers
+        block = _adjust(rec, control, added, inlier, vertical, options, origin)
         tri = triangulate_control_points(rec, control)
         tri_local = tri.xyz
     rows = point_residuals(rec, control, tri, given_local, tri_local, roles)
