@@ -84,3 +84,29 @@ def test_automatic_mode_needs_priors(tmp_path, capsys):
     )  # fmt: skip
     assert rc == 2 and "--priors_path" in capsys.readouterr().err
     assert not (tmp_path / "out").exists()
+
+
+@pytest.mark.slow
+def test_control_point_mode_on_the_sample(tmp_path):
+    """An SfM-like model of the sample (true cameras, 0.5 px corner tracks, a
+    random similarity frame) and its noisy control points: every image within
+    2 px of the truth, with the block adjustment (the default)."""
+    from obliq_colmap.synthetic import load_scene
+    from obliq_colmap.synthetic.sfm_like import write_sfm_like
+
+    sfm = write_sfm_like(tmp_path / "sfm", load_scene(SAMPLE), seed=3)
+    out = tmp_path / "out"
+    rc = main(
+        ["georegister", "--input_path", str(sfm), "--image_path",
+         str(SAMPLE / "images"), "--control_points_path", str(sfm / "gcp_list.txt"),
+         "--output_path", str(out), "--no_progress"]
+    )  # fmt: skip
+    assert rc == 0
+    report = json.loads((out / "report.json").read_text())
+    assert (
+        report["block_adjustment"]["final_cost"]
+        <= report["block_adjustment"]["initial_cost"]
+    )
+    result = evaluate_model(out, SAMPLE, EvaluateOptions(vertical_offset="search"))
+    means = np.array([im.mean_deviation_px for im in result.images])
+    assert np.all(means < 2.0), means
