@@ -1036,3 +1036,30 @@ def test_one_point_per_physical_corner_with_its_error_and_colour(bundle_run):
     stored, first = np.array(stored), np.array(first)
     assert np.all(stored.sum(axis=1) > 0)
     assert np.corrcoef(stored.ravel(), first.ravel())[0, 1] > 0.5
+
+
+def test_matched_corners_are_observed_where_measured(bundle_run):
+    """A map corner that stage 2 matched to a vertical segment is observed on
+    that segment's line in the raw image (its error is the line residual),
+    not at its own projection; so points3D carry measured errors."""
+    _, run = bundle_run
+    priors = read_model(SAMPLE / "priors")
+    n_on_line = n_off_projection = 0
+    for p in run.points3D:
+        for image_id, xy in p.observations:
+            out = run.outcomes[image_id]
+            reg = out.registration
+            cam = priors.cameras[priors.images[image_id].camera_id]
+            ends = cam.distort_pixels(reg.inlier_segments_px.reshape(-1, 2))
+            ends = ends.reshape(-1, 2, 2)
+            d = ends[:, 1] - ends[:, 0]
+            n = np.stack([-d[:, 1], d[:, 0]], 1) / np.linalg.norm(d, axis=1)[:, None]
+            dist = np.abs(np.sum((xy - ends[:, 0]) * n, axis=1))
+            n_on_line += bool(dist.min() < 1e-6)
+            im = run.block.images[image_id]
+            proj = run.block.cameras[im.camera_id].img_from_cam(
+                im.cam_from_world.transform(p.xyz[None])
+            )[0]
+            n_off_projection += bool(np.linalg.norm(proj - xy) > 1e-3)
+    assert n_on_line > 100  # hundreds of measured observations on the sample
+    assert n_off_projection > 0.5 * n_on_line

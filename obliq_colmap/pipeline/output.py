@@ -92,6 +92,36 @@ def _observations(
     return keep, px[keep]
 
 
+def _measured(
+    inputs: Inputs, outcome: ImageOutcome, corners: np.ndarray, px: np.ndarray
+) -> np.ndarray:
+    """(K, 2) observations of ``corners`` (K,): where stage 2 matched a corner
+    to a vertical segment, its projection ``px`` moved across onto that
+    segment's line in the raw image, so that the observation is measured
+    (its reprojection error is the line residual) and not the projection
+    itself; the other corners (visible, not matched) keep their projection.
+    The segments are in the priors' undistorted pixels; distorting them
+    with the priors' camera gives raw pixels, which no camera change moves."""
+    reg = outcome.registration
+    if reg is None or not len(reg.inlier_pairs):
+        return px
+    where = {int(c): k for k, c in enumerate(reg.inlier_pairs[:, 0])}
+    rows = np.array([where.get(int(c), -1) for c in corners])
+    has = rows >= 0
+    if not has.any():
+        return px
+    camera = inputs.priors.cameras[inputs.priors.images[outcome.image_id].camera_id]
+    ends = camera.distort_pixels(reg.inlier_segments_px[rows[has]].reshape(-1, 2))
+    ends = ends.reshape(-1, 2, 2)
+    d = ends[:, 1] - ends[:, 0]
+    d /= np.maximum(np.linalg.norm(d, axis=1, keepdims=True), 1e-12)
+    n = np.stack([-d[:, 1], d[:, 0]], axis=1)
+    out = px.copy()
+    across = np.sum((px[has] - ends[:, 0]) * n, axis=1)
+    out[has] = px[has] - across[:, None] * n
+    return out
+
+
 def _corner_ground(inputs: Inputs, state: BlockState, seen: np.ndarray) -> np.ndarray:
     """(C,) ground height of every map corner: the mean ground plane of the
     images that used the corner (``seen``: (C, I) bool in
@@ -144,6 +174,7 @@ def constrained_points(
             (0.0, 0.5),
         )
         keep, px = _observations(block, i, X[vis])
+        px = _measured(inputs, outcomes[i], vis[keep], px)
         for c, p in zip(vis[keep], px, strict=True):
             obs[c].append((i, p))
     points = _one_point_per_place(X, obs, cad.corner_xy)
