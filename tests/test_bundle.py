@@ -228,6 +228,114 @@ def test_residual_jacobians_match_finite_differences(model, kind):
     np.testing.assert_allclose(quick, out.residuals, rtol=1e-12, atol=1e-9)
 
 
+@pytest.mark.parametrize("model", list(MODELS))
+def test_reprojection_jacobians_match_finite_differences(model):
+    p, R, c, X, _ = _residual_setup(model)
+    xy = res.project(model, p, np.einsum("nij,nj->ni", R, X - c)) + 0.7
+    full = res.full_params(model, p, 1)[0]
+
+    def rows(p_, R_, c_, X_, jac=False):
+        f = res.full_params(model, p_, 1)[0]
+        return res.reprojection_rows(
+            model, f, R_.transpose(1, 2, 0), (X_ - c_).T, xy.T, jac
+        )
+
+    r, d_pose, d_par, d_pt = res.reprojection_rows(
+        model, full, R.transpose(1, 2, 0), (X - c).T, xy.T
+    )
+    np.testing.assert_allclose(r, -0.7, atol=1e-9)
+    for n in range(len(X)):
+        sl = slice(n, n + 1)
+
+        def r_pose(x, n=n, sl=sl):
+            Rn = res.rotation_exp(x[None, :3])[0] @ R[n]
+            return rows(p, Rn[None], c[sl] + x[3:], X[sl])[0][:, 0]
+
+        num = central_diff(r_pose, np.zeros(6), [1e-7] * 3 + [1e-4] * 3)
+        assert_jacobian(d_pose[:, :, n], num)
+        num = central_diff(
+            lambda q, sl=sl: rows(q, R[sl], c[sl], X[sl])[0][:, 0],
+            p,
+            1e-6 * (np.abs(p) + 1.0),
+        )
+        assert_jacobian(d_par[:, :, n], num)
+        num = central_diff(
+            lambda x, sl=sl: rows(p, R[sl], c[sl], x[None])[0][:, 0],
+            X[n],
+            [1e-4] * 3,
+        )
+        assert_jacobian(d_pt[:, :, n], num)
+
+
+def test_noise_free_tie_points_recover_the_truth_and_link_components():
+    """Corners fixed and no facade rows: no height links two images, so each
+    image is its own component (own datum); tie points seen in several
+    images link them into one, and the solve ends at the truth."""
+    a = make_synthetic_problem(seed=3, tie_points=300)
+    P = dataclasses.replace(
+        a.problem,
+        corner_heights=a.corner_heights,
+        facade_heights=np.zeros(0),
+        horizontal_image=np.zeros(0, np.int64),
+        horizontal_height=np.zeros(0, np.int64),
+        horizontal_anchor_xy=np.zeros((0, 2)),
+        horizontal_line=np.zeros((0, 3)),
+    )
+    assert len(P.tie_xyz) > 100
+    opts = BundleOptions(corner_heights="fixed")
+    unlinked = Setup(
+        dataclasses.replace(
+            P,
+            tie_xyz=np.zeros((0, 3)),
+            tie_image=np.zeros(0, np.int64),
+            tie_point=np.zeros(0, np.int64),
+            tie_xy=np.zeros((0, 2)),
+        ),
+        opts,
+    )
+    assert unlinked.num_components == len(P.image_ids)
+    out = solve_bundle(P, opts)
+    assert out.summary.converged
+    assert len(out.summary.components) == 1
+    for i in P.image_ids:
+        assert rotation_error_rad(out.poses[i].rotation, a.poses[i].rotation) < 1e-8
+        np.testing.assert_allclose(out.poses[i].center, a.poses[i].center, atol=1e-6)
+    np.testing.assert_allclose(out.tie_xyz, a.tie_xyz, atol=1e-6)
+    assert np.abs(out.tie_residuals_px).max() < 1e-6
+
+
+def test_tie_points_tighten_the_block_and_keep_the_variance_factor():
+    """0.5 px of noise on every row: with tie points the rotations and focal
+    lengths end closer to the truth, and the variance factor stays the noise
+    (sigma 1 px: 0.25)."""
+    syn = make_synthetic_problem(seed=1, stations=(3, 3), noise_px=0.5, tie_points=1500)
+    P = syn.problem
+    no_ties = dataclasses.replace(
+        P,
+        tie_xyz=np.zeros((0, 3)),
+        tie_image=np.zeros(0, np.int64),
+        tie_point=np.zeros(0, np.int64),
+        tie_xy=np.zeros((0, 2)),
+    )
+
+    def errors(out):
+        rot = [
+            rotation_error_rad(out.poses[i].rotation, syn.poses[i].rotation)
+            for i in P.image_ids
+        ]
+        f = [
+            abs(out.cameras[c].params[0] / syn.cameras[c].params[0] - 1)
+            for c in syn.cameras
+        ]
+        return np.median(rot), np.median(f)
+
+    with_ties = solve_bundle(P, BundleOptions())
+    without = solve_bundle(no_ties, BundleOptions())
+    (r1, f1), (r0, f0) = errors(with_ties), errors(without)
+    assert r1 < 0.85 * r0 and f1 < 0.7 * f0
+    assert with_ties.variance_factor == pytest.approx(0.25, rel=0.1)
+
+
 @pytest.mark.parametrize("kind", ["vertical", "horizontal"])
 @pytest.mark.parametrize(
     "model", ["SIMPLE_PINHOLE", "PINHOLE", "SIMPLE_RADIAL", "RADIAL"]
@@ -598,6 +706,51 @@ def _ceres_solve(P, options, pyceres):
         cost = PriorCost(P.corner_heights[j], options.corner_height_prior_m)
         costs.append(cost)
         problem.add_residual_block(cost, None, [heights[nJ + j]])
+
+    class TieCost(pyceres.CostFunction):
+        """Blocks (omega, centre, camera params, point): the 2 reprojection
+        rows, value from geometry.img_from_cam, Jacobian from residuals.py."""
+
+        def __init__(self, model, xy, R0_):
+            super().__init__()
+            self.set_num_residuals(2)
+            self.set_parameter_block_sizes([3, 3, npar[model], 3])
+            self.args = (model, xy, R0_)
+
+        def Evaluate(self, parameters, residuals, jacobians):
+            model, xy, R0_ = self.args
+            w, c, q, X = (np.array(p, dtype=float) for p in parameters)
+            R = res.rotation_exp(w[None])[0] @ R0_
+            pose = g.Pose.from_center(R, c)
+            residuals[:] = g.img_from_cam(model, q, pose.transform(X[None]))[0] - xy
+            if jacobians is not None:
+                full = res.full_params(model, q, 1)[0]
+                _, d_pose, d_par, d_pt = res.reprojection_rows(
+                    model, full, R[:, :, None], (X - c)[:, None], xy[:, None]
+                )
+                blocks = [
+                    d_pose[:, :3, 0] @ _left_jacobian(w),
+                    d_pose[:, 3:, 0],
+                    d_par[:, :, 0],
+                    d_pt[:, :, 0],
+                ]
+                for J, value in zip(jacobians, blocks, strict=False):
+                    if J is not None:
+                        J[:] = value.ravel()
+            return True
+
+    points = [x.copy() for x in P.tie_xyz]
+    tie_loss = {"huber": pyceres.HuberLoss, "cauchy": pyceres.CauchyLoss}[options.loss](
+        options.tie_loss_scale_px
+    )
+    for k, t, xy in zip(P.tie_image, P.tie_point, P.tie_xy, strict=True):
+        i = ids[k]
+        cid = P.image_camera[i]
+        cost = TieCost(P.cameras[cid].model, xy, R0[i])
+        costs.append(cost)
+        problem.add_residual_block(
+            cost, tie_loss, [omega[i], center[i], params[cid], points[t]]
+        )
     gauge = MeanHeightCost(len(ids), np.mean([center[i][2] for i in ids]))
     costs.append(gauge)
     problem.add_residual_block(gauge, None, [center[i] for i in ids])
@@ -623,7 +776,7 @@ def _ceres_solve(P, options, pyceres):
         i: g.Pose.from_center(res.rotation_exp(omega[i][None])[0] @ R0[i], center[i])
         for i in ids
     }
-    return poses, params, np.concatenate(heights), summary
+    return poses, params, np.concatenate(heights), summary, np.array(points)
 
 
 @pytest.mark.slow
@@ -650,7 +803,7 @@ def test_optimum_agrees_with_ceres():
         parameter_tolerance=1e-15,
     )
     ours = solve_bundle(P, options)
-    poses, params, heights, summary = _ceres_solve(P, options, pyceres)
+    poses, params, heights, summary, _ = _ceres_solve(P, options, pyceres)
     assert summary.termination_type == pyceres.TerminationType.CONVERGENCE, (
         summary.BriefReport()
     )
@@ -667,6 +820,45 @@ def test_optimum_agrees_with_ceres():
         )
     ours_h = np.concatenate([ours.facade_heights, ours.corner_heights])
     np.testing.assert_allclose(ours_h, heights, atol=1e-5, rtol=0)
+
+
+@pytest.mark.slow
+def test_optimum_with_tie_points_agrees_with_ceres():
+    """Tie points (3D unknowns, 2 rows per observation, Huber on the 2D
+    error): the same optimum as Ceres on the same objective."""
+    pyceres = pytest.importorskip(
+        "pyceres", reason="pyceres (test extra) is not installed"
+    )
+    syn = make_synthetic_problem(
+        seed=4,
+        buildings=(3, 3),
+        stations=(2, 2),
+        noise_px=0.5,
+        corner_height_start_sigma_m=2.0,
+        tie_points=60,
+    )
+    P = syn.problem
+    assert len(P.tie_xyz) > 30
+    options = BundleOptions(
+        loss="huber",
+        loss_scale_px=1.0,
+        tie_loss_scale_px=1.0,  # about a third of the observations beyond it
+        corner_height_prior_m=5.0,
+        function_tolerance=1e-15,
+        parameter_tolerance=1e-15,
+    )
+    ours = solve_bundle(P, options)
+    poses, params, _, summary, points = _ceres_solve(P, options, pyceres)
+    assert summary.termination_type == pyceres.TerminationType.CONVERGENCE, (
+        summary.BriefReport()
+    )
+    assert summary.final_cost == pytest.approx(ours.summary.final_cost, rel=1e-9)
+    for i in P.image_ids:
+        assert rotation_error_rad(ours.poses[i].rotation, poses[i].rotation) < 1e-8
+        np.testing.assert_allclose(
+            ours.poses[i].center, poses[i].center, atol=1e-5, rtol=0
+        )
+    np.testing.assert_allclose(ours.tie_xyz, points, atol=1e-5, rtol=0)
 
 
 def test_fx_fy_move_together_unless_the_aspect_ratio_is_refined():

@@ -17,7 +17,10 @@ camera model):
   the detected vertical image line;
 * horizontal: ``dist_z``, the distance of the projected facade point
   ``(x_j, y_j, h_j)`` to the detected horizontal line, measured along the
-  projected vertical.
+  projected vertical;
+* tie points (optional, ``BundleProblem.tie_*``): features matched across
+  the images, each a free 3D point, two reprojection rows per observation;
+  the points are eliminated by their 3x3 blocks (:mod:`.ties`).
 
 Observed camera parameters (``priors``; each optional): INS attitude, GNSS
 centres, the principal points, and each image's vertical vanishing point
@@ -54,6 +57,8 @@ Modules, in reading order:
   evaluation of residuals and Jacobians.
 - ``schur``: normal equations, the Schur complement on the heights and the
   damped step.
+- ``loss``: the robust losses.
+- ``ties``: the tie points' rows, their 3x3 blocks and their elimination.
 - ``priors``: the observed poses (INS attitude, GNSS centres), principal
   points and vertical vanishing points.
 - ``covariance``: the camera block's a-posteriori covariance and each

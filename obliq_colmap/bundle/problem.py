@@ -16,8 +16,8 @@ import scipy.sparse as sp
 from scipy.sparse.csgraph import connected_components
 
 from ..geometry import Camera, Pose
+from .loss import LOSSES
 
-LOSSES = ("huber", "cauchy", "none")
 CORNER_HEIGHT_MODES = ("free", "fixed")
 GAUGES = ("component_mean_camera_height", "none")
 
@@ -118,6 +118,13 @@ class BundleOptions:
     #: only evaluated against the fit without them (``BundleResult.vp_loo``,
     #: ``vp_test``: their factor and tests before they get any weight).
     vp_in_fit: bool = True
+    #: A priori standard deviation (px) of a tie point's observation
+    #: (``BundleProblem.tie_xy``, each axis); cost weight 1 / sigma^2.
+    tie_sigma_px: float = 1.0
+    #: Scale (px) of the robust loss on each tie observation's 2D error (the
+    #: loss ``loss`` on ``|r|^2``, as Ceres' loss on a 2-row block): a wrong
+    #: match loses its pull.
+    tie_loss_scale_px: float = 3.0
 
     def __post_init__(self) -> None:
         for name, value, allowed in (
@@ -156,6 +163,8 @@ class BundleOptions:
             raise ValueError("vp_sigma_scale must be a finite number > 0")
         if not (self.vp_loss_scale > 0):
             raise ValueError("vp_loss_scale must be > 0")
+        if not (self.tie_sigma_px > 0 and self.tie_loss_scale_px > 0):
+            raise ValueError("tie_sigma_px and tie_loss_scale_px must be > 0")
 
 
 def _as(a, shape_tail: tuple[int, ...], name: str, dtype=float) -> np.ndarray:
@@ -225,6 +234,13 @@ class BundleProblem:
     vertical_vp_covariances : dict image_id -> (3, 3) array, optional
         Stage 1's covariance of each VP of ``vertical_vps`` (rank 2, of the
         unit homogeneous vector); required with it.
+    tie_xyz : (T, 3) array, optional
+        Initial positions of the tie points (features matched across the
+        images), metres; free unknowns of the solve.
+    tie_image, tie_point : (O,) int arrays, optional
+        Image (index into ``image_ids``) and tie point of each observation.
+    tie_xy : (O, 2) array, optional
+        Observed pixel of each, RAW (distorted) pixels, COLMAP convention.
     """
 
     cameras: dict[int, Camera]
@@ -247,6 +263,10 @@ class BundleProblem:
     prior_principal_points: dict[int, np.ndarray] | None = None
     vertical_vps: dict[int, np.ndarray] | None = None
     vertical_vp_covariances: dict[int, np.ndarray] | None = None
+    tie_xyz: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
+    tie_image: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
+    tie_point: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
+    tie_xy: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))
 
     def __post_init__(self) -> None:
         if self.image_ids is None:
@@ -301,6 +321,10 @@ class BundleProblem:
             self.horizontal_offset_normal = _as(
                 self.horizontal_offset_normal, (2,), "horizontal_offset_normal"
             )
+        self.tie_xyz = _as(self.tie_xyz, (3,), "tie_xyz")
+        self.tie_image = _as(self.tie_image, (), "tie_image", np.int64)
+        self.tie_point = _as(self.tie_point, (), "tie_point", np.int64)
+        self.tie_xy = _as(self.tie_xy, (2,), "tie_xy")
         nc, ni, nj = len(self.corner_xy), len(self.image_ids), len(self.facade_heights)
         checks = [
             ("corner_heights", len(self.corner_heights) == nc),
@@ -323,6 +347,8 @@ class BundleProblem:
                 self.horizontal_offset_normal is None
                 or len(self.horizontal_offset_normal) == len(self.horizontal_image),
             ),
+            ("tie_point", len(self.tie_point) == len(self.tie_image)),
+            ("tie_xy", len(self.tie_xy) == len(self.tie_image)),
         ]
         for name, ok in checks:
             if not ok:
@@ -332,6 +358,8 @@ class BundleProblem:
             ("vertical_corner", self.vertical_corner, nc),
             ("horizontal_image", self.horizontal_image, ni),
             ("horizontal_height", self.horizontal_height, nj),
+            ("tie_image", self.tie_image, ni),
+            ("tie_point", self.tie_point, len(self.tie_xyz)),
         ):
             if len(idx) and (idx.min() < 0 or idx.max() >= n):
                 raise ValueError(f"{name} out of range [0, {n})")
@@ -421,6 +449,10 @@ class BundleResult:
         its chi-square (2 dof) test against the solution without it. Empty
         where the cofactor matrix is not computed (more camera parameters
         than ``BundleOptions.precision_max_camera_params``).
+    tie_xyz : (T, 3) array
+        The solved tie points (metres; empty without them).
+    tie_residuals_px : (O, 2) array
+        Final reprojection errors of their observations, problem order.
     vp_loo : dict image_id -> ((2,) array, (2, 2) array)
         With them: the VP's residual at the solution without it and the
         others' cofactor of that direction, whitened by stage 1's STATED
@@ -445,6 +477,8 @@ class BundleResult:
     vp_redundancy: dict[int, float] = field(default_factory=dict)
     vp_test: dict[int, float] = field(default_factory=dict)
     vp_loo: dict[int, tuple[np.ndarray, np.ndarray]] = field(default_factory=dict)
+    tie_xyz: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
+    tie_residuals_px: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))
 
 
 def image_components(

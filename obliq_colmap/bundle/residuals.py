@@ -78,6 +78,7 @@ __all__ = [
     "project",
     "project_with_jacobian",
     "project_with_vertical",
+    "reprojection_rows",
     "rotation_exp",
     "vertical_residuals",
     "vertical_rows",
@@ -276,6 +277,42 @@ def horizontal_rows(model: str, full, R, D, line, jacobians: bool = True):
     d_pose, d_height = _pose_height_chain(dX, X_cam, R, dV)
     d_params = _param_chain(model, L, (gp0, gp1), (gd0, gd1), (w0, w1), (q0, q1))
     return r, d_pose, d_params, d_height
+
+
+def reprojection_rows(model: str, full, R, D, xy, jacobians: bool = True):
+    """Reprojection residuals of observed 3D points (tie points) on rows.
+
+    Two rows per observation, ``projection - observation`` in x and in y
+    (pixels). Each row is the vertical residual of a line through the
+    observation (normal (1, 0) or (0, 1)), so its chain is the same; the
+    point's own Jacobian is minus the centre's (the rows depend on X - c).
+
+    Parameters
+    ----------
+    model, full, R : as :func:`vertical_rows`.
+    D : (3, N) array, ``X - c`` (tie point minus camera centre).
+    xy : (2, N) array, observed pixels (raw, COLMAP convention).
+    jacobians : bool
+
+    Returns
+    -------
+    r : (2, N) residuals (x row, y row); and if ``jacobians``, d_pose
+    (2, 6, N), d_params (2, P, N), d_point (2, 3, N).
+    """
+    X_cam, L = _lens_of(model, full, R, D, jacobians)
+    px, py = L.pixels()
+    r = np.stack([px - xy[0], py - xy[1]])
+    if not jacobians:
+        return (r,)
+    iz = L.iz
+    d_pose, d_params = [], []
+    for gp in ((1.0, 0.0), (0.0, 1.0)):
+        b0, b1 = L.back(gp[0] * L.fx, gp[1] * L.fy)
+        dX = (b0 * iz, b1 * iz, -(b0 * L.u + b1 * L.v) * iz)
+        d_pose.append(_pose_height_chain(dX, X_cam, R)[0])
+        d_params.append(_param_chain(model, L, gp))
+    d_pose = np.stack(d_pose)
+    return r, d_pose, np.stack(d_params), -d_pose[:, 3:6]
 
 
 def _as_residuals(out: tuple) -> ResidualJacobians:

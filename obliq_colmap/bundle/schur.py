@@ -69,8 +69,11 @@ class Schur:
         return out, rhs
 
 
-def damped_step(S: Setup, H_cc, g_c, H_hh, g_h, F, lam, schur: Schur):
-    """Solve the damped normal equations by the Schur complement on the heights."""
+def damped_step(S: Setup, H_cc, g_c, H_hh, g_h, F, lam, schur: Schur, ties=None):
+    """Solve the damped normal equations by the Schur complement on the
+    heights and, with ``ties`` (:class:`~obliq_colmap.bundle.ties.TieRows`,
+    linearised), on the tie points. Returns the camera, height and (T, 3)
+    point steps and the damping diagonals of the cameras and heights."""
     D_c = np.clip(np.diag(H_cc), 1e-6, 1e32)
     D_h = np.clip(H_hh, 1e-6, 1e32)
     dinv = 1.0 / (H_hh + lam * D_h)
@@ -81,10 +84,15 @@ def damped_step(S: Setup, H_cc, g_c, H_hh, g_h, F, lam, schur: Schur):
         reduced = 0.0
         rhs = -g_c
     A_red = H_cc - reduced
+    if ties is not None:
+        t_reduced, t_coupled = ties.schur(lam)
+        A_red = A_red - t_reduced
+        rhs = rhs + t_coupled
     A_red[np.diag_indices_from(A_red)] += lam * D_c
     dc = kkt_solve(A_red, S.A, rhs)  # dense, or sparse LU for large blocks
     dh = -dinv * (g_h + S.coupling.matvec(F, dc)) if S.n_heights else np.zeros(0)
-    return dc, dh, D_c, D_h
+    dp = ties.step(dc, lam) if ties is not None else np.zeros((0, 3))
+    return dc, dh, dp, D_c, D_h
 
 
 # --- 3-D point blocks (tie points) -------------------------------------------

@@ -95,7 +95,9 @@ class Setup:
         self.weight = 1.0 / sigma[self.kind] ** 2
 
         # Active images and cameras; parameter columns of the camera block.
+        # an image is active with map rows or tie observations
         counts = np.bincount(self.img, minlength=K)
+        counts += np.bincount(P.tie_image, minlength=K)
         self.active_images = np.flatnonzero(counts > 0)
         col = 0
         self.pose_col = np.full(K, -1)
@@ -148,9 +150,12 @@ class Setup:
         ]
 
         # Components and gauge rows (over the camera block).
+        # Images are linked by a shared height or a shared tie point.
         hmask = self.has_h
         self.num_components, self.labels = image_components(
-            K, self.img[hmask], self.hidx[hmask]
+            K,
+            np.concatenate([self.img[hmask], P.tie_image]),
+            np.concatenate([self.hidx[hmask], self.n_heights + P.tie_point]),
         )
         self.components = [
             tuple(P.image_ids[k] for k in np.flatnonzero(self.labels == c))
@@ -204,11 +209,13 @@ class _Group:
 
 
 class State:
-    def __init__(self, R, c, params, heights, shift=None):
+    def __init__(self, R, c, params, heights, shift=None, points=None):
         self.R, self.c, self.params, self.heights = R, c, params, heights
         # horizontal offset of the priors' centres against the map (m;
         # BundleOptions.estimate_prior_offset)
         self.shift = np.zeros(2) if shift is None else shift
+        #: (T, 3) tie points (m)
+        self.points = np.zeros((0, 3)) if points is None else points
 
     @classmethod
     def start(cls, P: BundleProblem, S: Setup) -> State:
@@ -220,6 +227,7 @@ class State:
             np.stack([P.poses[i].center for i in P.image_ids]),
             [P.cameras[c].params.copy() for c in S.camera_ids],
             np.concatenate([P.facade_heights, P.corner_heights if free else []]),
+            points=P.tie_xyz.copy(),
         )
 
     def copy(self):
@@ -229,6 +237,7 @@ class State:
             [p.copy() for p in self.params],
             self.heights.copy(),
             self.shift.copy(),
+            self.points.copy(),
         )
 
 

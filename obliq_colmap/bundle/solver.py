@@ -42,6 +42,7 @@ import numpy as np
 
 from ..geometry import Camera, Pose, rotation_exp
 from . import covariance
+from .loss import robust_loss
 from .priors import (
     AttitudePrior,
     CentrePrior,
@@ -52,6 +53,7 @@ from .priors import (
 from .problem import BundleOptions, BundleProblem, BundleResult, BundleSummary
 from .schur import Schur, damped_step, normal_equations
 from .setup import Setup, State, evaluate
+from .ties import TieRows
 
 __all__ = ["solve_bundle"]
 
@@ -59,16 +61,7 @@ logger = logging.getLogger(__name__)
 
 
 def _loss(kind: str, scale: float, r2: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """rho(r^2) and rho'(r^2) (Ceres' conventions, rho(s) = s for small s)."""
-    if kind == "none":
-        return r2, np.ones_like(r2)
-    b = scale * scale
-    if kind == "huber":
-        big = r2 > b
-        sq = np.sqrt(np.where(big, r2, b))
-        return np.where(big, 2.0 * scale * sq - b, r2), np.where(big, scale / sq, 1.0)
-    # cauchy
-    return b * np.log1p(r2 / b), 1.0 / (1.0 + r2 / b)
+    return robust_loss(kind, scale, r2)
 
 
 def solve_bundle(
@@ -107,6 +100,7 @@ def _solve(problem: BundleProblem, opts: BundleOptions) -> BundleResult:
     free = opts.corner_heights == "free"
     nJ = len(P.facade_heights)
     st = State.start(P, S)
+    ties = TieRows(P, S, opts) if len(P.tie_image) else None
     heights0 = st.heights.copy()
     prior_w = (
         1.0 / opts.corner_height_prior_m**2
@@ -138,6 +132,8 @@ def _solve(problem: BundleProblem, opts: BundleOptions) -> BundleResult:
             dh = (st.heights - heights0)[prior_mask]
             c += 0.5 * prior_w * float(dh @ dh)
         c += sum(p.cost(st) for p in pose_priors)
+        if ties is not None:
+            c += ties.cost(S, st)
         return c if np.isfinite(c) else np.inf
 
     def rmse(r: np.ndarray) -> tuple[float, float]:
@@ -152,6 +148,14 @@ def _solve(problem: BundleProblem, opts: BundleOptions) -> BundleResult:
             f"{len(bad)} constrained points are behind their camera (or project to "
             f"infinity) at the start, e.g. in image {P.image_ids[S.img[bad[0]]]}"
         )
+    if ties is not None:
+        r_tie = ties.evaluate(S, st, jac=False)[0]
+        if not np.all(np.isfinite(r_tie)):
+            bad = np.flatnonzero(~np.all(np.isfinite(r_tie), axis=1))
+            raise ValueError(
+                f"{len(bad)} tie point observations are behind their camera at"
+                f" the start, e.g. in image {P.image_ids[ties.img[bad[0]]]}"
+            )
     cost = cost_of(r, st)
     initial_cost, initial_rmse = cost, rmse(r)
 
@@ -187,6 +191,7 @@ def _solve(problem: BundleProblem, opts: BundleOptions) -> BundleResult:
         prior_w,
         prior_mask,
         heights0,
+        ties,
     )
 
     final_rmse = rmse(r)
@@ -203,10 +208,10 @@ def _solve(problem: BundleProblem, opts: BundleOptions) -> BundleResult:
             opts.precision_max_camera_params,
         )
     elif want:
-        r, w, cov = _cofactor(S, opts, st, pose_priors, prior_w, prior_mask)
+        r, w, cov = _cofactor(S, opts, st, pose_priors, prior_w, prior_mask, ties)
         if opts.compute_precision:
             precision, variance_factor = _precision(
-                S, st, pose_priors, prior_w, prior_mask, heights0, r, w, cov
+                S, st, pose_priors, prior_w, prior_mask, heights0, r, w, cov, ties
             )
             if precision:
                 pose_cov = covariance.pose_covariances(S, variance_factor * cov)
@@ -271,6 +276,18 @@ def _solve(problem: BundleProblem, opts: BundleOptions) -> BundleResult:
                 for c in np.unique(vp_obs.slot)
             ),
         )
+    tie_r = np.zeros((0, 2))
+    if ties is not None:
+        tie_r = np.empty((len(ties.img), 2))
+        tie_r[ties.order] = ties.evaluate(S, st, jac=False)[0]
+        e = np.linalg.norm(tie_r, axis=1)
+        logger.info(
+            "bundle: %d tie points, %d observations: error median %.3f px, p95 %.3f px",
+            ties.n_points,
+            len(e),
+            float(np.median(e)),
+            float(np.percentile(e, 95)),
+        )
     summary = BundleSummary(
         initial_cost=initial_cost,
         final_cost=cost,
@@ -319,6 +336,8 @@ def _solve(problem: BundleProblem, opts: BundleOptions) -> BundleResult:
         vp_redundancy=vp_red,
         vp_test=vp_test,
         vp_loo=vp_loo,
+        tie_xyz=st.points.copy(),
+        tie_residuals_px=tie_r,
     )
 
 
@@ -335,6 +354,7 @@ def _levenberg_marquardt(
     prior_w: float,
     prior_mask: np.ndarray,
     heights0: np.ndarray,
+    ties: TieRows | None = None,
 ):
     """The LM iterations from ``st`` (its residuals ``r``, Jacobians ``Jc``,
     ``Jh`` and robust cost ``cost``; ``cost_of(r, st)`` the cost of a trial).
@@ -358,23 +378,28 @@ def _levenberg_marquardt(
             H_cc, g_c, H_hh, g_h, F = normal_equations(S, Jc, Jh, r, w)
             for p in pose_priors:
                 p.add_to(H_cc, g_c, st)
+            if ties is not None:
+                ties.linearise(S, st, H_cc, g_c)
             H_hh = H_hh + prior_w * prior_mask
             g_h = g_h + prior_w * prior_mask * (st.heights - heights0)
             schur = Schur(S.coupling, H_hh, g_h, F)
             need_build = False
-        dc, dh, D_c, D_h = damped_step(S, H_cc, g_c, H_hh, g_h, F, lam, schur)
+        dc, dh, dp, D_c, D_h = damped_step(S, H_cc, g_c, H_hh, g_h, F, lam, schur, ties)
         predicted = 0.5 * (
             lam * (dc @ (D_c * dc) + dh @ (D_h * dh)) - (g_c @ dc + g_h @ dh)
         )
-        trial = _apply(S, st, dc, dh)
+        if ties is not None:
+            predicted += ties.predicted(dp, lam)
+        trial = _apply(S, st, dc, dh, dp)
         r_t, _, _ = evaluate(S, trial, jac=False)
         c_t = cost_of(r_t, trial)
         x_norm = np.sqrt(
             np.sum(st.c[S.active_images] ** 2)
             + sum(float(p @ p) for p in st.params)
             + float(st.heights @ st.heights)
+            + float(np.sum(st.points * st.points))
         )
-        step_norm = np.sqrt(dc @ dc + dh @ dh)
+        step_norm = np.sqrt(dc @ dc + dh @ dh + float(np.sum(dp * dp)))
         small_step = step_norm <= opts.parameter_tolerance * (
             x_norm + opts.parameter_tolerance
         )
@@ -421,16 +446,20 @@ def _cofactor(
     pose_priors: list[PosePrior],
     prior_w: float,
     prior_mask: np.ndarray,
+    ties: TieRows | None = None,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Residuals ``r`` (N,), their weights ``w`` and the camera block's
     cofactor matrix at ``st`` (:func:`covariance.camera_covariance`, the
-    observed camera parameters' rows in)."""
+    observed camera parameters' rows in, the tie points eliminated)."""
     r, Jc, Jh = evaluate(S, st, jac=True)
     _, w = _loss(opts.loss, opts.loss_scale_px, r * r)
     w = w * S.weight
     H_cc = normal_equations(S, Jc, Jh, r, w)[0]
     for p in pose_priors:
         p.add_to(H_cc, np.zeros(S.n_red), st)
+    if ties is not None:
+        ties.linearise(S, st, H_cc, np.zeros(S.n_red))
+        H_cc = H_cc - ties.reduced
     offset_w = 1.0 / opts.horizontal_offset_sigma_m**2
     cov = covariance.camera_covariance(
         S, H_cc, Jc, Jh, w, prior_w * prior_mask, offset_w
@@ -448,6 +477,7 @@ def _precision(
     r: np.ndarray,
     w: np.ndarray,
     cov: np.ndarray,
+    ties: TieRows | None = None,
 ) -> tuple[dict[int, float], float]:
     """Each active image's a-posteriori precision (px) at ``st``, from the
     residuals ``r``, weights ``w`` and cofactor matrix ``cov`` of
@@ -464,8 +494,13 @@ def _precision(
         len(r) + int(prior_mask.sum()) + len(S.A) - S.n_red - S.n_heights - S.n_offsets
     )
     redundancy += sum(p.n_rows for p in pose_priors)
+    tie_wss = 0.0
+    if ties is not None:
+        redundancy += 2 * len(ties.img) - 3 * ties.n_points
+        r_t = ties.evaluate(S, st, jac=False)[0]
+        tie_wss = ties.weight * float(np.sum(ties.losses(r_t)[1] * np.sum(r_t**2, 1)))
     if redundancy > 0:
-        variance_factor = float(np.sum(w * r * r)) / redundancy
+        variance_factor = (float(np.sum(w * r * r)) + tie_wss) / redundancy
         variance_factor += 2.0 * sum(p.cost(st) for p in pose_priors) / redundancy
         dh = (st.heights - heights0)[prior_mask]
         variance_factor += prior_w * float(dh @ dh) / redundancy
@@ -473,8 +508,9 @@ def _precision(
     return precision, variance_factor
 
 
-def _apply(S: Setup, st: State, dc: np.ndarray, dh: np.ndarray) -> State:
-    """New state: R <- Exp(omega) R, c <- c + dc, params += d, heights += dh."""
+def _apply(S: Setup, st: State, dc: np.ndarray, dh: np.ndarray, dp=None) -> State:
+    """New state: R <- Exp(omega) R, c <- c + dc, params += d, heights += dh,
+    tie points += dp."""
     new = st.copy()
     k = S.active_images
     blocks = dc[S.pose_col[k][:, None] + np.arange(6)]  # (K_active, 6)
@@ -484,6 +520,8 @@ def _apply(S: Setup, st: State, dc: np.ndarray, dh: np.ndarray) -> State:
         if basis.shape[1]:
             new.params[s] += basis @ dc[S.intr_col[s] + np.arange(basis.shape[1])]
     new.heights = st.heights + dh
+    if dp is not None and len(dp):
+        new.points = st.points + dp
     if S.shift_col >= 0:
         new.shift = st.shift + dc[S.shift_col : S.shift_col + 2]
     return new

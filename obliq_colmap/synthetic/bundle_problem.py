@@ -24,7 +24,7 @@ bundle's constraints; occlusion is ignored.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -66,6 +66,7 @@ class SyntheticBundle:
     facade_heights : (J,) true heights h_j, metres.
     corner_heights : (C,) true corner ground heights, metres.
     vertical_outlier, horizontal_outlier : (M,), (H,) bool masks.
+    tie_xyz : (T, 3) true tie points (the problem's ``tie_xyz`` is the start).
     """
 
     problem: BundleProblem
@@ -75,6 +76,7 @@ class SyntheticBundle:
     corner_heights: np.ndarray
     vertical_outlier: np.ndarray
     horizontal_outlier: np.ndarray
+    tie_xyz: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
 
 
 def _terrain(x: np.ndarray, y: np.ndarray) -> np.ndarray:
@@ -128,6 +130,8 @@ def make_synthetic_problem(
     camera_id_offset: int = 0,
     origin_xy: tuple[float, float] = (0.0, 0.0),
     view_cone_margin_deg: float | None = None,
+    tie_points: int = 0,
+    tie_noise_px: float | None = None,
 ) -> SyntheticBundle:
     """Build a synthetic bundle problem (see the module docstring).
 
@@ -144,6 +148,11 @@ def make_synthetic_problem(
     ``view_cone_margin_deg`` (e.g. 10): project only the points within this
     angle outside the image's field of view (its half diagonal), which makes
     large blocks (``stations`` of hundreds) fast to build; None: every point.
+
+    ``tie_points``: so many points on the terrain, uniform over the block,
+    observed (with ``tie_noise_px`` of Gaussian noise per axis, default
+    ``noise_px``) in every image they fall in (occlusion ignored) and kept
+    where seen at least twice; their start is the truth 1 m off per axis.
     """
     rng = np.random.default_rng(seed)
     ox, oy = origin_xy
@@ -333,6 +342,26 @@ def make_synthetic_problem(
     for L, o in ((v_line, v_out), (h_line, h_out)):
         L[o, 2] += rng.choice([-1, 1], o.sum()) * rng.uniform(10, 50, o.sum())
 
+    # --- tie points on the terrain
+    t_noise = noise_px if tie_noise_px is None else tie_noise_px
+    t_xyz, t_img, t_pt, t_xy = np.zeros((0, 3)), [], [], []
+    if tie_points:
+        lo, hi = corner_xy.min(0) - spacing_m, corner_xy.max(0) + spacing_m
+        xy = rng.uniform(lo, hi, (tie_points, 2))
+        pts = np.column_stack([xy, _terrain(xy[:, 0], xy[:, 1])])
+        for k in range(K):
+            q, inside = project(k, pts)
+            t_img.append(np.full(inside.sum(), k))
+            t_pt.append(np.flatnonzero(inside))
+            t_xy.append(q[inside] + rng.normal(0, t_noise, (inside.sum(), 2)))
+        t_img, t_pt, t_xy = map(np.concatenate, (t_img, t_pt, t_xy))
+        seen = np.bincount(t_pt, minlength=tie_points) >= 2
+        keep = seen[t_pt]
+        _, t_pt = np.unique(t_pt[keep], return_inverse=True)
+        t_img, t_xy = t_img[keep], t_xy[keep]
+        t_xyz = pts[seen]
+    t_true = t_xyz.copy()
+
     # --- perturbed start
     start_poses = {}
     shifts = rng.normal(size=(K, 3))
@@ -368,9 +397,13 @@ def make_synthetic_problem(
         horizontal_height=h_height,
         horizontal_anchor_xy=anchor,
         horizontal_line=h_line,
+        tie_xyz=t_xyz + rng.normal(0, 1.0, t_xyz.shape),
+        tie_image=np.asarray(t_img, np.int64),
+        tie_point=np.asarray(t_pt, np.int64),
+        tie_xy=np.asarray(t_xy, float).reshape(-1, 2),
     )
     return SyntheticBundle(
-        problem, cameras, poses, facade_true, corner_ground, v_out, h_out
+        problem, cameras, poses, facade_true, corner_ground, v_out, h_out, t_true
     )
 
 
@@ -396,6 +429,10 @@ def concatenate(a: SyntheticBundle, b: SyntheticBundle) -> SyntheticBundle:
         horizontal_height=cat([pa.horizontal_height, pb.horizontal_height + ja]),
         horizontal_anchor_xy=cat([pa.horizontal_anchor_xy, pb.horizontal_anchor_xy]),
         horizontal_line=cat([pa.horizontal_line, pb.horizontal_line]),
+        tie_xyz=cat([pa.tie_xyz, pb.tie_xyz]),
+        tie_image=cat([pa.tie_image, pb.tie_image + ka]),
+        tie_point=cat([pa.tie_point, pb.tie_point + len(pa.tie_xyz)]),
+        tie_xy=cat([pa.tie_xy, pb.tie_xy]),
     )
     return replace(
         a,
@@ -406,4 +443,5 @@ def concatenate(a: SyntheticBundle, b: SyntheticBundle) -> SyntheticBundle:
         corner_heights=cat([a.corner_heights, b.corner_heights]),
         vertical_outlier=cat([a.vertical_outlier, b.vertical_outlier]),
         horizontal_outlier=cat([a.horizontal_outlier, b.horizontal_outlier]),
+        tie_xyz=cat([a.tie_xyz, b.tie_xyz]),
     )
