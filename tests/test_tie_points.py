@@ -7,11 +7,6 @@ import pycolmap
 import pytest
 
 from obliq_colmap.adjustment.ties import triangulate_tie_tracks
-from obliq_colmap.bundle.schur import (
-    point_back_substitution,
-    point_normal_blocks,
-    point_schur,
-)
 
 
 def _block(rng, n_images: int):
@@ -49,31 +44,6 @@ def test_triangulate_tie_tracks_recovers_points_within_noise():
     assert np.median(err[:, :2]) < 3 * sigma / 1200 * 500
     assert np.median(err[:, 2]) < 3 * sigma / 1200 * 500**2 / 120
     assert np.max(err[:, 2]) > 0  # noise reached the points
-
-
-def test_point_schur_matches_dense_solve():
-    rng = np.random.default_rng(1)
-    n_pts, C = 30, 12
-    pidx = np.repeat(np.arange(n_pts), 4)
-    N = len(pidx)
-    Jc, Jp = rng.normal(size=(N, C)), rng.normal(size=(N, 3))
-    r, w = rng.normal(size=N), rng.uniform(0.5, 2.0, N)
-    H_pp, g_p, W, H_cc, g_c = point_normal_blocks(Jc, Jp, r, w, pidx, n_pts)
-    lam = 0.1
-    reduced, coupled, Hinv = point_schur(H_pp, g_p, W, lam)
-    A = H_cc - reduced
-    A[np.diag_indices(C)] += lam * np.clip(np.diag(H_cc), 1e-6, 1e32)
-    dc = np.linalg.solve(A, -g_c + coupled)
-    dp = point_back_substitution(Hinv, g_p, W, dc)
-    # the same damped system, dense
-    J = np.zeros((N, C + 3 * n_pts))
-    J[:, :C] = Jc
-    J[np.arange(N)[:, None], C + 3 * pidx[:, None] + np.arange(3)] = Jp
-    H = J.T @ (w[:, None] * J)
-    H[np.diag_indices_from(H)] += lam * np.clip(np.diag(H), 1e-6, 1e32)
-    full = np.linalg.solve(H, -J.T @ (w * r))
-    np.testing.assert_allclose(dc, full[:C], rtol=1e-8, atol=1e-10)
-    np.testing.assert_allclose(dp.ravel(), full[C:], rtol=1e-8, atol=1e-10)
 
 
 @pytest.mark.slow
@@ -141,9 +111,12 @@ def test_select_pairs_needs_overlap_and_similar_views():
     cams, poses = cams + cams[:2], poses + [far, tilted]
     polys = footprints(cams, poses, 0.0)
     assert polys[5].intersects(polys[0])
-    pairs = select_pairs(polys, poses, TiePointOptions())
+    pairs = select_pairs(polys, poses, TiePointOptions(max_view_angle_deg=40.0))
     assert all(4 not in p and 5 not in p for p in pairs)
     assert (0, 1) in pairs and (2, 3) in pairs
+    # by default two heads 90 deg apart are matched (the far one never)
+    pairs = select_pairs(polys, poses, TiePointOptions())
+    assert (0, 5) in pairs and all(4 not in p for p in pairs)
 
 
 @pytest.mark.slow
@@ -173,6 +146,34 @@ def test_register_writes_tie_points_with_tracks(tmp_path):
     rec.update_point_3d_errors()
     assert rec.num_points3D() == len(run.points3D)
     assert rec.compute_mean_reprojection_error() < 1.0
+
+
+def test_an_image_pair_on_a_wrong_geometry_is_left_out():
+    """Tracks of a pair whose matches all sit pixels off at the solved block
+    (a two-view geometry verified on repeated texture) are dropped with every
+    track that sees that pair; a lone bad match is not a pair."""
+    from obliq_colmap.adjustment.ties import consistent_pairs
+
+    rng = np.random.default_rng(0)
+    image, point, err = [], [], []
+    t = 0
+    for i, j, e in [(0, 1, 0.4), (1, 2, 0.5), (2, 3, 6.0), (0, 2, 0.3)]:
+        for _ in range(20):
+            image += [i, j]
+            point += [t, t]
+            err += list(np.abs(rng.normal(e, 0.1 * e, 2)))
+            t += 1
+    # a three-view track through the bad pair, and one wild match elsewhere
+    image += [1, 2, 3]
+    point += [t, t, t]
+    err += [0.4, 0.5, 6.0]
+    err[0] = 9.0
+    good = consistent_pairs(
+        np.array(err), np.array(image), np.array(point), factor=3.0, floor_px=3.0
+    )
+    assert good.shape == (t + 1,)
+    assert not good[40:60].any() and not good[t]
+    assert good[:40].all() and good[60:t].all()
 
 
 def test_a_tie_point_must_lie_in_the_scene():

@@ -53,11 +53,18 @@ class AdjustmentOptions:
     #: Prior 1-sigma (m) of a track's offset from its wall: weak, since roof
     #: rims overhang and parapets stand back from the map edge.
     track_offset_sigma_m: float = 10.0
-    #: SIFT tie points matched across the registered block, triangulated
-    #: after the bundle and written with their tracks (not yet observed IN the
-    #: bundle). Off by default: SIFT on the CPU costs seconds per image.
+    #: SIFT tie points matched across the registered block, observed in the
+    #: bundle from its second solve (3D points, 2 rows per observation) and
+    #: written with their tracks. Off by default: SIFT on the CPU costs
+    #: seconds per image.
     tie_points: bool = False
     tie_point_options: TiePointOptions = field(default_factory=TiePointOptions)
+    #: An image pair whose tie tracks sit, at the block solved without them,
+    #: a median error above this factor times the pairs' median and this
+    #: floor (px) is left out (a two-view geometry verified on repeated
+    #: texture).
+    tie_pair_factor: float = 3.0
+    tie_pair_floor_px: float = 3.0
 
     def __post_init__(self) -> None:
         if self.outlier_rounds < 0 or self.outlier_factor <= 0:

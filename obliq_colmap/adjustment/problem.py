@@ -25,6 +25,8 @@ import numpy as np
 from obliq_colmap.adjustment.facades import FacadeEdges, facade_edges
 from obliq_colmap.adjustment.matching import match_facade_edges
 from obliq_colmap.adjustment.options import AdjustmentOptions
+from obliq_colmap.adjustment.tie_options import TiePointOptions
+from obliq_colmap.adjustment.ties import TiePoints, tie_rows
 from obliq_colmap.adjustment.tracks import FacadeTracks
 from obliq_colmap.bundle import BundleProblem
 from obliq_colmap.bundle import residuals as res
@@ -75,6 +77,9 @@ class Stage3:
     #: and the tops of its corners' vertical edges sit from where the other
     #: images put them, (2,) (:func:`edge_end_offsets`).
     end_offset_px: dict[int, np.ndarray] = field(default_factory=dict)
+    #: The last solve's problem (its tie rows go into the output with the
+    #: solved points), None before a solve.
+    bundle_problem: BundleProblem | None = None
 
     def report(self, outcomes: dict[int, ImageOutcome]) -> dict[str, Any]:
         t = self.tracks
@@ -281,6 +286,8 @@ def build_bundle_problem(
     outcomes: dict[int, ImageOutcome],
     state: BlockState,
     stage3: Stage3,
+    ties: TiePoints | None = None,
+    tie_options: TiePointOptions | None = None,
 ) -> BundleProblem:
     """The global bundle over the registered images (paper eq. 3).
 
@@ -289,8 +296,10 @@ def build_bundle_problem(
     the track's point on its map edge. Lines in RAW pixels (the bundle
     projects through the full camera model). The corner points are fixed
     (``BundleOptions.corner_heights = "fixed"``, see
-    :func:`vertical_constraints`). Sets ``stage3.ends_raw`` and
-    ``stage3.row_obs``.
+    :func:`vertical_constraints`). Tie points (``ties``, matched across the
+    block): triangulated from the block as it stands, rows of the bundle
+    (:func:`~obliq_colmap.adjustment.ties.tie_rows`). Sets
+    ``stage3.ends_raw`` and ``stage3.row_obs``.
     """
     ids = stage3.ids
     v = vertical_constraints(inputs, outcomes, state, ids)
@@ -313,6 +322,20 @@ def build_bundle_problem(
     # Stage 1's vertical VPs where its status is "ok" (ImageOutcome.vp),
     # observations where BundleOptions.vp_observations.
     with_vp = [i for i in ids if outcomes[i].vp is not None]
+    tie = {}
+    if ties is not None and len(ties.obs_point):
+        ground = np.median(
+            [state.ground(i)(state.poses[i].center[None, :2])[0] for i in ids]
+        )
+        xyz, img, point, xy = tie_rows(
+            ties,
+            ids,
+            [state.cameras[i].to_pycolmap() for i in ids],
+            [state.poses[i].to_rigid3d() for i in ids],
+            float(ground),
+            tie_options or TiePointOptions(),
+        )
+        tie = dict(tie_xyz=xyz, tie_image=img, tie_point=point, tie_xy=xy)
     return BundleProblem(
         cameras=cameras,
         poses={i: state.poses[i] for i in ids},
@@ -341,4 +364,5 @@ def build_bundle_problem(
         },
         vertical_vps={i: outcomes[i].vp for i in with_vp},
         vertical_vp_covariances={i: outcomes[i].vp_covariance for i in with_vp},
+        **tie,
     )

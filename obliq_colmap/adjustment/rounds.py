@@ -22,6 +22,12 @@ import numpy as np
 
 from obliq_colmap.adjustment.options import AdjustmentOptions
 from obliq_colmap.adjustment.problem import Stage3, build_bundle_problem, facade_stage
+from obliq_colmap.adjustment.ties import (
+    TiePoints,
+    consistent_pairs,
+    reprojection_errors,
+    triangulate_tie_tracks,
+)
 from obliq_colmap.adjustment.tracks import triangulate_tracks
 from obliq_colmap.adjustment.verdicts import edge_end_offsets
 from obliq_colmap.bundle import BundleOptions, BundleProblem, BundleResult, solve_bundle
@@ -56,8 +62,12 @@ def bundle_stage(
     state: BlockState,
     options: AdjustmentOptions,
     timings: dict[str, float],
+    ties: TiePoints | None = None,
 ) -> AdjustedBlock:
     """Stage 3: facade edges, matching, datum corrections and the bundle.
+
+    ``ties``: tie points matched across the block (their tracks), observed
+    in the bundle (``None``: none).
 
     Returns the block as it stands after it (the per-image state when there
     are no facade constraints or the solve fails), the bundle's result or
@@ -81,7 +91,14 @@ def bundle_stage(
         state = state.with_datum_correction(
             dict(zip(stage3.ids, stage3.tracks.datum_correction, strict=True))
         )
-        problem = build_bundle_problem(inputs, outcomes, state, stage3)
+        problem = build_bundle_problem(
+            inputs, outcomes, state, stage3, ties, options.tie_point_options
+        )
+        # The tie points enter from the second solve, triangulated from the
+        # first and without the image pairs it shows on a wrong geometry
+        # (with_tie_points); the first is the map's alone.
+        tie_obs = (problem.tie_image, problem.tie_point, problem.tie_xy)
+        problem = dataclasses.replace(problem, **_NO_TIES)
         bundle_options = dataclasses.replace(
             options.bundle,
             corner_heights="fixed",
@@ -125,6 +142,8 @@ def bundle_stage(
                     horizontal_pixel_scale=scale_obs[obs],
                 )
                 obs = obs[kh]
+                if k == 0 and len(tie_obs[0]):
+                    problem = with_tie_points(problem, result, *tie_obs, options)
                 if options.track_lines:
                     problem = with_track_lines(
                         problem, result, inputs, stage3, obs, options
@@ -146,6 +165,7 @@ def bundle_stage(
             logger.warning("bundle failed (%s): the per-image result is kept", exc)
             result = None
         else:
+            stage3.bundle_problem = problem
             state = state.with_bundle(result, problem.image_camera)
             stage3.bundle_rms = _rms_per_image(problem, result)
             stage3.constraints_kept = _kept_share(initial, problem)
@@ -153,6 +173,53 @@ def bundle_stage(
             stage3.end_offset_px = edge_end_offsets(inputs, outcomes, state, stage3.ids)
     timings["bundle"] = time.perf_counter() - t0
     return AdjustedBlock(state, result, stage3)
+
+
+_NO_TIES = dict(
+    tie_xyz=np.zeros((0, 3)),
+    tie_image=np.zeros(0, np.int64),
+    tie_point=np.zeros(0, np.int64),
+    tie_xy=np.zeros((0, 2)),
+)
+
+
+def with_tie_points(
+    problem: BundleProblem,
+    result: BundleResult,
+    image: np.ndarray,
+    point: np.ndarray,
+    xy: np.ndarray,
+    options: AdjustmentOptions,
+) -> BundleProblem:
+    """``problem`` with the tie observations (image index, track, raw
+    pixel; (O,) each) as rows, triangulated from the solved block
+    ``result``, without the tracks of image pairs the block shows on a
+    wrong geometry (:func:`~obliq_colmap.adjustment.ties.consistent_pairs`)."""
+    ids = problem.image_ids
+    cams = [result.cameras[problem.image_camera[i]].to_pycolmap() for i in ids]
+    poses = [result.poses[i].to_rigid3d() for i in ids]
+    xyz = triangulate_tie_tracks(cams, poses, point, image, xy)
+    err = reprojection_errors(cams, poses, xyz, point, image, xy)
+    good = consistent_pairs(
+        err, image, point, options.tie_pair_factor, options.tie_pair_floor_px
+    )
+    keep = good[point] & np.isfinite(err)
+    keep &= np.bincount(point[keep], minlength=len(good))[point] >= 2
+    used, track = np.unique(point[keep], return_inverse=True)
+    logger.info(
+        "bundle: %d tie points, %d observations (%d tracks on image pairs the"
+        " block shows on a wrong geometry left out)",
+        len(used),
+        int(keep.sum()),
+        int((~good).sum()),
+    )
+    return dataclasses.replace(
+        problem,
+        tie_xyz=xyz[used],
+        tie_image=image[keep],
+        tie_point=track,
+        tie_xy=xy[keep],
+    )
 
 
 def _precision_if(options: BundleOptions, wanted: bool) -> BundleOptions:
@@ -364,11 +431,14 @@ def with_variance_components(
         ),
         horizontal_sigma_px=_robust_sigma(scaled[n > u], options.horizontal_sigma_px),
         vp_sigma_scale=vp_scale,
+        tie_sigma_px=_tie_sigma(result, options.tie_sigma_px),
     )
     logger.info(
-        "bundle: sigma px: map corners %.3f, facade lines %.3f; VP sd x %.2f",
+        "bundle: sigma px: map corners %.3f, facade lines %.3f, tie points %.3f;"
+        " VP sd x %.2f",
         options.vertical_sigma_px,
         options.horizontal_sigma_px,
+        options.tie_sigma_px,
         options.vp_sigma_scale,
     )
     if rejected:
@@ -393,6 +463,14 @@ def with_variance_components(
             },
         )
     return problem, options
+
+
+def _tie_sigma(result: BundleResult, default: float) -> float:
+    """Robust sd (px, per axis) of the last solve's tie observations, each
+    scaled back for its point's 3 unknowns
+    (:attr:`BundleResult.tie_residuals_scaled_px`)."""
+    r = result.tie_residuals_scaled_px
+    return _robust_sigma(r.ravel(), default) if len(r) else default
 
 
 def with_track_lines(
@@ -500,12 +578,38 @@ def without_outliers(
         prior_principal_points=p.prior_principal_points,
         vertical_vps=p.vertical_vps,
         vertical_vp_covariances=p.vertical_vp_covariances,
+        **_ties_kept(p, result, factor, floor_px),
     )
     logger.info(
-        "bundle: %d of %d vertical and %d of %d horizontal constraints rejected",
+        "bundle: %d of %d vertical and %d of %d horizontal constraints rejected;"
+        " %d of %d tie observations",
         (~kv).sum(),
         len(kv),
         (~kh).sum(),
         len(kh),
+        len(p.tie_image) - len(reduced.tie_image),
+        len(p.tie_image),
     )
     return reduced, kv, kh
+
+
+def _ties_kept(
+    problem: BundleProblem, result: BundleResult, factor: float, floor_px: float
+) -> dict[str, np.ndarray]:
+    """The tie rows whose 2D error is within ``factor`` robust standard
+    deviations (per axis, sqrt 2 for the 2D length) and ``floor_px``, of
+    points still seen twice, started at the solved points."""
+    e = np.linalg.norm(result.tie_residuals_px, axis=1)
+    if len(e) == 0:
+        return {}
+    sigma = _robust_sigma(result.tie_residuals_px.ravel(), 0.0)
+    keep = e <= max(factor * np.sqrt(2.0) * sigma, floor_px)
+    point = problem.tie_point[keep]
+    keep[keep] = np.bincount(point, minlength=len(problem.tie_xyz))[point] >= 2
+    used, point = np.unique(problem.tie_point[keep], return_inverse=True)
+    return dict(
+        tie_xyz=result.tie_xyz[used],
+        tie_image=problem.tie_image[keep],
+        tie_point=point,
+        tie_xy=problem.tie_xy[keep],
+    )

@@ -30,7 +30,10 @@ __all__ = [
     "chain_tie_tracks",
     "footprints",
     "select_pairs",
+    "consistent_pairs",
+    "reprojection_errors",
     "tie_points",
+    "tie_rows",
     "triangulate_tie_tracks",
 ]
 
@@ -52,6 +55,8 @@ class TiePoints:
     obs_image: np.ndarray
     obs_xy: np.ndarray
     obs_feature: np.ndarray
+    #: The image id of each index of ``obs_image``, where the caller set them.
+    image_ids: tuple[int, ...] = ()
 
     def per_image(self, num_images: int) -> np.ndarray:
         """(num_images,) number of observations in each image."""
@@ -156,7 +161,7 @@ def triangulate_tie_tracks(
     return np.linalg.solve(A + 1e-12 * np.eye(3), b[:, :, None])[:, :, 0]
 
 
-def _reprojection_errors(
+def reprojection_errors(
     cameras, poses, xyz, obs_point, obs_image, obs_xy
 ) -> np.ndarray:
     """(M,) pixel distance of each observation from its point's projection."""
@@ -204,7 +209,7 @@ def tie_points(
     xy = np.concatenate([f[0] for f in features])[offset[image] + feature]
     _, track = np.unique(track, return_inverse=True)
     xyz = triangulate_tie_tracks(cameras, poses, track, image, xy)
-    err = _reprojection_errors(cameras, poses, xyz, track, image, xy)
+    err = reprojection_errors(cameras, poses, xyz, track, image, xy)
     bad_track = ~in_the_scene(xyz, poses, ground_z, options)
     bad_track[track[err > options.max_reproj_error_px]] = True
     keep = ~bad_track[track]
@@ -220,3 +225,91 @@ def tie_points(
         int(keep.sum()),
     )
     return TiePoints(xyz[kept_tracks], new_track, image[keep], xy[keep], feature[keep])
+
+
+def tie_rows(
+    ties: TiePoints,
+    ids: Sequence[int],
+    cameras: Sequence[pycolmap.Camera],
+    poses: Sequence[pycolmap.Rigid3d],
+    ground_z: float,
+    options: TiePointOptions,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The tie points as the bundle's rows over the images ``ids`` (with
+    their cameras and poses, in that order): (T, 3) start points
+    triangulated from these poses, (O,) image index into ``ids``, (O,) point
+    index, (O, 2) raw pixels.
+
+    Kept: the observations of images in ``ids`` in front of their camera, of
+    points in the scene (:func:`in_the_scene`) seen at least
+    ``min_track_length`` times. No reprojection test here: the poses are the
+    ones the bundle is about to correct (the robust loss and its rounds judge
+    the matches).
+    """
+    pos = {int(i): k for k, i in enumerate(ids)}
+    img = np.array([pos.get(int(ties.image_ids[j]), -1) for j in ties.obs_image])
+    img = img.reshape(-1).astype(np.int64)
+    keep = img >= 0
+    track, img, xy = ties.obs_point[keep], img[keep], ties.obs_xy[keep]
+    R = np.stack([p.rotation.matrix() for p in poses]).reshape(-1, 3, 3)
+    t = np.stack([p.translation for p in poses]).reshape(-1, 3)
+    while True:
+        many = np.bincount(track)[track] >= options.min_track_length
+        track, img, xy = track[many], img[many], xy[many]
+        if len(track) == 0:
+            return np.zeros((0, 3)), img, track, xy
+        _, track = np.unique(track, return_inverse=True)
+        xyz = triangulate_tie_tracks(cameras, poses, track, img, xy)
+        depth = np.einsum("kj,kj->k", R[img][:, 2], xyz[track]) + t[img][:, 2]
+        ok = (depth > 0) & in_the_scene(xyz, poses, ground_z, options)[track]
+        if ok.all():
+            return xyz, img, track, xy
+        track, img, xy = track[ok], img[ok], xy[ok]
+
+
+def consistent_pairs(
+    err: np.ndarray,
+    image: np.ndarray,
+    point: np.ndarray,
+    factor: float,
+    floor_px: float,
+) -> np.ndarray:
+    """(T,) the tracks all of whose image pairs agree with the block.
+
+    ``err``: (O,) each observation's reprojection error (px) at the solved
+    block, ``image``, ``point``: (O,) its image and track. Two-view
+    verification can accept a whole pair of images on a wrong geometry
+    (repeated texture: the matches shifted by one period, mutually
+    consistent); a block solved without the tie points shows such a pair as
+    many matches several pixels off together. A pair of images whose median
+    error (over the tracks both see; a track's error in the pair is the
+    larger of its two) exceeds ``factor`` times the median over the pairs
+    and ``floor_px`` is rejected, with every track that sees it.
+    """
+    T = int(point.max()) + 1 if len(point) else 0
+    order = np.argsort(point, kind="stable")
+    p, im, e = point[order], image[order], err[order]
+    start = np.searchsorted(p, np.arange(T + 1))
+    n = np.diff(start)
+    # every ordered pair (a, b), a < b, of observations of one track
+    first = np.repeat(start[:-1], n * n)
+    k = np.arange(len(first)) - np.repeat(np.cumsum(n * n) - n * n, n * n)
+    a = first + k // np.repeat(n, n * n)
+    b = first + k % np.repeat(n, n * n)
+    ok = a < b
+    a, b = a[ok], b[ok]
+    if len(a) == 0:
+        return np.ones(T, bool)
+    i, j = np.minimum(im[a], im[b]), np.maximum(im[a], im[b])
+    key = i * (int(im.max()) + 1) + j
+    pair_err = np.maximum(e[a], e[b])
+    keys, inv = np.unique(key, return_inverse=True)
+    srt = np.lexsort((pair_err, inv))
+    cnt = np.bincount(inv)
+    lo = np.cumsum(cnt) - cnt
+    pe = pair_err[srt]
+    med = 0.5 * (pe[lo + (cnt - 1) // 2] + pe[lo + cnt // 2])
+    bad_pair = med > max(factor * float(np.median(med)), floor_px)
+    good = np.ones(T, bool)
+    good[p[a[bad_pair[inv]]]] = False
+    return good

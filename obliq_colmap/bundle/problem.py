@@ -453,6 +453,9 @@ class BundleResult:
         The solved tie points (metres; empty without them).
     tie_residuals_px : (O, 2) array
         Final reprojection errors of their observations, problem order.
+    tie_residuals_scaled_px : (O, 2) array
+        The same scaled by sqrt(2n / (2n - 3)), n the point's observations
+        (its 3 unknowns fit part of its 2n rows): their spread is the noise's.
     vp_loo : dict image_id -> ((2,) array, (2, 2) array)
         With them: the VP's residual at the solution without it and the
         others' cofactor of that direction, whitened by stage 1's STATED
@@ -479,6 +482,9 @@ class BundleResult:
     vp_loo: dict[int, tuple[np.ndarray, np.ndarray]] = field(default_factory=dict)
     tie_xyz: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
     tie_residuals_px: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))
+    tie_residuals_scaled_px: np.ndarray = field(
+        default_factory=lambda: np.zeros((0, 2))
+    )
 
 
 def image_components(

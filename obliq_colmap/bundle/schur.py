@@ -11,7 +11,6 @@ back-substitution of the heights.
 from __future__ import annotations
 
 import numpy as np
-import scipy.sparse as sp
 
 from .coupling import Coupling
 from .linear import kkt_solve
@@ -93,51 +92,3 @@ def damped_step(S: Setup, H_cc, g_c, H_hh, g_h, F, lam, schur: Schur, ties=None)
     dh = -dinv * (g_h + S.coupling.matvec(F, dc)) if S.n_heights else np.zeros(0)
     dp = ties.step(dc, lam) if ties is not None else np.zeros((0, 3))
     return dc, dh, dp, D_c, D_h
-
-
-# --- 3-D point blocks (tie points) -------------------------------------------
-# Kept apart from the heights' path above: a tie point is a full 3x3 block,
-# eliminated by batched 3x3 inverses (numpy), one block per point.
-
-
-def point_normal_blocks(Jc, Jp, r, w, pidx, n_points: int):
-    """Blocks of the normal equations over the rows of tie-point residuals.
-
-    Jc: (N, C) camera columns of each row, Jp: (N, 3) point columns, r, w:
-    (N,) residual and weight, pidx: (N,) point of each row. Returns H_pp
-    (P, 3, 3), g_p (P, 3), the coupling W (P, 3, C) = sum J_p^T w J_c per
-    point, and the camera part H_cc (C, C), g_c (C,) of these rows.
-    """
-    wJp = Jp * w[:, None]
-    H_pp = np.zeros((n_points, 3, 3))
-    np.add.at(H_pp, pidx, wJp[:, :, None] * Jp[:, None, :])
-    g_p = np.zeros((n_points, 3))
-    np.add.at(g_p, pidx, wJp * r[:, None])
-    # sum over each point's rows as a sparse (P, N) selector times dense rows:
-    # np.add.at on the (P, 3, C) array took 1.8x as long at the paper's scale
-    sel = sp.csr_matrix(
-        (np.ones(len(pidx)), (pidx, np.arange(len(pidx)))), shape=(n_points, len(pidx))
-    )
-    W = np.stack([sel @ (Jc * wJp[:, a : a + 1]) for a in range(3)], axis=1)
-    wJc = Jc * w[:, None]
-    return H_pp, g_p, W, Jc.T @ wJc, wJc.T @ r
-
-
-def point_schur(H_pp, g_p, W, lam: float):
-    """Eliminate the damped point blocks ``H_pp + lam clip(diag H_pp)``.
-
-    Returns (C, C) ``W^T Hinv W``, (C,) ``W^T Hinv g_p`` and the (P, 3, 3)
-    inverses Hinv for :func:`point_back_substitution`.
-    """
-    d = np.clip(np.diagonal(H_pp, axis1=1, axis2=2), 1e-6, 1e32)
-    damped = H_pp + lam * d[:, :, None] * np.eye(3)
-    Hinv = np.linalg.inv(damped)
-    HW = Hinv @ W  # (P, 3, C)
-    reduced = np.einsum("pkc,pkd->cd", W, HW, optimize=True)
-    coupled = np.einsum("pkc,pk->c", HW, g_p, optimize=True)
-    return reduced, coupled, Hinv
-
-
-def point_back_substitution(Hinv, g_p, W, dc) -> np.ndarray:
-    """(P, 3) point steps ``-Hinv (g_p + W dc)`` for the camera step dc (C,)."""
-    return -np.einsum("pij,pj->pi", Hinv, g_p + W @ dc)

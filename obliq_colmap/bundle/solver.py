@@ -276,10 +276,12 @@ def _solve(problem: BundleProblem, opts: BundleOptions) -> BundleResult:
                 for c in np.unique(vp_obs.slot)
             ),
         )
-    tie_r = np.zeros((0, 2))
+    tie_r = tie_scaled = np.zeros((0, 2))
     if ties is not None:
         tie_r = np.empty((len(ties.img), 2))
         tie_r[ties.order] = ties.evaluate(S, st, jac=False)[0]
+        n = np.bincount(P.tie_point, minlength=len(P.tie_xyz))[P.tie_point]
+        tie_scaled = tie_r * np.sqrt(2 * n / np.maximum(2 * n - 3, 1))[:, None]
         e = np.linalg.norm(tie_r, axis=1)
         logger.info(
             "bundle: %d tie points, %d observations: error median %.3f px, p95 %.3f px",
@@ -338,6 +340,7 @@ def _solve(problem: BundleProblem, opts: BundleOptions) -> BundleResult:
         vp_loo=vp_loo,
         tie_xyz=st.points.copy(),
         tie_residuals_px=tie_r,
+        tie_residuals_scaled_px=tie_scaled,
     )
 
 

@@ -291,9 +291,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         default=int(AdjustmentOptions().tie_points),
         metavar="{0,1}",
         help="match SIFT tie points across the registered block (pairs from the "
-        "poses' ground footprints, pycolmap two-view verification), triangulate "
-        "them and write them with their tracks to points3D.bin (default "
-        "%(default)s)",
+        "poses' ground footprints, neighbouring heads included; pycolmap two-view "
+        "verification), observe them in the bundle from its second solve (3D "
+        "points; image pairs the first solve shows on a wrong geometry left out) "
+        "and write them with their tracks to points3D.bin (default %(default)s)",
     )
     bundle.add_argument(
         "--loss_scale",

@@ -16,7 +16,13 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from obliq_colmap.adjustment import Stage3, bundle_stage
+from obliq_colmap.adjustment import (
+    Stage3,
+    TiePointOptions,
+    TiePoints,
+    bundle_stage,
+    tie_points,
+)
 from obliq_colmap.bundle import BundleResult
 from obliq_colmap.errors import InputError
 from obliq_colmap.geometry import (
@@ -25,6 +31,7 @@ from obliq_colmap.geometry import (
     axis_angle_from_rotation,
     rotation_from_axis_angle,
 )
+from obliq_colmap.images import read_image
 from obliq_colmap.parallel import WorkerPool
 from obliq_colmap.pipeline.options import PipelineOptions
 from obliq_colmap.pipeline.verdicts import (
@@ -72,8 +79,13 @@ def block_stage(
     """
     by_id = {o.image_id: o for o in outcomes}
     state = BlockState.from_outcomes([o for o in outcomes if o.registered])
+    ties = None
+    if options.adjustment.tie_points and len(state.poses) >= 2:
+        t0 = time.perf_counter()
+        ties = block_tie_points(inputs, state, options.adjustment.tie_point_options)
+        timings["tie_points"] = time.perf_counter() - t0
     state, bundle_result, stage3 = bundle_stage(
-        inputs, by_id, state, options.adjustment, timings
+        inputs, by_id, state, options.adjustment, timings, ties
     )
     reregistered: list[str] = []
     rejected, imprecise, misplaced = block_verdicts(stage3, options)
@@ -103,7 +115,7 @@ def block_stage(
             )
             first_bundle = timings["bundle"]
             state, bundle_result, stage3 = bundle_stage(
-                inputs, by_id, state, options.adjustment, timings
+                inputs, by_id, state, options.adjustment, timings, ties
             )
             timings["bundle"] += first_bundle
             again, imprecise_again, misplaced_again = block_verdicts(stage3, options)
@@ -136,6 +148,27 @@ def block_stage(
     state = leave_out_rejected(state, stage3, by_id, rejected, imprecise, misplaced)
     warn_imprecise(state, stage3, by_id, options.warn_predicted_sd_px)
     return state, bundle_result, stage3, reregistered
+
+
+def block_tie_points(
+    inputs: Inputs, state: BlockState, options: TiePointOptions
+) -> TiePoints:
+    """SIFT tie points of the registered images (their tracks; the bundle
+    triangulates them), pairs chosen from the per-image poses."""
+    ids = sorted(state.poses)
+    gray = [
+        read_image(inputs.image_path / inputs.priors.images[i].name)[0] for i in ids
+    ]
+    cams = [state.cameras[i].to_pycolmap() for i in ids]
+    poses = [state.poses[i].to_rigid3d() for i in ids]
+    ground = float(
+        np.median([state.ground(i)(state.poses[i].center[None, :2])[0] for i in ids])
+    )
+    # No reprojection test at these poses: they are what the bundle corrects
+    # (houses-102: 549 of ~2,600 points would pass at 3 px).
+    unchecked = dataclasses.replace(options, max_reproj_error_px=math.inf)
+    ties = tie_points(gray, cams, poses, ground, unchecked)
+    return dataclasses.replace(ties, image_ids=tuple(ids))
 
 
 def check_pose_priors(

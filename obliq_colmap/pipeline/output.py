@@ -16,7 +16,7 @@ import numpy as np
 
 from obliq_colmap import __version__
 from obliq_colmap.adjustment import Stage3, TiePointOptions, tie_points
-from obliq_colmap.bundle import BundleResult
+from obliq_colmap.bundle import BundleProblem, BundleResult
 from obliq_colmap.cadastre import visible_corners
 from obliq_colmap.colmap_io import Block, Georef, ImageRecord, Point3D, write_result
 from obliq_colmap.errors import InputError
@@ -33,6 +33,7 @@ __all__ = [
     "result_block",
     "run_report",
     "summary_table",
+    "bundle_tie_records",
     "tie_point_records",
     "write_run",
 ]
@@ -248,6 +249,28 @@ def _one_point_per_place(
         if len(seen) >= 2:
             points.append(Point3D(X[members].mean(axis=0), list(seen.items())))
     return points
+
+
+def bundle_tie_records(
+    problem: BundleProblem, result: BundleResult, image_ids: set[int]
+) -> list[Point3D]:
+    """The tie points the bundle solved, with their observations (those its
+    outlier rounds kept) in the images written (``image_ids``), seen at
+    least twice, in the block's frame."""
+    ids = np.asarray(problem.image_ids)[problem.tie_image]
+    keep = np.isin(ids, list(image_ids))
+    point, ids, xy = problem.tie_point[keep], ids[keep], problem.tie_xy[keep]
+    order = np.argsort(point, kind="stable")
+    point, ids, xy = point[order], ids[order], xy[order]
+    starts = np.searchsorted(point, np.arange(len(result.tie_xyz) + 1))
+    return [
+        Point3D(
+            result.tie_xyz[t].copy(),
+            [(int(ids[k]), xy[k]) for k in range(starts[t], starts[t + 1])],
+        )
+        for t in range(len(result.tie_xyz))
+        if starts[t + 1] - starts[t] >= 2
+    ]
 
 
 def tie_point_records(

@@ -21,6 +21,7 @@ from obliq_colmap.pipeline.inputs import image_tasks, load_inputs
 from obliq_colmap.pipeline.options import PipelineOptions
 from obliq_colmap.pipeline.output import (
     RunResult,
+    bundle_tie_records,
     color_points,
     constrained_points,
     result_block,
@@ -122,13 +123,18 @@ def run_register(
         final_overlays(inputs, block, state, by_id, Path(options.overlay_path), stage)
     points = constrained_points(inputs, block, state, by_id, bundle_result, stage3)
     ties: list[Point3D] = []
-    if options.adjustment.tie_points and len(block.images) >= 2:
+    solved = stage3.bundle_problem if stage3 is not None else None
+    if bundle_result is not None and solved is not None and len(solved.tie_image):
+        # the bundle's own tie points, in the block's frame
+        ties = bundle_tie_records(solved, bundle_result, set(block.images))
+        points += ties
+    elif options.adjustment.tie_points and len(block.images) >= 2:
         t_ties = time.perf_counter()
         ties = tie_point_records(
             inputs, block, z0, options.adjustment.tie_point_options
         )
         points += ties
-        timings["tie_points"] = time.perf_counter() - t_ties
+        timings["tie_points_output"] = time.perf_counter() - t_ties
     color_points(inputs.image_path, block, points)
     block = block.shifted(np.array([0.0, 0.0, z0]))
     for p in points:

@@ -212,6 +212,20 @@ def ceres_route(P, options: BundleOptions, max_iterations=100):
             problem.add_residual_block(
                 cost, loss, [blocks[j], pose_block[iid], cam_block[cid]]
             )
+    # Tie points: free 3D blocks, the same rows (identity covariance scaled
+    # by the tie sigma) and the tie loss on the 2D error.
+    tie_pts = [x.copy() for x in P.tie_xyz]
+    tie_loss = {"huber": pyceres.HuberLoss, "cauchy": pyceres.CauchyLoss}.get(
+        options.loss, lambda s: None
+    )(options.tie_loss_scale_px / options.tie_sigma_px)
+    tie_cov = np.eye(2) * options.tie_sigma_px**2
+    for k, t, xy in zip(P.tie_image, P.tie_point, P.tie_xy, strict=True):
+        iid = P.image_ids[k]
+        cid = P.image_camera[iid]
+        cost = pycolmap.cost_functions.ReprojErrorCost(model_ids[cid], tie_cov, xy)
+        problem.add_residual_block(
+            cost, tie_loss, [tie_pts[t], pose_block[iid], cam_block[cid]]
+        )
     for X in pts + corner_pts:
         if problem.has_parameter_block(X):
             problem.set_manifold(X, pyceres.SubsetManifold(3, [0, 1]))
@@ -290,19 +304,27 @@ def main() -> None:
     ap.add_argument("--no-ceres", action="store_true")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument(
+        "--tie_points",
+        type=int,
+        default=0,
+        help="so many tie points on the terrain (make_synthetic_problem), in "
+        "both routes",
+    )
+    ap.add_argument(
         "--reference",
         help="source tree (git archive REV obliq_colmap | tar -x -C TREE): its "
         "solve_bundle timed alternately with ours on the same problem, then exit",
     )
     args = ap.parse_args()
 
-    syn = make_synthetic_problem(seed=args.seed, **PAPER)
+    syn = make_synthetic_problem(seed=args.seed, tie_points=args.tie_points, **PAPER)
     P = syn.problem
     print(
         f"problem: {len(P.image_ids)} images, {len(P.cameras)} cameras, "
         f"{len(P.facade_heights)} facade + {len(P.corner_xy)} corner heights, "
         f"{len(P.horizontal_image)} horizontal + "
-        f"{len(P.vertical_image)} vertical constraints"
+        f"{len(P.vertical_image)} vertical constraints, {len(P.tie_xyz)} tie "
+        f"points with {len(P.tie_image)} observations"
     )
 
     if args.reference:
