@@ -66,6 +66,8 @@ class ImageOutcome:
     reregistered : the result comes from the try against the solved block
         (:func:`obliq_colmap.pipeline.reregister_failed`), after the first
         bundle.
+    placed_by_ties : that try started from the pose its tie points give in
+        the solved block (:mod:`obliq_colmap.pipeline.resection`).
     time_s : wall time per step, seconds.
     """
 
@@ -83,6 +85,7 @@ class ImageOutcome:
     camera: Camera | None = None
     rescued: bool = False
     reregistered: bool = False
+    placed_by_ties: bool = False
     time_s: dict[str, float] = field(default_factory=dict)
 
     @property

@@ -12,6 +12,7 @@ import numpy as np
 import pycolmap
 import pytest
 
+from obliq_colmap.adjustment import AdjustmentOptions
 from obliq_colmap.cli import main
 from obliq_colmap.colmap_io import read_georef, read_model
 from obliq_colmap.evaluate import EvaluateOptions, evaluate_model
@@ -20,13 +21,18 @@ from obliq_colmap.pipeline import PipelineOptions, run_register, write_run
 SAMPLE = Path(__file__).resolve().parents[1] / "data_samples" / "oblique_small"
 
 
+#: The tie points (SIFT, ~10 s on the sample) are tested in test_tie_points.py;
+#: the other pipeline tests run without them.
+NO_TIES = AdjustmentOptions(tie_points=False)
+
+
 def _sample_after_stage2(initial_run):
     """The sample's options (one worker), inputs and a private copy of its
     stage-2 outcomes (``initial_run``), for the stage-3 tests."""
     from obliq_colmap.pipeline import load_inputs
 
     _, first = initial_run
-    options = PipelineOptions(num_workers=1, progress=False)
+    options = PipelineOptions(num_workers=1, progress=False, adjustment=NO_TIES)
     inputs = load_inputs(
         SAMPLE / "images", SAMPLE / "cadastre.geojson", SAMPLE / "priors", options
     )
@@ -96,7 +102,7 @@ def initial_run(tmp_path_factory):
 def bundle_run(tmp_path_factory):
     """The whole ``register`` (default ``--stop_after bundle``) on the sample."""
     out = tmp_path_factory.mktemp("run") / "model"
-    options = PipelineOptions(num_workers=1, progress=False)
+    options = PipelineOptions(num_workers=1, progress=False, adjustment=NO_TIES)
     run = run_register(
         SAMPLE / "images", SAMPLE / "cadastre.geojson", SAMPLE / "priors", options
     )
@@ -876,7 +882,7 @@ def test_a_reregistration_that_spoils_the_block_is_undone(
     from obliq_colmap.registration import RegistrationResult
 
     _, run = initial_run
-    options = PipelineOptions(num_workers=1, progress=False)
+    options = PipelineOptions(num_workers=1, progress=False, adjustment=NO_TIES)
     inputs = pl.load_inputs(
         SAMPLE / "images", SAMPLE / "cadastre.geojson", SAMPLE / "priors", options
     )
@@ -892,7 +898,7 @@ def test_a_reregistration_that_spoils_the_block_is_undone(
         x.status, x.message = "failed", "simulated"
     before = copy.copy(x)
 
-    def reregister(pool, tasks, outcomes, state, options):
+    def reregister(pool, tasks, outcomes, state, options, ties=None):
         pl.set_registration(x, good)
         x.reregistered = True
         poses = {**state.poses, x.image_id: good.cam_from_world}
@@ -972,7 +978,9 @@ def test_overlays_are_drawn_from_the_written_poses_with_a_legend(tmp_path):
     from obliq_colmap.colmap_io import read_georef
 
     out, folder = tmp_path / "model", tmp_path / "overlays"
-    options = PipelineOptions(num_workers=1, progress=False, overlay_path=folder)
+    options = PipelineOptions(
+        num_workers=1, progress=False, adjustment=NO_TIES, overlay_path=folder
+    )
     run = run_register(
         SAMPLE / "images", SAMPLE / "cadastre.geojson", SAMPLE / "priors", options
     )

@@ -120,32 +120,74 @@ def test_select_pairs_needs_overlap_and_similar_views():
 
 
 @pytest.mark.slow
-def test_register_writes_tie_points_with_tracks(tmp_path):
-    """``register --tie_points 1`` (here after stage 2): the tie points reach
+def test_register_observes_tie_points_in_the_bundle_and_writes_them(tmp_path):
+    """``register`` (tie points on by default): the bundle's tie points reach
     points3D.bin with tracks across images, reprojecting within SIFT's noise
-    at the registered poses (sub-pixel mean, not the 3 px cut)."""
+    at the written poses, and every image of the sample stays within 2 px."""
     from pathlib import Path
 
-    from obliq_colmap.adjustment import AdjustmentOptions
+    from obliq_colmap.evaluate import EvaluateOptions, evaluate_model
     from obliq_colmap.pipeline import PipelineOptions, run_register, write_run
 
     sample = Path(__file__).resolve().parents[1] / "data_samples" / "oblique_small"
-    options = PipelineOptions(
-        stop_after="initial",
-        num_workers=1,
-        progress=False,
-        adjustment=AdjustmentOptions(tie_points=True),
-    )
+    options = PipelineOptions(num_workers=1, progress=False)
     run = run_register(
         sample / "images", sample / "cadastre.geojson", sample / "priors", options
     )
     ties = run.report["tie_points"]
-    assert ties["num_points"] > 0 and ties["min_per_image"] > 0
+    assert ties["num_points"] > 100 and ties["median_per_image"] > 20
     write_run(tmp_path / "model", run)
     rec = pycolmap.Reconstruction(tmp_path / "model")
     rec.update_point_3d_errors()
     assert rec.num_points3D() == len(run.points3D)
     assert rec.compute_mean_reprojection_error() < 1.0
+    ev = evaluate_model(tmp_path / "model", sample, EvaluateOptions())
+    dev = np.array([r.mean_deviation_px for r in ev.images])
+    assert len(dev) == 16 and np.all(dev < 2.0), dev
+
+
+def test_a_failed_image_is_placed_by_its_tie_points():
+    """An image left out of the solved block is placed by its tie
+    observations of the tracks the block triangulates: at the truth's pose
+    within the noise (0.3 px), and not at all with too few observations."""
+    from obliq_colmap.adjustment.ties import TiePoints
+    from obliq_colmap.pipeline.resection import MIN_INLIERS, tie_resections
+    from obliq_colmap.state import BlockState
+    from obliq_colmap.synthetic.bundle_problem import make_synthetic_problem
+
+    syn = make_synthetic_problem(seed=2, tie_points=1500, noise_px=0.3)
+    P = syn.problem
+    ids = list(P.image_ids)
+    out = ids[5]
+    cams = {i: syn.cameras[P.image_camera[i]] for i in ids}
+    state = BlockState(
+        poses={i: syn.poses[i] for i in ids if i != out},
+        cameras={i: cams[i] for i in ids if i != out},
+        planes={i: np.zeros(3) for i in ids if i != out},
+    )
+    ties = TiePoints(
+        syn.tie_xyz,
+        P.tie_point,
+        P.tie_image,
+        P.tie_xy,
+        np.zeros(len(P.tie_xy), np.int64),
+        image_ids=tuple(ids),
+    )
+    assert (P.tie_image == 5).sum() > MIN_INLIERS
+    placed = tie_resections(state, ties, {out: cams[out]})
+    truth = syn.poses[out]
+    assert np.linalg.norm(placed[out].center - truth.center) < 0.3
+    R = placed[out].rotation @ truth.rotation.T
+    assert np.degrees(np.arccos(np.clip((np.trace(R) - 1) / 2, -1, 1))) < 0.02
+    few = TiePoints(
+        syn.tie_xyz,
+        P.tie_point[: MIN_INLIERS * 3],
+        P.tie_image[: MIN_INLIERS * 3],
+        P.tie_xy[: MIN_INLIERS * 3],
+        np.zeros(MIN_INLIERS * 3, np.int64),
+        image_ids=tuple(ids),
+    )
+    assert tie_resections(state, few, {out: cams[out]}) == {}
 
 
 def test_an_image_pair_on_a_wrong_geometry_is_left_out():

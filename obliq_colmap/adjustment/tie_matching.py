@@ -90,6 +90,9 @@ def match_pairs(
     mo.sift.max_ratio = options.max_ratio
     matcher = pycolmap.FeatureMatcher.create(mo, pycolmap.Device.cpu)
     small = [_scaled(c, f[3]) for c, f in zip(cameras, features, strict=True)]
+    verify = pycolmap.TwoViewGeometryOptions()
+    verify.ransac.max_num_trials = options.max_num_trials
+    verify.ransac.random_seed = options.random_seed
     # Verified without the focal lengths (a fundamental matrix, as COLMAP
     # does for a camera without a prior focal length): the per-image poses'
     # cameras may be several per cent off and lack the lens' distortion,
@@ -115,7 +118,7 @@ def match_pairs(
             xi = np.array([(k.x, k.y) for k in ki], float).reshape(-1, 2)
             xj = np.array([(k.x, k.y) for k in kj], float).reshape(-1, 2)
             geom = pycolmap.estimate_two_view_geometry(
-                free[i], xi, free[j], xj, m.astype(np.uint32)
+                free[i], xi, free[j], xj, m.astype(np.uint32), verify
             )
         inl = np.asarray(geom.inlier_matches).reshape(-1, 2)
         if len(inl) >= 16:

@@ -36,6 +36,11 @@ class TiePointOptions:
     guided_matching: bool = False
     max_epipolar_error_px: float = 2.0
     max_ratio: float = 0.9
+    #: RANSAC of the two-view verification: at most this many trials (COLMAP's
+    #: 10,000 cost 0.17 s a pair on urban-101 for 5 % more inliers than
+    #: 2,000 at 0.04 s) and a fixed seed, so that a run repeats exactly.
+    max_num_trials: int = 2000
+    random_seed: int = 0
     #: Triangulated points whose reprojection error exceeds this are dropped.
     max_reproj_error_px: float = 3.0
     min_track_length: int = 2

@@ -16,13 +16,7 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from obliq_colmap.adjustment import (
-    Stage3,
-    TiePointOptions,
-    TiePoints,
-    bundle_stage,
-    tie_points,
-)
+from obliq_colmap.adjustment import Stage3, TiePoints, bundle_stage
 from obliq_colmap.bundle import BundleResult
 from obliq_colmap.errors import InputError
 from obliq_colmap.geometry import (
@@ -31,9 +25,9 @@ from obliq_colmap.geometry import (
     axis_angle_from_rotation,
     rotation_from_axis_angle,
 )
-from obliq_colmap.images import read_image
 from obliq_colmap.parallel import WorkerPool
 from obliq_colmap.pipeline.options import PipelineOptions
+from obliq_colmap.pipeline.resection import block_tie_points, tie_resections
 from obliq_colmap.pipeline.verdicts import (
     block_verdicts,
     leave_out_rejected,
@@ -45,7 +39,7 @@ from obliq_colmap.pipeline.workers import (
     set_registration,
     worker_pool,
 )
-from obliq_colmap.registration import RegistrationOptions
+from obliq_colmap.registration import RegistrationOptions, RegistrationResult
 from obliq_colmap.state import BlockState, ImageOutcome, Inputs
 
 __all__ = ["block_stage", "check_pose_priors", "reregister_failed"]
@@ -82,7 +76,9 @@ def block_stage(
     ties = None
     if options.adjustment.tie_points and len(state.poses) >= 2:
         t0 = time.perf_counter()
-        ties = block_tie_points(inputs, state, options.adjustment.tie_point_options)
+        ties = block_tie_points(
+            inputs, state, tasks, outcomes, options.adjustment.tie_point_options
+        )
         timings["tie_points"] = time.perf_counter() - t0
     state, bundle_result, stage3 = bundle_stage(
         inputs, by_id, state, options.adjustment, timings, ties
@@ -103,7 +99,7 @@ def block_stage(
             options.dask_scheduler,
         ) as pool:
             state, reregistered = reregister_failed(
-                pool, tasks, outcomes, state, options
+                pool, tasks, outcomes, state, options, ties
             )
         timings["reregistration"] = time.perf_counter() - t0
         if reregistered:
@@ -126,7 +122,20 @@ def block_stage(
             # / seed 2: 34 / 36 at 0.64 px against 32 / 36 at 1.11 px); the
             # height verdict is treated alike.
             spoiled = sorted(set(again) - set(rejected) - new)
-            if spoiled:
+            # Images placed by their tie points AND registered to the map are
+            # confirmed twice: where they outnumber the images the second
+            # bundle now rejects, those were the wrong ones (a no_vp image
+            # written on a weak pose), and the second block stands.
+            confirmed = all(by_id[i].placed_by_ties for i in new)
+            if spoiled and confirmed and len(spoiled) < len(new):
+                logger.warning(
+                    "the bundle with the images placed by their tie points"
+                    " rejects %s, accepted before: they are left out",
+                    ", ".join(by_id[i].name for i in spoiled),
+                )
+                rejected, imprecise = again, imprecise_again
+                misplaced = misplaced_again
+            elif spoiled:
                 # The second bundle disagrees with images the first accepted:
                 # the images registered again pulled the block off (a wrong
                 # pose with enough inliers). Back to the first bundle.
@@ -145,30 +154,18 @@ def block_stage(
             else:
                 rejected, imprecise = again, imprecise_again
                 misplaced = misplaced_again
+    # An image placed by its tie points alone has no map corner of its own:
+    # its facade rows, matched from that pose, are the weak part, and the
+    # share of them the bundle rejects does not judge its pose, which its
+    # tie rows hold.
+    rejected = [
+        i
+        for i in rejected
+        if not (by_id[i].placed_by_ties and by_id[i].registration.num_inliers == 0)
+    ]
     state = leave_out_rejected(state, stage3, by_id, rejected, imprecise, misplaced)
     warn_imprecise(state, stage3, by_id, options.warn_predicted_sd_px)
     return state, bundle_result, stage3, reregistered
-
-
-def block_tie_points(
-    inputs: Inputs, state: BlockState, options: TiePointOptions
-) -> TiePoints:
-    """SIFT tie points of the registered images (their tracks; the bundle
-    triangulates them), pairs chosen from the per-image poses."""
-    ids = sorted(state.poses)
-    gray = [
-        read_image(inputs.image_path / inputs.priors.images[i].name)[0] for i in ids
-    ]
-    cams = [state.cameras[i].to_pycolmap() for i in ids]
-    poses = [state.poses[i].to_rigid3d() for i in ids]
-    ground = float(
-        np.median([state.ground(i)(state.poses[i].center[None, :2])[0] for i in ids])
-    )
-    # No reprojection test at these poses: they are what the bundle corrects
-    # (houses-102: 549 of ~2,600 points would pass at 3 px).
-    unchecked = dataclasses.replace(options, max_reproj_error_px=math.inf)
-    ties = tie_points(gray, cams, poses, ground, unchecked)
-    return dataclasses.replace(ties, image_ids=tuple(ids))
 
 
 def check_pose_priors(
@@ -252,6 +249,7 @@ def reregister_failed(
     outcomes: list[ImageOutcome],
     state: BlockState,
     options: PipelineOptions,
+    ties: TiePoints | None = None,
 ) -> tuple[BlockState, list[str]]:
     """Register failed and weak images again, against the solved block.
 
@@ -264,7 +262,11 @@ def reregister_failed(
     ``options.rescue_min_inliers`` inlier corners, is registered once more
     with these and its head's camera held; the new result is kept when it
     succeeds with more inliers than before (the caller then solves the
-    bundle again).
+    bundle again). With ``ties``, an image that its tie points place in the
+    block (:func:`~obliq_colmap.pipeline.resection.tie_resections`) starts
+    from that pose instead, with tight prior sigmas and the vertical it
+    gives (:data:`TIE_START_SIGMAS`), whether its head has confident images
+    or not.
 
     Returns
     -------
@@ -280,13 +282,27 @@ def reregister_failed(
         )
 
     confident = [i for i in state.poses if by_id[i].registered and not weak(by_id[i])]
+    head_camera = {head_of[i]: state.cameras[i] for i in state.poses}
+    starts = {}
+    if ties is not None:
+        candidates = {
+            o.image_id: head_camera[head_of[o.image_id]]
+            for o in outcomes
+            if o.registration is not None
+            and weak(o)
+            and head_of[o.image_id] in head_camera
+        }
+        starts = tie_resections(state, ties, candidates)
     todo = [
         k
         for k, o in enumerate(outcomes)
         if o.registration is not None
         and weak(o)
         and len(o.segments) >= options.registration.min_segments
-        and any(head_of[i] == tasks[k].camera.camera_id for i in confident)
+        and (
+            o.image_id in starts
+            or any(head_of[i] == tasks[k].camera.camera_id for i in confident)
+        )
     ]
     if not todo:
         return state, []
@@ -299,12 +315,17 @@ def reregister_failed(
     jobs = []
     for k in todo:
         cid = tasks[k].camera.camera_id
-        camera = state.cameras[heads[cid][0].image_id]
-        task = _head_task(tasks[k], camera, offsets[cid], options.registration)
+        vertical = outcomes[k].vertical_direction
+        if tasks[k].image_id in starts:
+            task = _tie_task(
+                tasks[k], head_camera[cid], starts[tasks[k].image_id], options
+            )
+            vertical = None  # the start's, far better than a missed VP's
+        else:
+            camera = state.cameras[heads[cid][0].image_id]
+            task = _head_task(tasks[k], camera, offsets[cid], options.registration)
         ground = _block_ground_at(state, _footprint_xy(task.prior, ground0))
-        jobs.append(
-            (task, outcomes[k].segments, outcomes[k].vertical_direction, ground)
-        )
+        jobs.append((task, outcomes[k].segments, vertical, ground))
     logger.info(
         "%d failed or weak image(s) registered again against the solved block",
         len(jobs),
@@ -316,12 +337,18 @@ def reregister_failed(
     for k, job, result in zip(todo, jobs, tries, strict=True):
         o = outcomes[k]
         before = o.registration.num_inliers if o.registered else -1
+        if not result.success and o.image_id in starts and not o.registered:
+            # Its tie points place it in the block; the map alone cannot
+            # (few building corners with vertical edges): it joins the
+            # bundle with its tie and facade rows.
+            result = _placed_by_ties(job[0], starts[o.image_id], job[3], result)
         if not result.success or result.num_inliers <= before:
             if not o.registered:
                 o.message += f"; against the solved block: {result.message}"
             continue
         set_registration(o, result)
         o.reregistered = True
+        o.placed_by_ties = o.image_id in starts
         poses[o.image_id] = result.cam_from_world
         cameras[o.image_id] = job[0].start
         planes[o.image_id] = result.height_plane.copy()
@@ -375,6 +402,50 @@ def _footprint_xy(prior: Pose, ground: float) -> np.ndarray:
     if axis[2] >= -1e-3:
         return c[:2].copy()
     return c[:2] + (ground - c[2]) / axis[2] * axis[:2]
+
+
+#: Prior sigmas (centre m, rotation deg) of a start from the tie points: a
+#: resection from tens of tracks is good to decimetres and a few hundredths
+#: of a degree; these leave room for a weak one.
+TIE_START_SIGMAS = (1.0, 0.3)
+
+
+def _tie_task(
+    task: ImageTask, camera: Camera, start: Pose, options: PipelineOptions
+) -> ImageTask:
+    """The task of an image placed by its tie points: its head's solved
+    camera, held, and the resected pose as a tight prior."""
+    sigma_m, sigma_deg = TIE_START_SIGMAS
+    registration = dataclasses.replace(
+        options.registration,
+        refine_focal=False,
+        refine_distortion=False,
+        prior_focal_sigma=0.0,
+        prior_position_sigma_m=sigma_m,
+        prior_rotation_sigma_deg=sigma_deg,
+    )
+    return dataclasses.replace(
+        task, start=camera, prior=start, registration=registration
+    )
+
+
+def _placed_by_ties(
+    task: ImageTask, pose: Pose, ground: float, failed: RegistrationResult
+) -> RegistrationResult:
+    """A registration from the tie points alone: the resected pose, the
+    head's camera, a level ground at the block's height there, no map
+    corner."""
+    return RegistrationResult(
+        success=True,
+        cam_from_world=pose,
+        vertical_direction=pose.rotation[:, 2].copy(),
+        vertical_source="tie points",
+        height_plane=np.array([0.0, 0.0, ground]),
+        ground_height=ground,
+        num_segments=failed.num_segments,
+        message=f"placed by its tie points (the map alone: {failed.message})",
+        camera=task.start,
+    )
 
 
 def _head_task(

@@ -128,7 +128,12 @@ def run_register(
         # the bundle's own tie points, in the block's frame
         ties = bundle_tie_records(solved, bundle_result, set(block.images))
         points += ties
-    elif options.adjustment.tie_points and len(block.images) >= 2:
+    elif (
+        options.adjustment.tie_points
+        and options.stop_after == "bundle"
+        and len(block.images) >= 2
+    ):
+        # the bundle was skipped or failed: its tie points, triangulated
         t_ties = time.perf_counter()
         ties = tie_point_records(
             inputs, block, z0, options.adjustment.tie_point_options
