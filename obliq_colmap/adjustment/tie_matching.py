@@ -4,6 +4,7 @@
 from __future__ import annotations
 
 from collections.abc import Sequence
+from pathlib import Path
 from typing import TYPE_CHECKING
 
 import cv2
@@ -17,27 +18,87 @@ if TYPE_CHECKING:
 __all__ = ["extract_features", "match_pairs"]
 
 
-def extract_features(gray_images: Sequence[np.ndarray], options: TiePointOptions):
-    """SIFT on each (H, W) uint8 image, down-sampled to ``max_image_size``
+_EXTRACTOR: dict[int, object] = {}
+
+
+def _sift_arrays(args: tuple[np.ndarray | Path, int, int, int]):
+    """SIFT of one image (an (H, W) uint8 array, or a path read here as
+    stored, in grey), down-sampled to ``max_image_size``, as plain arrays
+    (pycolmap's keypoints do not pickle): (K, 6) keypoints (x, y, a11, a12,
+    a21, a22) in the down-sampled image, the (K, 128) uint8 descriptors,
+    their type and the scale (down-sampled / full size). One extractor per
+    process."""
+    img, max_image_size, max_num_features, threads = args
+    if not isinstance(img, np.ndarray):
+        img = cv2.imread(str(img), cv2.IMREAD_GRAYSCALE | cv2.IMREAD_IGNORE_ORIENTATION)
+    scale = min(1.0, max_image_size / max(img.shape))
+    if scale < 1.0:
+        width = img.shape[1]
+        size = (round(width * scale), round(img.shape[0] * scale))
+        img = cv2.resize(img, size, interpolation=cv2.INTER_AREA)
+        scale = size[0] / width
+    if max_num_features not in _EXTRACTOR:
+        eo = pycolmap.FeatureExtractionOptions()
+        eo.num_threads = threads
+        eo.sift.max_num_features = max_num_features
+        _EXTRACTOR[max_num_features] = pycolmap.FeatureExtractor.create(
+            eo, pycolmap.Device.cpu
+        )
+    kps, desc = _EXTRACTOR[max_num_features].extract_from_uint8_array(
+        np.ascontiguousarray(img)
+    )
+    k = np.array([(p.x, p.y, p.a11, p.a12, p.a21, p.a22) for p in kps], float)
+    return k.reshape(-1, 6), np.asarray(desc.data, np.uint8), desc.type, scale
+
+
+def _keypoints(k: np.ndarray) -> pycolmap.FeatureKeypoints:
+    names = ("x", "y", "a11", "a12", "a21", "a22")
+    return pycolmap.FeatureKeypoints(
+        [
+            pycolmap.FeatureKeypoint(**dict(zip(names, map(float, row), strict=True)))
+            for row in k
+        ]
+    )
+
+
+def extract_features(
+    gray_images: Sequence[np.ndarray | Path], options: TiePointOptions
+):
+    """SIFT on each (H, W) uint8 image (or image file, read in the worker),
+    down-sampled to ``max_image_size``
     (pycolmap's array entry point does not down-sample): a list of ((K, 2)
     full-resolution pixel coordinates, pycolmap keypoints in the down-sampled
-    image, pycolmap descriptors, scale = down-sampled / full size)."""
-    eo = pycolmap.FeatureExtractionOptions()
-    eo.num_threads = options.num_threads
-    eo.sift.max_num_features = options.max_num_features
-    extractor = pycolmap.FeatureExtractor.create(eo, pycolmap.Device.cpu)
+    image, pycolmap descriptors, scale = down-sampled / full size).
+
+    With ``options.num_workers`` > 1 the images are shared out over so many
+    processes (pycolmap's SIFT holds the GIL: threads do not help; measured
+    on urban-101, 8 images: 4.3 s serial, 5.1 s in 2 threads)."""
+    jobs = [
+        (img, options.max_image_size, options.max_num_features, options.num_threads)
+        for img in gray_images
+    ]
+    progress = dict(total=len(jobs), desc="tie points: SIFT", disable=None)
+    if options.num_workers > 1 and len(jobs) > 1:
+        from concurrent.futures import ProcessPoolExecutor
+        from multiprocessing import get_context
+
+        with ProcessPoolExecutor(
+            options.num_workers, mp_context=get_context("spawn")
+        ) as pool:
+            found = list(tqdm(pool.map(_sift_arrays, jobs), **progress))
+    else:
+        found = [_sift_arrays(j) for j in tqdm(jobs, **progress)]
     out = []
-    for img in tqdm(gray_images, desc="tie points: SIFT", disable=None):
-        scale = min(1.0, options.max_image_size / max(img.shape))
-        small = img
-        if scale < 1.0:
-            size = (round(img.shape[1] * scale), round(img.shape[0] * scale))
-            small = cv2.resize(img, size, interpolation=cv2.INTER_AREA)
-            scale = size[0] / img.shape[1]
-        kps, desc = extractor.extract_from_uint8_array(np.ascontiguousarray(small))
+    for k, d, kind, scale in found:
         # COLMAP's pixel convention (corner at 0): scaling is a plain division
-        xy = np.array([(k.x, k.y) for k in kps], float).reshape(-1, 2) / scale
-        out.append((xy, kps, desc, scale))
+        out.append(
+            (
+                k[:, :2] / scale,
+                _keypoints(k),
+                pycolmap.FeatureDescriptors(kind, d),
+                scale,
+            )
+        )
     return out
 
 

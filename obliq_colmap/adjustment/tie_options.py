@@ -54,6 +54,8 @@ class TiePointOptions:
     max_below_ground_fraction: float = 0.2
     max_distance_heights: float = 5.0
     num_threads: int = 2
+    #: Processes of the SIFT extraction (1: in this process).
+    num_workers: int = 2
 
     def __post_init__(self) -> None:
         if self.max_image_size < 64 or self.max_num_features < 8:

@@ -23,7 +23,6 @@ import pycolmap
 from obliq_colmap.adjustment import TiePointOptions, TiePoints, tie_points
 from obliq_colmap.adjustment.ties import reprojection_errors, triangulate_tie_tracks
 from obliq_colmap.geometry import Camera, Pose
-from obliq_colmap.images import read_image
 from obliq_colmap.pipeline.workers import ImageTask
 from obliq_colmap.state import BlockState, ImageOutcome, Inputs
 
@@ -56,9 +55,8 @@ def block_tie_points(
         if t.image_id not in state.poses and o.status != "unreadable"
     }
     ids = sorted(state.poses) + sorted(failed)
-    gray = [
-        read_image(inputs.image_path / inputs.priors.images[i].name)[0] for i in ids
-    ]
+    # paths: the SIFT workers read (and down-sample) the images themselves
+    files = [inputs.image_path / inputs.priors.images[i].name for i in ids]
 
     def camera(i: int) -> Camera:
         return (
@@ -79,7 +77,7 @@ def block_tie_points(
     # (houses-102: 549 of ~2,600 points would pass at 3 px).
     unchecked = dataclasses.replace(options, max_reproj_error_px=math.inf)
     ties = tie_points(
-        gray,
+        files,
         [camera(i).to_pycolmap() for i in ids],
         [pose(i).to_rigid3d() for i in ids],
         ground,
