@@ -921,6 +921,65 @@ def test_a_reregistration_that_spoils_the_block_is_undone(
     assert ("left out" if failed else "first pose kept") in x.message
 
 
+def test_images_placed_by_tie_points_outvote_an_image_the_bundle_now_rejects(
+    initial_run, monkeypatch
+):
+    """Two failed images come back placed by their tie points and registered;
+    the bundle with them rejects one image it accepted before. Confirmed
+    twice (ties and map) and more numerous, they stand, and the image they
+    disagree with is left out (houses-102: N_07, a no_vp image 6 px off).
+    The re-registration and the verdicts are stubbed: this is the
+    bookkeeping."""
+    import copy
+
+    from obliq_colmap import pipeline as pl
+    from obliq_colmap.adjustment import verdicts
+    from obliq_colmap.pipeline import block
+    from obliq_colmap.registration import RegistrationResult
+
+    _, run = initial_run
+    options = PipelineOptions(num_workers=1, progress=False, adjustment=NO_TIES)
+    inputs = pl.load_inputs(
+        SAMPLE / "images", SAMPLE / "cadastre.geojson", SAMPLE / "priors", options
+    )
+    tasks = pl.image_tasks(inputs, options)
+    outcomes = [copy.deepcopy(run.outcomes[t.image_id]) for t in tasks]
+    back = [o for o in outcomes if o.name in ("N_01.jpg", "S_01.jpg")]
+    y = next(o for o in outcomes if o.name == "E_10.jpg")
+    good = {o.image_id: o.registration for o in back}
+    for o in back:
+        r = o.registration
+        o.registration = RegistrationResult(
+            False, r.cam_from_world, r.vertical_direction, message="simulated"
+        )
+        o.status, o.message = "failed", "simulated"
+
+    def reregister(pool, tasks, outcomes, state, options, ties=None):
+        poses, cameras, planes = (
+            dict(state.poses),
+            dict(state.cameras),
+            {**state.planes},
+        )
+        for o in back:
+            pl.set_registration(o, good[o.image_id])
+            o.reregistered = o.placed_by_ties = True
+            poses[o.image_id] = o.registration.cam_from_world
+            cameras[o.image_id] = o.camera
+            planes[o.image_id] = o.registration.height_plane.copy()
+        state = pl.BlockState(poses, cameras, planes, True, state.solved)
+        return state, [o.name for o in back]
+
+    ids = iter([[], [y.image_id]])
+    monkeypatch.setattr(block, "reregister_failed", reregister)
+    monkeypatch.setattr(verdicts, "rejected_images", lambda stage3, m: next(ids))
+    state, result, _, again = pl.block_stage(
+        inputs, tasks, outcomes, options, {}, (1, ())
+    )
+    assert sorted(again) == ["N_01.jpg", "S_01.jpg"] and result is not None
+    assert all(o.registered and o.image_id in state.poses for o in back)
+    assert not y.registered and y.image_id not in state.poses
+
+
 def test_pose_priors_far_worse_than_their_sigma_are_an_input_error(initial_run):
     """The sample's prior centres (a median 10 m off) given as 0.05 m: the bundle
     follows them and disagrees with most images; solved without them it
