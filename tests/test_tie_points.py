@@ -240,3 +240,24 @@ def test_a_tie_point_must_lie_in_the_scene():
     )
     ok = in_the_scene(xyz, poses, 0.0, TiePointOptions())
     assert ok.tolist() == [True, True, False, False, False]
+
+
+def test_mutual_ratio_matches_finds_the_planted_pairs_and_drops_ambiguous_ones():
+    """Descriptors of image b are those of a, shuffled and slightly changed,
+    plus clutter: the planted pairs come back; a descriptor with a near twin
+    in b fails the ratio test; one far from everything fails max_angle."""
+    from obliq_colmap.adjustment.tie_matching import mutual_ratio_matches
+
+    rng = np.random.default_rng(3)
+    a = rng.random((200, 128)) ** 4
+    perm = rng.permutation(200)
+    b = a[perm] + rng.normal(0, 0.002, (200, 128))
+    b = np.vstack([b, rng.random((100, 128)) ** 4])
+    b[200] = b[np.flatnonzero(perm == 7)[0]] + 1e-4  # a twin of a's 7th
+    m = mutual_ratio_matches(a, b, max_ratio=0.8)
+    found = dict(m.tolist())
+    assert 7 not in found
+    truth = {int(perm[j]): j for j in range(200)}
+    assert len(found) >= 190
+    assert all(truth[i] == j for i, j in found.items())
+    assert len(mutual_ratio_matches(a, -b, 0.8, max_angle=0.7)) == 0
