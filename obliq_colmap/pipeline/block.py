@@ -349,6 +349,8 @@ def reregister_failed(
         set_registration(o, result)
         o.reregistered = True
         o.placed_by_ties = o.image_id in starts
+        if result.vertical_source == "tie points":
+            o.message = result.message  # registered, but not by the map
         poses[o.image_id] = result.cam_from_world
         cameras[o.image_id] = job[0].start
         planes[o.image_id] = result.height_plane.copy()
