@@ -145,6 +145,14 @@ class BlockState:
         p = self.planes[image_id]
         return lambda xy: xy @ p[:2] + p[2]
 
+    def ground_height(self, image_ids: Sequence[int] | None = None) -> float:
+        """Median over the images (default all) of their ground plane's
+        height under their camera (m)."""
+        ids = list(self.poses) if image_ids is None else image_ids
+        return float(
+            np.median([self.ground(i)(self.poses[i].center[None, :2])[0] for i in ids])
+        )
+
     def with_datum_correction(self, correction: dict[int, float]) -> BlockState:
         """Cameras and planes lowered by each image's height datum error (m).
 

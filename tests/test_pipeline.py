@@ -863,6 +863,22 @@ def test_imprecise_images_against_the_block_median():
     assert imprecise_images(few, 2.5) == []  # no median from three images
 
 
+def _block_stage_inputs(initial_run):
+    """The sample's options (one worker, no tie points), inputs, tasks and a
+    private copy of its stage-2 outcomes in the tasks' order, for tests of
+    ``block_stage``'s bookkeeping."""
+    from obliq_colmap import pipeline as pl
+
+    _, run = initial_run
+    options = PipelineOptions(num_workers=1, progress=False, adjustment=NO_TIES)
+    inputs = pl.load_inputs(
+        SAMPLE / "images", SAMPLE / "cadastre.geojson", SAMPLE / "priors", options
+    )
+    tasks = pl.image_tasks(inputs, options)
+    outcomes = [copy.deepcopy(run.outcomes[t.image_id]) for t in tasks]
+    return options, inputs, tasks, outcomes
+
+
 @pytest.mark.parametrize("failed", [True, False], ids=["failed", "weak"])
 def test_a_reregistration_that_spoils_the_block_is_undone(
     initial_run, monkeypatch, failed
@@ -881,13 +897,7 @@ def test_a_reregistration_that_spoils_the_block_is_undone(
     from obliq_colmap.pipeline import block
     from obliq_colmap.registration import RegistrationResult
 
-    _, run = initial_run
-    options = PipelineOptions(num_workers=1, progress=False, adjustment=NO_TIES)
-    inputs = pl.load_inputs(
-        SAMPLE / "images", SAMPLE / "cadastre.geojson", SAMPLE / "priors", options
-    )
-    tasks = pl.image_tasks(inputs, options)
-    outcomes = [copy.deepcopy(run.outcomes[t.image_id]) for t in tasks]
+    options, inputs, tasks, outcomes = _block_stage_inputs(initial_run)
     x = next(o for o in outcomes if o.name == "N_01.jpg")
     y = next(o for o in outcomes if o.name == "E_10.jpg")
     good = x.registration
@@ -930,20 +940,13 @@ def test_images_placed_by_tie_points_outvote_an_image_the_bundle_now_rejects(
     disagree with is left out (houses-102: N_07, a no_vp image 6 px off).
     The re-registration and the verdicts are stubbed: this is the
     bookkeeping."""
-    import copy
 
     from obliq_colmap import pipeline as pl
     from obliq_colmap.adjustment import verdicts
     from obliq_colmap.pipeline import block
     from obliq_colmap.registration import RegistrationResult
 
-    _, run = initial_run
-    options = PipelineOptions(num_workers=1, progress=False, adjustment=NO_TIES)
-    inputs = pl.load_inputs(
-        SAMPLE / "images", SAMPLE / "cadastre.geojson", SAMPLE / "priors", options
-    )
-    tasks = pl.image_tasks(inputs, options)
-    outcomes = [copy.deepcopy(run.outcomes[t.image_id]) for t in tasks]
+    options, inputs, tasks, outcomes = _block_stage_inputs(initial_run)
     back = [o for o in outcomes if o.name in ("N_01.jpg", "S_01.jpg")]
     y = next(o for o in outcomes if o.name == "E_10.jpg")
     good = {o.image_id: o.registration for o in back}

@@ -324,15 +324,12 @@ def build_bundle_problem(
     with_vp = [i for i in ids if outcomes[i].vp is not None]
     tie = {}
     if ties is not None and len(ties.obs_point):
-        ground = np.median(
-            [state.ground(i)(state.poses[i].center[None, :2])[0] for i in ids]
-        )
         xyz, img, point, xy = tie_rows(
             ties,
             ids,
             [state.cameras[i].to_pycolmap() for i in ids],
             [state.poses[i].to_rigid3d() for i in ids],
-            float(ground),
+            state.ground_height(ids),
             tie_options or TiePointOptions(),
         )
         tie = dict(tie_xyz=xyz, tie_image=img, tie_point=point, tie_xy=xy)

@@ -98,7 +98,7 @@ def bundle_stage(
         # first and without the image pairs it shows on a wrong geometry
         # (with_tie_points); the first is the map's alone.
         tie_obs = (problem.tie_image, problem.tie_point, problem.tie_xy)
-        problem = dataclasses.replace(problem, **_NO_TIES)
+        problem = problem.without_ties()
         bundle_options = dataclasses.replace(
             options.bundle,
             corner_heights="fixed",
@@ -173,14 +173,6 @@ def bundle_stage(
             stage3.end_offset_px = edge_end_offsets(inputs, outcomes, state, stage3.ids)
     timings["bundle"] = time.perf_counter() - t0
     return AdjustedBlock(state, result, stage3)
-
-
-_NO_TIES = dict(
-    tie_xyz=np.zeros((0, 3)),
-    tie_image=np.zeros(0, np.int64),
-    tie_point=np.zeros(0, np.int64),
-    tie_xy=np.zeros((0, 2)),
-)
 
 
 def with_tie_points(

@@ -9,6 +9,7 @@ unknowns, each with its own vertical datum.
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -369,6 +370,16 @@ class BundleProblem:
         ):
             if len(lines) and np.any(np.linalg.norm(lines[:, :2], axis=1) == 0):
                 raise ValueError(f"{name} has lines with a = b = 0")
+
+    def without_ties(self) -> BundleProblem:
+        """A copy without tie points (the rest shared)."""
+        return dataclasses.replace(
+            self,
+            tie_xyz=np.zeros((0, 3)),
+            tie_image=np.zeros(0, np.int64),
+            tie_point=np.zeros(0, np.int64),
+            tie_xy=np.zeros((0, 2)),
+        )
 
 
 @dataclass

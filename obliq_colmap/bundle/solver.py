@@ -60,10 +60,6 @@ __all__ = ["solve_bundle"]
 logger = logging.getLogger(__name__)
 
 
-def _loss(kind: str, scale: float, r2: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    return robust_loss(kind, scale, r2)
-
-
 def solve_bundle(
     problem: BundleProblem, options: BundleOptions | None = None
 ) -> BundleResult:
@@ -126,7 +122,7 @@ def _solve(problem: BundleProblem, opts: BundleOptions) -> BundleResult:
     ]
 
     def cost_of(r: np.ndarray, st: State) -> float:
-        rho, _ = _loss(opts.loss, opts.loss_scale_px, r * r)
+        rho, _ = robust_loss(opts.loss, opts.loss_scale_px, r * r)
         c = 0.5 * float(np.sum(S.weight * rho))
         if prior_w:
             dh = (st.heights - heights0)[prior_mask]
@@ -163,7 +159,7 @@ def _solve(problem: BundleProblem, opts: BundleOptions) -> BundleResult:
     for _ in range(opts.height_initialisation_steps):
         if not S.n_heights:
             break
-        _, w = _loss(opts.loss, opts.loss_scale_px, r * r)
+        _, w = robust_loss(opts.loss, opts.loss_scale_px, r * r)
         w = w * S.weight
         Hh = np.bincount(S.hidx[S.has_h], (w * Jh * Jh)[S.has_h], S.n_heights)
         gh = np.bincount(S.hidx[S.has_h], (w * Jh * r)[S.has_h], S.n_heights)
@@ -376,7 +372,7 @@ def _levenberg_marquardt(
     while it < opts.max_iterations:
         it += 1
         if need_build:
-            _, w = _loss(opts.loss, opts.loss_scale_px, r * r)
+            _, w = robust_loss(opts.loss, opts.loss_scale_px, r * r)
             w = w * S.weight
             H_cc, g_c, H_hh, g_h, F = normal_equations(S, Jc, Jh, r, w)
             for p in pose_priors:
@@ -455,7 +451,7 @@ def _cofactor(
     cofactor matrix at ``st`` (:func:`covariance.camera_covariance`, the
     observed camera parameters' rows in, the tie points eliminated)."""
     r, Jc, Jh = evaluate(S, st, jac=True)
-    _, w = _loss(opts.loss, opts.loss_scale_px, r * r)
+    _, w = robust_loss(opts.loss, opts.loss_scale_px, r * r)
     w = w * S.weight
     H_cc = normal_equations(S, Jc, Jh, r, w)[0]
     for p in pose_priors:

@@ -21,6 +21,8 @@ coordinate and observation over the observing image's columns, which
 
 from __future__ import annotations
 
+from typing import NamedTuple
+
 import numpy as np
 
 from . import residuals as res
@@ -33,6 +35,20 @@ __all__ = ["TieRows"]
 
 #: Observations per evaluation call (as the map rows' chunks).
 _CHUNK = 8192
+
+
+class _TieGroup(NamedTuple):
+    """Observations ``[start, end)`` of one camera model: its cameras' runs
+    (slot, start, end), expansion matrix, camera slots and each row's
+    position among them."""
+
+    model: str
+    start: int
+    end: int
+    cam_runs: list[tuple[int, int, int]]
+    E: np.ndarray
+    cams: list[int]
+    cam_local: np.ndarray
 
 
 class TieRows:
@@ -72,7 +88,18 @@ class TieRows:
                 cam_runs = [
                     (int(self.cam[c + i]), c + i, c + j) for i, j in runs(self.cam[c:e])
                 ]
-                self.groups.append((models[self.cam[c]], c, e, cam_runs))
+                cams = [k for k, _, _ in cam_runs]
+                self.groups.append(
+                    _TieGroup(
+                        models[self.cam[c]],
+                        c,
+                        e,
+                        cam_runs,
+                        res.expansion_matrix(models[self.cam[c]]),
+                        cams,
+                        np.searchsorted(cams, self.cam[c:e]),
+                    )
+                )
         # The whitened coupling: 3 rows per observation, one per coordinate.
         self.coupling = Coupling(
             np.repeat(self.img, 3),
@@ -92,16 +119,15 @@ class TieRows:
         Jc = np.zeros((n_obs, 2, S.L)) if jac else None
         Jp = np.empty((n_obs, 2, 3)) if jac else None
         Rk = st.R.transpose(1, 2, 0)
-        for model, a, b, cam_runs in self.groups:
+        for g in self.groups:
+            a, b, cam_runs = g.start, g.end, g.cam_runs
             img = self.img[a:b]
             R = np.take(Rk, img, axis=2)
             D = st.points[self.point[a:b]].T - st.c[img].T
-            E = res.expansion_matrix(model)
-            cams = [c for c, _, _ in cam_runs]
-            full = E @ np.stack([st.params[c] for c in cams], 1)
-            if len(cams) > 1:
-                full = full[:, np.searchsorted(cams, self.cam[a:b])]
-            out = res.reprojection_rows(model, full, R, D, self.xy[:, a:b], jac)
+            full = g.E @ np.stack([st.params[c] for c in g.cams], 1)
+            if len(g.cams) > 1:
+                full = full[:, g.cam_local]
+            out = res.reprojection_rows(g.model, full, R, D, self.xy[:, a:b], jac)
             r[a:b] = out[0].T
             if jac:
                 _, d_pose, d_params, d_point = out

@@ -68,11 +68,7 @@ def block_tie_points(
     def pose(i: int) -> Pose:
         return state.poses[i] if i in state.poses else failed[i].prior
 
-    ground = float(
-        np.median(
-            [state.ground(i)(state.poses[i].center[None, :2])[0] for i in state.poses]
-        )
-    )
+    ground = state.ground_height()
     # No reprojection test at these poses: they are what the bundle corrects
     # (houses-102: 549 of ~2,600 points would pass at 3 px).
     unchecked = dataclasses.replace(options, max_reproj_error_px=math.inf)
