@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import cv2
 import numpy as np
 import pycolmap
 import pytest
@@ -261,3 +262,26 @@ def test_mutual_ratio_matches_finds_the_planted_pairs_and_drops_ambiguous_ones()
     assert len(found) >= 190
     assert all(truth[i] == j for i, j in found.items())
     assert len(mutual_ratio_matches(a, -b, 0.8, max_angle=0.7)) == 0
+
+
+def test_keypoints_scaled_back_per_axis():
+    # 2004 x 1336 down-sampled to 1000 x 667: x and y scale differ (0.499 and
+    # 0.49925); one scale for both put the bottom rows 0.7 px off.
+    from obliq_colmap.adjustment.tie_matching import _scaled, _sift_arrays
+
+    rng = np.random.default_rng(3)
+    img = cv2.resize(
+        rng.integers(0, 255, (167, 251)).astype(np.uint8),
+        (2004, 1336),
+        interpolation=cv2.INTER_CUBIC,
+    )
+    k, _, _, scale = _sift_arrays((img, 1000, 200, 1))
+    np.testing.assert_allclose(scale, [1000 / 2004, 667 / 1336])
+    assert len(k) > 50 and k[:, 1].max() < 667
+    cam = _scaled(
+        pycolmap.Camera(
+            model="SIMPLE_RADIAL", width=2004, height=1336, params=[3000, 1002, 668, 0]
+        ),
+        scale,
+    )
+    assert (cam.width, cam.height) == (1000, 667)

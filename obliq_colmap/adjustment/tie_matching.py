@@ -26,17 +26,19 @@ def _sift_arrays(args: tuple[np.ndarray | Path, int, int, int]):
     stored, in grey), down-sampled to ``max_image_size``, as plain arrays
     (pycolmap's keypoints do not pickle): (K, 6) keypoints (x, y, a11, a12,
     a21, a22) in the down-sampled image, the (K, 128) uint8 descriptors,
-    their type and the scale (down-sampled / full size). One extractor per
-    process."""
+    their type and the (2,) scales (down-sampled / full size, x and y: the
+    rounded sizes make them differ, 0.05 % at 2004 x 1336 -> 1000 x 667,
+    0.7 px at the bottom row). One extractor per process."""
     img, max_image_size, max_num_features, threads = args
     if not isinstance(img, np.ndarray):
         img = cv2.imread(str(img), cv2.IMREAD_GRAYSCALE | cv2.IMREAD_IGNORE_ORIENTATION)
-    scale = min(1.0, max_image_size / max(img.shape))
-    if scale < 1.0:
-        width = img.shape[1]
-        size = (round(width * scale), round(img.shape[0] * scale))
+    scale = np.ones(2)
+    s = min(1.0, max_image_size / max(img.shape))
+    if s < 1.0:
+        height, width = img.shape
+        size = (round(width * s), round(height * s))
         img = cv2.resize(img, size, interpolation=cv2.INTER_AREA)
-        scale = size[0] / width
+        scale = np.array([size[0] / width, size[1] / height])
     if max_num_features not in _EXTRACTOR:
         eo = pycolmap.FeatureExtractionOptions()
         eo.num_threads = threads
@@ -68,7 +70,7 @@ def extract_features(
     down-sampled to ``max_image_size``
     (pycolmap's array entry point does not down-sample): a list of ((K, 2)
     full-resolution pixel coordinates, pycolmap keypoints in the down-sampled
-    image, pycolmap descriptors, scale = down-sampled / full size).
+    image, pycolmap descriptors, (2,) scales = down-sampled / full size).
 
     With ``options.num_workers`` > 1 the images are shared out over so many
     processes (pycolmap's SIFT holds the GIL: threads do not help; measured
@@ -135,16 +137,18 @@ def mutual_ratio_matches(
     return np.column_stack([i[mutual], fwd[i][mutual]]).astype(np.int64)
 
 
-def _scaled(camera: pycolmap.Camera, scale: float) -> pycolmap.Camera:
-    """A copy of ``camera`` for the down-sampled image."""
+def _scaled(camera: pycolmap.Camera, scale: np.ndarray | float) -> pycolmap.Camera:
+    """A copy of ``camera`` for the image down-sampled by ``scale`` ((2,) x
+    and y, or one for both)."""
     cam = pycolmap.Camera(
         model=camera.model,
         width=camera.width,
         height=camera.height,
         params=camera.params,
     )
-    if scale != 1.0:
-        cam.rescale(scale)
+    sx, sy = np.broadcast_to(np.asarray(scale, float), (2,))
+    if sx != 1.0 or sy != 1.0:
+        cam.rescale(round(camera.width * sx), round(camera.height * sy))
     return cam
 
 
