@@ -57,6 +57,9 @@ class ImageOutcome:
         vanishing stage's status is "ok" (the bundle observes them).
     segments : (N, 2, 2) array, the VP-constrained vertical segments in
         UNDISTORTED pixels (the registration's input).
+    segments_free : (N, 2, 2) array or None, the same segments each fitted
+        on its own edge points (its own direction, not stage 1's VP's), for
+        the bundle's vertical rows; None: ``segments`` are.
     line_segments : Segments, all first-pass segments (undistorted pixels,
         with their bright side), the input of the facade-edge search.
     registration : RegistrationResult or None (unreadable image).
@@ -80,6 +83,7 @@ class ImageOutcome:
     vp: np.ndarray | None = None
     vp_covariance: np.ndarray | None = None
     segments: np.ndarray = field(default_factory=lambda: np.zeros((0, 2, 2)))
+    segments_free: np.ndarray | None = None
     line_segments: Segments = field(default_factory=Segments)
     registration: RegistrationResult | None = None
     camera: Camera | None = None

@@ -323,6 +323,35 @@ def test_vertical_segments_public_function():
     assert np.mean(at(probe_in) > at(probe_out)) > 0.9
 
 
+def test_free_segments_keep_their_own_direction_under_a_wrong_vp():
+    # The second pass run through a VP 1.5 deg off (in direction, as stage 1
+    # is on detached houses): the segments fitted through it lean with it,
+    # each segment fitted on its own edge points does not.
+    from obliq_colmap.vanishing.pencil import normaliser
+    from obliq_colmap.vanishing.second_pass import run_second_pass
+
+    vp = np.array([380.0, 2600.0, 1.0])
+    img = render(vp, np.random.default_rng(15))
+    d = np.linalg.solve(CAMERA.K, vp)
+    wrong = CAMERA.K @ (rotation_from_axis_angle([0, 0, np.radians(1.5)]) @ d)
+    T, _ = normaliser(W, H)
+    sp = run_second_pass(img, wrong, SecondPassOptions(), None, T)
+    assert len(sp.segments) >= 10
+
+    def lean_deg(segs):
+        e = segs.endpoints
+        mid = e.mean(axis=1)
+        to_vp = vp[:2] - mid * vp[2]
+        return np.array(
+            [angle_deg(b - a, t) for (a, b), t in zip(e, to_vp, strict=True)]
+        )
+
+    long = sp.segments.lengths >= 40
+    through, free = lean_deg(sp.through(wrong, T))[long], lean_deg(sp.free(T))[long]
+    assert np.median(through) > 1.0
+    assert np.median(free) < 0.3, (np.median(through), np.median(free))
+
+
 def test_vertical_direction_orientation():
     K = CAMERA.K
     vp = np.array([300.0, -2000.0, 1.0])  # above: camera pitched up

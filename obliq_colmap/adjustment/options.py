@@ -66,6 +66,12 @@ class AdjustmentOptions:
     #: texture).
     tie_pair_factor: float = 3.0
     tie_pair_floor_px: float = 3.0
+    #: The vertical rows on each segment's own line (its edge points' fit),
+    #: not on the line through stage 1's VP (:func:`vertical_constraints`).
+    #: Off: not better on the external scenes (urban-101 33 / 36 at 0.51 px
+    #: against 0.50; with the principal point held, houses-102 18 against 26
+    #: of 36 below 2 px, urban-101 0.52 against 0.45 px).
+    measured_vertical_directions: bool = False
 
     def __post_init__(self) -> None:
         if self.outlier_rounds < 0 or self.outlier_factor <= 0:

@@ -183,6 +183,7 @@ def vertical_constraints(
     outcomes: dict[int, ImageOutcome],
     state: BlockState,
     image_ids: Sequence[int],
+    measured_directions: bool = False,
 ) -> dict[str, np.ndarray]:
     """Corner-to-vertical-line constraints from the registrations' inliers.
 
@@ -196,6 +197,12 @@ def vertical_constraints(
     measured on the sample, 3 deg drift from the truth). The heights only
     place the points near the segment; sliding along the vertical does not
     change a distance to a line through the vanishing point.
+
+    With ``measured_directions`` each segment's line is its own fit on its
+    edge points (:attr:`ImageOutcome.segments_free`), not the line through
+    stage 1's VP that stage 2 matched (a VP degrees off, as on detached
+    houses, turns every segment of its image alike; a ~25 px segment's own
+    direction is noisier).
 
     Returns
     -------
@@ -214,6 +221,8 @@ def vertical_constraints(
         prior_cam = inputs.priors.cameras[inputs.priors.images[image_id].camera_id]
         c = r.inlier_pairs[:, 0]
         ends = r.inlier_segments_px  # (K, 2, 2) undistorted
+        if measured_directions and outcomes[image_id].segments_free is not None:
+            ends = outcomes[image_id].segments_free[r.inlier_pairs[:, 1]]
         xy = np.repeat(cad.corner_xy[c], 2, axis=0)
         # Through the camera the pose belongs to (stage 2 refines focal and
         # lens): with the priors' camera the points land metres off along
@@ -288,6 +297,7 @@ def build_bundle_problem(
     stage3: Stage3,
     ties: TiePoints | None = None,
     tie_options: TiePointOptions | None = None,
+    measured_directions: bool = False,
 ) -> BundleProblem:
     """The global bundle over the registered images (paper eq. 3).
 
@@ -302,7 +312,7 @@ def build_bundle_problem(
     ``stage3.ends_raw`` and ``stage3.row_obs``.
     """
     ids = stage3.ids
-    v = vertical_constraints(inputs, outcomes, state, ids)
+    v = vertical_constraints(inputs, outcomes, state, ids, measured_directions)
     t = stage3.tracks
     ends = np.zeros((t.num_observations, 2, 2))
     for k, i in enumerate(ids):

@@ -92,7 +92,13 @@ def bundle_stage(
             dict(zip(stage3.ids, stage3.tracks.datum_correction, strict=True))
         )
         problem = build_bundle_problem(
-            inputs, outcomes, state, stage3, ties, options.tie_point_options
+            inputs,
+            outcomes,
+            state,
+            stage3,
+            ties,
+            options.tie_point_options,
+            options.measured_vertical_directions,
         )
         # The tie points enter from the second solve, triangulated from the
         # first and without the image pairs it shows on a wrong geometry
@@ -170,7 +176,13 @@ def bundle_stage(
             stage3.bundle_rms = _rms_per_image(problem, result)
             stage3.constraints_kept = _kept_share(initial, problem)
             stage3.bundle_precision = dict(result.image_precision_px)
-            stage3.end_offset_px = edge_end_offsets(inputs, outcomes, state, stage3.ids)
+            stage3.end_offset_px = edge_end_offsets(
+                inputs,
+                outcomes,
+                state,
+                stage3.ids,
+                measured_directions=options.measured_vertical_directions,
+            )
     timings["bundle"] = time.perf_counter() - t0
     return AdjustedBlock(state, result, stage3)
 

@@ -111,6 +111,7 @@ def edge_end_offsets(
     state: BlockState,
     image_ids: Sequence[int],
     min_corners: int = 5,
+    measured_directions: bool = False,
 ) -> dict[int, np.ndarray]:
     """Per image: how far its corners' vertical edges end, along its
     verticals, from where the other images' edges end: (2,) px, + up, the
@@ -128,7 +129,7 @@ def edge_end_offsets(
     corner-to-line and facade rows cannot show. Absent for an image sharing
     fewer than ``min_corners`` corners with the others.
     """
-    v = vertical_constraints(inputs, outcomes, state, image_ids)
+    v = vertical_constraints(inputs, outcomes, state, image_ids, measured_directions)
     if not len(v["xy"]):
         return {}
     # Two rows per segment (its ends); order each pair foot, top.

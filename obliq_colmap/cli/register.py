@@ -286,6 +286,16 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "(default %(default)s)",
     )
     bundle.add_argument(
+        "--bundle_measured_verticals",
+        type=_bool01,
+        default=int(AdjustmentOptions().measured_vertical_directions),
+        metavar="{0,1}",
+        help="each vertical segment in the bundle on its own fitted line (its "
+        "measured direction), not on the line through stage 1's vanishing point, "
+        "whose error would tilt every segment of the image alike "
+        "(default %(default)s)",
+    )
+    bundle.add_argument(
         "--tie_points",
         type=_bool01,
         default=int(AdjustmentOptions().tie_points),
@@ -362,6 +372,7 @@ def run(args: argparse.Namespace) -> int:
                     loss_scale_px=args.loss_scale,
                 ),
                 tie_points=bool(args.tie_points),
+                measured_vertical_directions=bool(args.bundle_measured_verticals),
             ),
         )
     except ValueError as exc:  # an option out of its range

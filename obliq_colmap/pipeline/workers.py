@@ -178,6 +178,8 @@ def initial_image(task: ImageTask) -> ImageOutcome:
     options = task.registration
     if vp.status == "ok" and vp.vertical_segments is not None:
         out.segments = vp.vertical_segments.endpoints
+        if vp.vertical_segments_free is not None:
+            out.segments_free = vp.vertical_segments_free.endpoints
         out.vertical_direction = vp.vertical_direction
         if vp.vp is not None and vp.covariance is not None:
             out.vp, out.vp_covariance = vp.vp.copy(), vp.covariance.copy()

@@ -286,6 +286,7 @@ def _with_second_pass(
                 _set_status(result, options)
         result.time_s["refine_second"] = time.perf_counter() - t0
     result.vertical_segments = sp.through(result.vp, T)
+    result.vertical_segments_free = sp.free(T)
     e = result.vertical_segments.endpoints
     return float(np.linalg.norm(e[:, 1] - e[:, 0], axis=1).sum()) if len(e) else 0.0
 

@@ -284,7 +284,10 @@ class VanishingResult:
         unlikely to be chance).
     segments : Segments, first-pass segments (undistorted, full resolution).
     inliers : (N,) bool array, the first-pass inliers of ``vp``.
-    vertical_segments : Segments or None, second-pass segments.
+    vertical_segments : Segments or None, second-pass segments (fitted
+        through ``vp``).
+    vertical_segments_free : Segments or None, the same segments each fitted
+        on its own edge points (its own direction).
     n_hypotheses : int, RANSAC hypotheses evaluated.
     time_s : dict, wall time per step, seconds.
     competing_vps : (K, 3) float array, the other vanishing points the
@@ -303,6 +306,7 @@ class VanishingResult:
     segments: Segments = field(default_factory=Segments)
     inliers: np.ndarray = field(default_factory=lambda: np.zeros(0, bool))
     vertical_segments: Segments | None = None
+    vertical_segments_free: Segments | None = None
     n_hypotheses: int = 0
     time_s: dict = field(default_factory=dict)
     competing_vps: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))

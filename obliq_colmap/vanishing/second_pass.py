@@ -20,6 +20,7 @@ from obliq_colmap.lines import (
     bilinear_many,
     connected_pairs,
     edge_points,
+    fit_lines,
     gradients,
     scatter_matrices,
     segment_extents,
@@ -45,6 +46,20 @@ class SecondPass:
             return self.segments
         vn = T @ vp
         _, lines = pencil_fit(self.scatter, vn / np.linalg.norm(vn))
+        return self._on(lines, T)
+
+    def free(self, T: np.ndarray) -> Segments:
+        """The same segments, each fitted on its own edge points: its own
+        direction, which a wrong VP does not bend (the bundle's vertical rows
+        measure the direction; fitted through stage 1's VP they carried its
+        error into the block)."""
+        if len(self.scatter) == 0:
+            return self.segments
+        lines, _ = fit_lines(self.scatter)
+        return self._on(lines, T)
+
+    def _on(self, lines: np.ndarray, T: np.ndarray) -> Segments:
+        """The segments' ends moved onto (G, 3) normalised ``lines``."""
         ends_n = self.segments.endpoints @ T[:2, :2].T + T[:2, 2]
         G = len(lines)
         ends_n = _extents_on(

@@ -88,6 +88,7 @@ def install_oracle(
             vp, camera.K, prior.down_cam if prior.kind == "ins" else None
         )
         res.vertical_segments = sp.through(vp, T)
+        res.vertical_segments_free = sp.free(T)
         res.status, res.message = "ok", "oracle: the true VP"
         return res
 
