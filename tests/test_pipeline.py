@@ -928,7 +928,9 @@ def test_a_reregistration_that_spoils_the_block_is_undone(
     assert not x.reregistered and x.registration is before.registration
     assert x.registered == (not failed) and (x.image_id in state.poses) != failed
     assert "E_10.jpg" in x.message
-    assert ("left out" if failed else "first pose kept") in x.message
+    assert ("left out" if failed else "first pose") in x.message
+    # a weak image kept at its first pose is written with a warning
+    assert failed or x.message.startswith("written with a warning")
 
 
 def test_images_placed_by_tie_points_outvote_an_image_the_bundle_now_rejects(
