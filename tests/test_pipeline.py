@@ -1135,3 +1135,26 @@ def test_matched_corners_are_observed_where_measured(bundle_run):
             n_off_projection += bool(np.linalg.norm(proj - xy) > 1e-3)
     assert n_on_line > 100  # hundreds of measured observations on the sample
     assert n_off_projection > 0.5 * n_on_line
+
+
+def test_tie_points_vouch_for_an_image_whose_map_rows_were_rejected():
+    """The rejected-share verdict spares an image whose tie points fit the
+    block as well as most images' (>= 30 observations, median error within
+    the images' 90th percentile), and only such an image."""
+    from obliq_colmap.adjustment import Stage3
+    from obliq_colmap.adjustment.tracks import FacadeTracks
+    from obliq_colmap.adjustment.verdicts import rejected_images
+
+    stage3 = Stage3((), [], FacadeTracks())
+    typical = {i: (200, 0.25 + 0.01 * i) for i in range(10)}  # p90 0.331
+    stage3.tie_fit = {
+        **typical,
+        10: (180, 0.30),  # map rows poor, ties as good as the block's
+        11: (12, 0.20),  # too few ties to vouch
+        12: (150, 0.45),  # ties fit worse than 90 % of the images'
+    }
+    stage3.constraints_kept = {i: 0.9 for i in typical}
+    stage3.constraints_kept.update({10: 0.55, 11: 0.55, 12: 0.55, 13: 0.55})
+    assert rejected_images(stage3, 0.72) == [11, 12, 13]  # 13: no tie points
+    stage3.tie_fit = {}
+    assert rejected_images(stage3, 0.72) == [10, 11, 12, 13]

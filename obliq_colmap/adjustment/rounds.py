@@ -176,6 +176,7 @@ def bundle_stage(
             stage3.bundle_rms = _rms_per_image(problem, result)
             stage3.constraints_kept = _kept_share(initial, problem)
             stage3.bundle_precision = dict(result.image_precision_px)
+            stage3.tie_fit = _tie_fit(problem, result)
             stage3.end_offset_px = edge_end_offsets(
                 inputs,
                 outcomes,
@@ -256,6 +257,22 @@ def _rms_per_image(
         for k, i in enumerate(problem.image_ids):
             out.setdefault(i, [math.nan, math.nan])[kind] = float(rms[k])
     return {i: (v[0], v[1]) for i, v in out.items()}
+
+
+def _tie_fit(
+    problem: BundleProblem, result: BundleResult
+) -> dict[int, tuple[int, float]]:
+    """Image id -> (tie observations, their median reprojection error in
+    px) in the solve ``result`` of ``problem``; images without any absent."""
+    if not len(problem.tie_image):
+        return {}
+    err = np.linalg.norm(result.tie_residuals_px, axis=1)
+    out = {}
+    for k, i in enumerate(problem.image_ids):
+        e = err[problem.tie_image == k]
+        if len(e):
+            out[i] = (len(e), float(np.median(e)))
+    return out
 
 
 def _kept_share(initial: BundleProblem, final: BundleProblem) -> dict[int, float]:
