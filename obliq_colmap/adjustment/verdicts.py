@@ -106,9 +106,7 @@ def ties_confirm(stage3: Stage3) -> set[int]:
     if len(fit) < 4:
         return set()
     limit = float(np.quantile([m for _, m in fit.values()], 0.9))
-    return {
-        i for i, (n, m) in fit.items() if n >= MIN_TIE_OBSERVATIONS and m <= limit
-    }
+    return {i for i, (n, m) in fit.items() if n >= MIN_TIE_OBSERVATIONS and m <= limit}
 
 
 def imprecise_images(
