@@ -96,16 +96,25 @@ def run_options(scene: Path, args: argparse.Namespace) -> pl.PipelineOptions:
     noise as the prior sigmas (a user knows their GPS/INS), then the
     ``args.set`` overrides (``PATH=VALUE``, VALUE a Python literal or text;
     ``refine_segments=on`` for the default ``RefineOptions``)."""
-    noise = json.loads((scene / "scene.json").read_text())["options"]
+    info = json.loads((scene / "scene.json").read_text())
+    if "options" in info:  # our generator's scene
+        noise = info["options"]
+        registration = RegistrationOptions(
+            prior_position_sigma_m=noise["prior_position_m"],
+            prior_rotation_sigma_deg=noise["prior_rotation_deg"],
+            prior_focal_sigma=noise["prior_focal_percent"] / 100.0,
+        )
+        camera_model = None
+    else:  # the external format: register's defaults, as external.py runs it
+        registration = RegistrationOptions()
+        k1 = float(info.get("params", {}).get("k1", 0.0))
+        camera_model = "SIMPLE_RADIAL" if k1 != 0.0 else None
     options = pl.PipelineOptions(
         stop_after="initial",
         num_workers=args.num_workers,
         progress=False,
-        registration=RegistrationOptions(
-            prior_position_sigma_m=noise["prior_position_m"],
-            prior_rotation_sigma_deg=noise["prior_rotation_deg"],
-            prior_focal_sigma=noise["prior_focal_percent"] / 100.0,
-        ),
+        camera_model=camera_model,
+        registration=registration,
     )
     for item in args.set or []:
         path, _, text = item.partition("=")
