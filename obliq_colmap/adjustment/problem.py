@@ -77,8 +77,9 @@ class Stage3:
     #: and the tops of its corners' vertical edges sit from where the other
     #: images put them, (2,) (:func:`edge_end_offsets`).
     end_offset_px: dict[int, np.ndarray] = field(default_factory=dict)
-    #: Per image id: its tie observations in the last solve and their median
-    #: reprojection error (px), (count, median); absent without tie points.
+    #: Per image id: its tie observations in the last solve of points another
+    #: head sees too, and the median reprojection error of all its tie
+    #: observations (px), (count, median); absent without tie points.
     tie_fit: dict[int, tuple[int, float]] = field(default_factory=dict)
     #: The last solve's problem (its tie rows go into the output with the
     #: solved points), None before a solve.

@@ -97,10 +97,13 @@ def ties_confirm(stage3: Stage3) -> set[int]:
     facades in shadow: E_05, S_03, S_05 lost 41-47 % of them and were 0.9-1.1
     px off, their 164-378 tie observations at a median error of 0.22-0.30 px
     against the block's 0.26). Its tie points are evidence the map rows are
-    not: at least :data:`MIN_TIE_OBSERVATIONS` of them with a median error
-    within the 90th percentile of the images' medians confirm it. (`paper`
-    s3: N_11, 5 px off, had 44 at 1.7x the block's median; W_11, 12 px off,
-    none.)
+    not, where they tie it to another head (its own head's images share its
+    weak mode, and tie points among them follow it: urban-101 seed 2, S_05
+    13.7 px off with 104 observations at a typical error, 24 of them across
+    heads): at least :data:`MIN_TIE_OBSERVATIONS` observations of points
+    another head sees (:attr:`Stage3.tie_fit`), and a median error within the
+    90th percentile of the images' medians, confirm it. (`paper` s3: N_11, 5
+    px off, had 44 at 1.7x the block's median; W_11, 12 px off, none.)
     """
     fit = stage3.tie_fit
     if len(fit) < 4:
