@@ -1158,3 +1158,25 @@ def test_tie_points_vouch_for_an_image_whose_map_rows_were_rejected():
     assert rejected_images(stage3, 0.72) == [11, 12, 13]  # 13: no tie points
     stage3.tie_fit = {}
     assert rejected_images(stage3, 0.72) == [10, 11, 12, 13]
+
+
+def test_tie_fit_counts_only_points_another_head_sees():
+    """Stage3.tie_fit: per image the observations of tie points seen from
+    two heads (cameras) or more, and the median error of all its ties."""
+    import types
+
+    from obliq_colmap.adjustment.rounds import _tie_fit
+
+    # Images 5, 7 on camera 1, 9 and 11 on camera 2. Point 0: images 5 and 7
+    # (one head); point 1: images 5 and 9 (two heads); the rest single.
+    problem = types.SimpleNamespace(
+        image_ids=(5, 7, 9, 11, 13),
+        image_camera={5: 1, 7: 1, 9: 2, 11: 2, 13: 2},
+        tie_xyz=np.zeros((6, 3)),
+        tie_image=np.array([0, 1, 0, 2, 3, 1, 2, 3]),
+        tie_point=np.array([0, 0, 1, 1, 2, 3, 4, 5]),
+    )
+    err = np.array([1.0, 2.0, 3.0, 4.0, 5.0, 6.0, 7.0, 8.0])
+    result = types.SimpleNamespace(tie_residuals_px=np.column_stack([err, 0 * err]))
+    fit = _tie_fit(problem, result)
+    assert fit == {5: (1, 2.0), 7: (0, 4.0), 9: (1, 5.5), 11: (0, 6.5)}  # 13: none

@@ -279,12 +279,15 @@ def _tie_fit(
     for c in np.unique(cam):
         heads += np.bincount(problem.tie_point[obs_cam == c], minlength=n_points) > 0
     across = heads[problem.tie_point] >= 2
-    out = {}
-    for k, i in enumerate(problem.image_ids):
-        sel = problem.tie_image == k
-        if sel.any():
-            out[i] = (int(across[sel].sum()), float(np.median(err[sel])))
-    return out
+    n_img = len(problem.image_ids)
+    count = np.bincount(problem.tie_image, weights=across, minlength=n_img)
+    order = np.argsort(problem.tie_image, kind="stable")
+    per_image = np.split(err[order], np.cumsum(np.bincount(problem.tie_image))[:-1])
+    return {
+        problem.image_ids[k]: (int(count[k]), float(np.median(e)))
+        for k, e in enumerate(per_image)
+        if len(e)
+    }
 
 
 def _kept_share(initial: BundleProblem, final: BundleProblem) -> dict[int, float]:

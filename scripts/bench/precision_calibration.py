@@ -3,9 +3,9 @@
 predicted sd, per image, over written models of scenes with the truth
 (issue 26: the RMS of deviation / sd within [0.5, 2] over >= 5 scenes x seeds).
 
-Per run (a model ``register`` wrote, and its scene): ``obliq-colmap evaluate
---vertical_offset search`` (the judging measure: each image's mean deviation
-of the true corners it sees, px) against ``report.json``'s
+Per run (a model ``register`` wrote, and its scene): the judging measure
+(``evaluate --vertical_offset search``, in this process: each image's mean
+deviation of the true corners it sees, px) against ``report.json``'s
 ``uncertainty.images[name].predicted_sd_px`` (the last bundle's per-image sd
 of its constrained points, scaled by its variance factor). An image's mean
 deviation is a mean of absolute errors, so for an honest sd the ratio's RMS
@@ -33,38 +33,21 @@ from __future__ import annotations
 import argparse
 import glob
 import json
-import subprocess
 import sys
-import tempfile
 from pathlib import Path
 
 import numpy as np
 
+from obliq_colmap.evaluate import EvaluateOptions, evaluate_model
+
 
 def deviations(scene: Path, model: Path) -> dict[str, float]:
     """Image name -> mean deviation (px, the judging measure) of a model."""
-    with tempfile.TemporaryDirectory() as tmp:
-        out = Path(tmp) / "eval.json"
-        cmd = [
-            sys.executable,
-            "-m",
-            "obliq_colmap",
-            "evaluate",
-            "--input_path",
-            str(model),
-            "--gt_path",
-            str(scene),
-            "--vertical_offset",
-            "search",
-            "--output_path",
-            str(out),
-        ]
-        subprocess.run(cmd, check=True, capture_output=True)
-        res = json.loads(out.read_text())
+    ev = evaluate_model(model, scene, EvaluateOptions(vertical_offset="search"))
     return {
-        im["name"]: float(im["mean_deviation_px"])
-        for im in res["images"]
-        if im.get("mean_deviation_px") is not None
+        im.name: float(im.mean_deviation_px)
+        for im in ev.images
+        if np.isfinite(im.mean_deviation_px)
     }
 
 
@@ -90,6 +73,26 @@ def summary(r: np.ndarray) -> str:
     )
 
 
+class Rows:
+    """Per-image rows and per-run RMS of the ratio, over every run added."""
+
+    def __init__(self) -> None:
+        self.rows: list[dict] = []
+        self.per_run: list[float] = []
+
+    def add(self, scene: str, label: str, dev: dict, sd: dict) -> None:
+        """One run: image name -> deviation (px) and -> predicted sd (px)."""
+        names = sorted(set(sd) & set(dev))
+        r = np.array([dev[n] / sd[n] for n in names])
+        self.per_run.append(np.sqrt(np.mean(r * r)) if len(r) else np.nan)
+        self.rows += [
+            dict(scene=scene, model=label, name=n, deviation_px=dev[n],
+                 predicted_sd_px=sd[n])
+            for n in names
+        ]  # fmt: skip
+        print(f"{Path(scene).name:16s} {label}: {summary(r)}", flush=True)
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument(
@@ -106,34 +109,24 @@ def main() -> int:
             m = Path(models.format(scene=Path(s).name))
             if (m / "report.json").is_file():
                 runs.append((Path(s), m))
-    rows, per_run = [], []
+    out = Rows()
     for scene, model in runs:
         sd = predicted(model)
         if not sd:
             print(f"{model}: no predicted sds (bundle skipped?); left out")
             continue
-        dev = deviations(scene, model)
-        names = sorted(set(sd) & set(dev))
-        r = np.array([dev[n] / sd[n] for n in names])
-        per_run.append(np.sqrt(np.mean(r * r)) if len(r) else np.nan)
-        rows += [
-            dict(scene=str(scene), model=str(model), name=n, deviation_px=dev[n],
-                 predicted_sd_px=sd[n])
-            for n in names
-        ]  # fmt: skip
-        print(f"{scene.name:16s} {model}: {summary(r)}", flush=True)
+        out.add(str(scene), str(model), deviations(scene, model), sd)
     for path in args.seeds_json:
         for run in json.loads(path.read_text()):
             pv = run.get("precision_vs_deviation") or {}
-            names = sorted(n for n, v in pv.items() if v[0] and v[0] > 0)
-            r = np.array([pv[n][1] / pv[n][0] for n in names])
-            per_run.append(np.sqrt(np.mean(r * r)) if len(r) else np.nan)
-            rows += [
-                dict(scene=run["scene"], model=f"seed {run['seed']}", name=n,
-                     deviation_px=pv[n][1], predicted_sd_px=pv[n][0])
-                for n in names
-            ]  # fmt: skip
-            print(f"{Path(run['scene']).name:16s} seed {run['seed']}: {summary(r)}")
+            pv = {n: v for n, v in pv.items() if v[0] and v[0] > 0}
+            out.add(
+                run["scene"],
+                f"seed {run['seed']}",
+                {n: v[1] for n, v in pv.items()},
+                {n: v[0] for n, v in pv.items()},
+            )
+    rows, per_run = out.rows, out.per_run
     r = np.array([x["deviation_px"] / x["predicted_sd_px"] for x in rows])
     print(f"pooled over {len(per_run)} runs, {summary(r)}")
     if per_run:

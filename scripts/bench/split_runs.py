@@ -41,6 +41,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+from external import camera_model_of  # this folder (its importers' sys.path)
 
 from obliq_colmap import adjustment as adj
 from obliq_colmap import pipeline as pl
@@ -107,8 +108,7 @@ def run_options(scene: Path, args: argparse.Namespace) -> pl.PipelineOptions:
         camera_model = None
     else:  # the external format: register's defaults, as external.py runs it
         registration = RegistrationOptions()
-        k1 = float(info.get("params", {}).get("k1", 0.0))
-        camera_model = "SIMPLE_RADIAL" if k1 != 0.0 else None
+        camera_model = camera_model_of(scene)
     options = pl.PipelineOptions(
         stop_after="initial",
         num_workers=args.num_workers,
