@@ -17,6 +17,7 @@ from obliq_colmap.bundle import (
 from obliq_colmap.bundle import (
     residuals as res,
 )
+from obliq_colmap.bundle.coupling import Coupling
 from obliq_colmap.bundle.covariance import camera_covariance
 from obliq_colmap.bundle.priors import (
     AttitudePrior,
@@ -915,11 +916,15 @@ def test_height_camera_coupling_products_match_a_dense_E():
         y, x = rng.normal(size=S.n_heights), rng.normal(size=S.n_red)
         scale = rng.uniform(0.0, 2.0, S.n_heights)
         C = S.coupling
+        Cs = Coupling(  # the CSR gram of a large camera block
+            S.img[m], S.hidx[m], S.cols[m], S.n_heights, S.n_red, sparse=True
+        )
         rows = np.array([0, 3, S.n_heights - 1])
         for ours, dense in (
             (C.rmatvec(F, y), E.T @ y),
             (C.matvec(F, x), E @ x),
             (C.gram(F, scale), E.T @ (scale[:, None] ** 2 * E)),
+            (Cs.gram(F, scale).toarray(), E.T @ (scale[:, None] ** 2 * E)),
             (C.dense_rows(F, rows), E[rows]),
             (C.matrix(F).toarray(), E),
         ):
@@ -1496,3 +1501,79 @@ def test_vps_a_camera_shares_a_degree_off_do_not_hide_in_the_factor(noisy):
     scale, rejected = vp_components(solve_bundle(P, opts), 1.0)
     assert sorted(rejected) == sorted(shared)
     assert scale < 1.5
+
+
+@pytest.mark.parametrize("tie_points", [0, 300])
+def test_a_sparse_camera_block_follows_the_dense_solve(monkeypatch, tie_points):
+    """Above ``SPARSE_MIN_UNKNOWNS`` every term of the camera block (map rows,
+    observed attitudes and centres with their offset from the map, principal
+    points, VPs, tie points) is gathered sparse and summed into CSR (issue
+    29). Forced on a small block, the solve ends where the dense one does, to
+    rounding: the same steps, another factorisation (the stopping rule's
+    tolerances, 1e-8, bound how far the two ends may lie apart)."""
+    from obliq_colmap.bundle import setup
+
+    syn = make_synthetic_problem(
+        seed=6, buildings=(4, 4), stations=(2, 1), noise_px=0.5, tie_points=tie_points
+    )
+    P0 = syn.problem
+    vps, covs = _true_vps(syn, 0.2)
+    rng = np.random.default_rng(2)
+    P = dataclasses.replace(
+        P0,
+        prior_rotations={i: syn.poses[i].rotation for i in P0.image_ids},
+        prior_centers={
+            i: syn.poses[i].center + [0.4, -0.3, 0.0] + rng.normal(0, 0.5, 3)
+            for i in P0.image_ids
+        },
+        vertical_vps=vps,
+        vertical_vp_covariances=covs,
+    )
+    options = BundleOptions(
+        rotation_prior_sigma_deg=0.5,
+        position_prior_sigma_m=1.0,
+        principal_point_prior_sigma=0.01,
+    )
+    dense = solve_bundle(P, options)
+    monkeypatch.setattr(setup, "SPARSE_MIN_UNKNOWNS", 1)
+    assert Setup(P, options).sparse_camera
+    sparse = solve_bundle(P, options)
+    assert sparse.summary.num_iterations == dense.summary.num_iterations
+    cost = dense.summary.final_cost
+    assert sparse.summary.final_cost == pytest.approx(cost, rel=1e-9)
+    for i in P.image_ids:
+        a, b = dense.poses[i], sparse.poses[i]
+        np.testing.assert_allclose(b.rotation, a.rotation, rtol=0, atol=1e-8)
+        np.testing.assert_allclose(b.center, a.center, rtol=0, atol=1e-5)
+    for x, y in (
+        (sparse.facade_heights, dense.facade_heights),
+        (sparse.tie_xyz, dense.tie_xyz),
+        (sparse.prior_offset_m, dense.prior_offset_m),
+    ):
+        np.testing.assert_allclose(x, y, rtol=0, atol=1e-5)
+    for i in P.image_ids:  # the precision, from the dense cofactor of either
+        assert sparse.image_precision_px[i] == pytest.approx(
+            dense.image_precision_px[i], rel=1e-6
+        )
+
+
+def test_clipped_heights_enter_the_sparse_schur_complement_as_the_dense_one():
+    """Heights whose normal-equation entry is clipped by the damping's floor
+    (no information) are added to the reduced camera block per trial step:
+    the sparse block gets the same terms as the dense one."""
+    from obliq_colmap.bundle.schur import Schur
+
+    syn = make_synthetic_problem(seed=3, buildings=(3, 3), stations=(2, 1))
+    S = Setup(syn.problem, BundleOptions())
+    st = State.start(syn.problem, S)
+    r, Jc, Jh = evaluate(S, st, jac=True)
+    _, _, H_hh, g_h, F = normal_equations(S, Jc, Jh, r, np.ones(len(r)))
+    H_hh = H_hh.copy()
+    H_hh[[0, 5, 7]] = [0.0, 1e-8, 1e40]  # below and above the clip range
+    m = S.has_h
+    Cs = Coupling(S.img[m], S.hidx[m], S.cols[m], S.n_heights, S.n_red, sparse=True)
+    for lam in (1e-4, 1e-2, 10.0):
+        A, a = Schur(S.coupling, H_hh, g_h, F).at(H_hh, g_h, lam)
+        B, b = Schur(Cs, H_hh, g_h, F).at(H_hh, g_h, lam)
+        np.testing.assert_allclose(B.toarray(), A, rtol=0, atol=1e-12 * np.abs(A).max())
+        np.testing.assert_allclose(b, a, rtol=0, atol=1e-12 * np.abs(a).max())

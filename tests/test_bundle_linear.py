@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+import scipy.sparse as sp
 
 from obliq_colmap.bundle import linear
 
@@ -53,3 +54,16 @@ def test_a_singular_system_raises(monkeypatch):
         linear.kkt_solve(A, g, b)
     with pytest.raises(np.linalg.LinAlgError):
         linear.kkt_inverse(A, g)
+
+
+def test_tiny_diagonal_pivots_fall_back_to_the_pivoting_lu():
+    """The sparse route factors without pivot search first (the damped camera
+    block is positive definite); where the diagonal pivots are tiny (here
+    1e-17 beside 1) that factorisation is refused by its residual and the
+    pivoting LU solves the system."""
+    M = np.array([[1e-17, 1.0, 0.0], [1.0, 1e-17, 1.0], [0.0, 1.0, 1.0]])
+    b = np.ones(3)
+    A = sp.csr_matrix(M)
+    assert linear._symmetric_lu_solve(sp.csc_matrix(M), b) is None
+    x = linear.kkt_solve(A, np.zeros((0, 3)), b)
+    np.testing.assert_allclose(M @ x, b, atol=1e-12)

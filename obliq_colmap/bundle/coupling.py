@@ -35,12 +35,18 @@ class Coupling:
     img, hidx : (Nh,) int arrays, image and height of each row with a height.
     cols : (Nh, L) int array, camera-block columns of each such row.
     n_heights, n_red : int, the numbers of heights and camera-block columns.
+    sparse : bool, :meth:`gram` returns CSR (a large camera block) instead of
+        a dense array.
     """
 
-    def __init__(self, img, hidx, cols, n_heights: int, n_red: int) -> None:
+    def __init__(
+        self, img, hidx, cols, n_heights: int, n_red: int, sparse: bool = False
+    ) -> None:
         Nh, L = cols.shape
         n1 = n_red + 1
         self.hidx, self.cols = hidx, cols
+        self.sparse = sparse
+        self._csr = None  # the CSR pattern of gram, made on first use
         self.shape, self.L = (n_heights, n_red), L
         order = np.argsort(hidx, kind="stable")
         counts = np.bincount(hidx, minlength=n_heights)
@@ -113,8 +119,9 @@ class Coupling:
         np.add.at(out, (pos[self.hidx[sel]][:, None], self.cols[sel]), F[sel])
         return out[:, :-1]
 
-    def gram(self, F: np.ndarray, scale: np.ndarray) -> np.ndarray:
-        """(n_red, n_red) ``E^T diag(scale^2) E`` for per-height ``scale``."""
+    def gram(self, F: np.ndarray, scale: np.ndarray):
+        """(n_red, n_red) ``E^T diag(scale^2) E`` for per-height ``scale``:
+        dense, or CSR where the coupling is ``sparse``."""
         Fs = F * scale[self.hidx][:, None]
         nr = len(self.runs)
         blocks = np.empty((nr + len(self.bounds) - 1, self.L, self.L))
@@ -128,4 +135,25 @@ class Coupling:
             np.matmul(FA.T, FB, out=blocks[nr + p])
         vals = np.concatenate([blocks.ravel(), blocks[self.offdiag].ravel()])
         n1 = self.shape[1] + 1
-        return np.bincount(self.flat, vals, minlength=n1 * n1).reshape(n1, n1)[:-1, :-1]
+        if not self.sparse:
+            out = np.bincount(self.flat, vals, minlength=n1 * n1)
+            return out.reshape(n1, n1)[:-1, :-1]
+        slot, indices, indptr = self._pattern()
+        data = np.bincount(slot, vals, len(indices) + 1)[:-1]
+        n = self.shape[1]
+        return sp.csr_matrix((data, indices, indptr), (n, n))
+
+    def _pattern(self):
+        """The CSR pattern of :meth:`gram`'s cells: each block entry's slot
+        (the dropped padding cells at the last slot), column indices and row
+        pointers; the same for every linearisation, so formed once."""
+        if self._csr is None:
+            n = self.shape[1]
+            cells, slot = np.unique(self.flat, return_inverse=True)
+            row, col = np.divmod(cells, n + 1)  # sorted by row, then column
+            keep = (row < n) & (col < n)
+            to_kept = np.full(len(cells), int(keep.sum()))
+            to_kept[keep] = np.arange(int(keep.sum()))
+            indptr = np.searchsorted(row[keep], np.arange(n + 1))
+            self._csr = (to_kept[slot], col[keep], indptr)
+        return self._csr

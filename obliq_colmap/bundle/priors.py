@@ -15,6 +15,7 @@ from scipy.spatial.transform import Rotation
 
 from ..geometry import calibration_matrix, skew, tangent_basis
 from . import residuals as res
+from .camera_block import CameraBlock, add_block, add_entries
 from .problem import BundleOptions, BundleProblem
 from .setup import Setup, State
 
@@ -63,9 +64,9 @@ class AttitudePrior(PosePrior):
         R = st.R[self.k] @ np.transpose(self.prior, (0, 2, 1))
         return Rotation.from_matrix(R).as_rotvec()
 
-    def add_to(self, H_cc: np.ndarray, g_c: np.ndarray, st: State) -> None:
+    def add_to(self, H_cc: CameraBlock, g_c: np.ndarray, st: State) -> None:
         """Its terms of ``J^T W J`` and ``J^T W r``, in place."""
-        H_cc[self.cols, self.cols] += self.w
+        add_entries(H_cc, self.cols, self.cols, self.w)
         np.add.at(g_c, self.cols, self.w * self.errors(st))
 
 
@@ -95,17 +96,17 @@ class CentrePrior(PosePrior):
         e[:, :2] -= st.shift
         return e
 
-    def add_to(self, H_cc: np.ndarray, g_c: np.ndarray, st: State) -> None:
+    def add_to(self, H_cc: CameraBlock, g_c: np.ndarray, st: State) -> None:
         """Its terms of ``J^T W J`` and ``J^T W r``, in place."""
         e = self.errors(st)
-        H_cc[self.cols, self.cols] += self.w
+        add_entries(H_cc, self.cols, self.cols, self.w)
         np.add.at(g_c, self.cols, self.w * e)
         if self.shift_col >= 0:  # d e / d s = -(I2 over a zero row)
             s = self.shift_col + np.arange(2)
-            H_cc[s, s] += self.w * len(self.k)
+            add_entries(H_cc, s, s, self.w * len(self.k))
             for j in range(2):
-                H_cc[self.cols[:, j], s[j]] -= self.w
-                H_cc[s[j], self.cols[:, j]] -= self.w
+                add_entries(H_cc, self.cols[:, j], s[j], -self.w)
+                add_entries(H_cc, s[j], self.cols[:, j], -self.w)
             g_c[s] -= self.w * e[:, :2].sum(axis=0)
 
 
@@ -174,12 +175,12 @@ class PrincipalPointPrior(PosePrior):
         e = self.errors(st)
         return 0.5 * float(np.sum(self.w_cam[:, None] * e * e))
 
-    def add_to(self, H_cc: np.ndarray, g_c: np.ndarray, st: State) -> None:
+    def add_to(self, H_cc: CameraBlock, g_c: np.ndarray, st: State) -> None:
         """Its terms of ``J^T W J`` and ``J^T W r``, in place."""
         for cols, B, w, e in zip(
             self.cols, self.B, self.w_cam, self.errors(st), strict=True
         ):
-            H_cc[np.ix_(cols, cols)] += w * (B.T @ B)
+            add_block(H_cc, cols, cols, w * (B.T @ B))
             g_c[cols] += w * (B.T @ e)
 
 
@@ -347,14 +348,14 @@ class VanishingPointObservation(PosePrior):
                     J_intr[:, c] = L @ (-T @ skew(d) @ dm)
             yield j, z, J_rot, J_intr
 
-    def add_to(self, H_cc: np.ndarray, g_c: np.ndarray, st: State) -> None:
+    def add_to(self, H_cc: CameraBlock, g_c: np.ndarray, st: State) -> None:
         """Its terms of ``J^T W J`` and ``J^T W r`` (IRLS weight of the
         Cauchy loss), in place."""
         for j, z, J_rot, J_intr in self.jacobians(st):
             w = 1.0 / (1.0 + float(z @ z) / self.c2)
             J = np.concatenate([J_rot, J_intr], axis=1)
             cols = np.concatenate([self.rot_cols[j], self.intr_cols[j]])
-            H_cc[np.ix_(cols, cols)] += w * (J.T @ J)
+            add_block(H_cc, cols, cols, w * (J.T @ J))
             g_c[cols] += w * (J.T @ z)
 
     def statistics(self, st: State, cofactor: np.ndarray) -> dict[str, np.ndarray]:

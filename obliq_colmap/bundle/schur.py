@@ -1,7 +1,8 @@
 """Normal equations and the damped step with the heights eliminated (Schur).
 
-The camera block C (6 per image + refined intrinsics, dense: a few hundred
-unknowns) and the DIAGONAL height block h; Marquardt damping
+The camera block C (6 per image + refined intrinsics; dense for a few
+hundred unknowns, gathered sparse above :data:`~.linear.SPARSE_MIN_UNKNOWNS`,
+:mod:`.camera_block`) and the DIAGONAL height block h; Marquardt damping
 ``H + lambda * clip(diag H, 1e-6, 1e32)`` on both; the Schur complement
 ``S = H_CC - E^T D_h^-1 E`` solved with the gauge constraints as a KKT
 system (:mod:`.linear`: dense, sparse for large blocks), then
@@ -11,22 +12,26 @@ back-substitution of the heights.
 from __future__ import annotations
 
 import numpy as np
+import scipy.sparse as sp
 
+from .camera_block import SparseTerms, add_block, diagonal
 from .coupling import Coupling
 from .linear import kkt_solve
 from .setup import Setup
 
 
 def normal_equations(S: Setup, Jc, Jh, r, w):
-    """Blocks of J^T W J and J^T W r: dense camera block, diagonal heights,
-    and the (Nh, L) blocks F of the coupling E (rows with a height; products
-    with E by :class:`Coupling`)."""
+    """Blocks of J^T W J and J^T W r: the camera block (a dense array, or
+    :class:`~.camera_block.SparseTerms` to be summed after the other rows'
+    terms: :func:`~.camera_block.finish`), diagonal heights, and the (Nh, L)
+    blocks F of the coupling E (rows with a height; products with E by
+    :class:`Coupling`)."""
     n = S.n_red + 1
-    H_cc = np.zeros((n, n))
+    H_cc = SparseTerms(S.n_red) if S.sparse_camera else np.zeros((n, n))
     g_c = np.zeros(n)
     wJ = Jc * w[:, None]
     for a, b, cols in S.image_runs:
-        H_cc[np.ix_(cols, cols)] += Jc[a:b].T @ wJ[a:b]
+        add_block(H_cc, cols, cols, Jc[a:b].T @ wJ[a:b])
         g_c[cols] += wJ[a:b].T @ r[a:b]
     m = S.has_h
     H_hh = np.bincount(S.hidx[m], (w * Jh * Jh)[m], S.n_heights)
@@ -34,7 +39,9 @@ def normal_equations(S: Setup, Jc, Jh, r, w):
     F = np.multiply(Jc, (w * Jh)[:, None], order="C")
     if S.h_runs != [(0, len(r))]:
         F = np.concatenate([F[a:b] for a, b in S.h_runs] or [F[:0]])
-    return H_cc[:-1, :-1], g_c[:-1], H_hh, g_h, F
+    if not S.sparse_camera:
+        H_cc = H_cc[:-1, :-1]  # SparseTerms drop the padding when summed
+    return H_cc, g_c[:-1], H_hh, g_h, F
 
 
 class Schur:
@@ -56,15 +63,21 @@ class Schur:
         self.base_rhs = coupling.rmatvec(F, scale * scale * g_h)
         self.rest = np.flatnonzero(~own)
         self.E_rest = coupling.dense_rows(F, self.rest) if len(self.rest) else None
+        if self.E_rest is not None and coupling.sparse:
+            self.E_rest = sp.csr_matrix(self.E_rest)
 
     def at(self, H_hh: np.ndarray, g_h: np.ndarray, lam: float):
-        """(C, C) ``E^T Dinv E`` and (C,) ``E^T Dinv g_h`` at damping ``lam``."""
+        """(C, C) ``E^T Dinv E`` (dense, or CSR for a sparse camera block)
+        and (C,) ``E^T Dinv g_h`` at damping ``lam``."""
         out, rhs = self.base / (1.0 + lam), self.base_rhs / (1.0 + lam)
         if self.E_rest is not None:
             h = H_hh[self.rest]
             dinv = 1.0 / (h + lam * np.clip(h, 1e-6, 1e32))
-            out = out + self.E_rest.T @ (dinv[:, None] * self.E_rest)
-            rhs = rhs + (dinv * g_h[self.rest]) @ self.E_rest
+            E, dg = self.E_rest, dinv * g_h[self.rest]
+            if sp.issparse(E):
+                out, rhs = out + E.T @ sp.diags(dinv) @ E, rhs + E.T @ dg
+            else:
+                out, rhs = out + E.T @ (dinv[:, None] * E), rhs + dg @ E
         return out, rhs
 
 
@@ -73,21 +86,21 @@ def damped_step(S: Setup, H_cc, g_c, H_hh, g_h, F, lam, schur: Schur, ties=None)
     heights and, with ``ties`` (:class:`~obliq_colmap.bundle.ties.TieRows`,
     linearised), on the tie points. Returns the camera, height and (T, 3)
     point steps and the damping diagonals of the cameras and heights."""
-    D_c = np.clip(np.diag(H_cc), 1e-6, 1e32)
+    D_c = np.clip(diagonal(H_cc), 1e-6, 1e32)
     D_h = np.clip(H_hh, 1e-6, 1e32)
     dinv = 1.0 / (H_hh + lam * D_h)
+    A_red, rhs = H_cc, -g_c
     if S.n_heights:
         reduced, coupled = schur.at(H_hh, g_h, lam)
-        rhs = -g_c + coupled
-    else:
-        reduced = 0.0
-        rhs = -g_c
-    A_red = H_cc - reduced
+        A_red, rhs = A_red - reduced, rhs + coupled
     if ties is not None:
         t_reduced, t_coupled = ties.schur(lam)
-        A_red = A_red - t_reduced
-        rhs = rhs + t_coupled
-    A_red[np.diag_indices_from(A_red)] += lam * D_c
+        A_red, rhs = A_red - t_reduced, rhs + t_coupled
+    if sp.issparse(A_red):
+        A_red = A_red + sp.diags(lam * D_c)
+    else:
+        A_red = A_red.copy() if A_red is H_cc else A_red
+        A_red[np.diag_indices_from(A_red)] += lam * D_c
     dc = kkt_solve(A_red, S.A, rhs)  # dense, or sparse LU for large blocks
     dh = -dinv * (g_h + S.coupling.matvec(F, dc)) if S.n_heights else np.zeros(0)
     dp = ties.step(dc, lam) if ties is not None else np.zeros((0, 3))

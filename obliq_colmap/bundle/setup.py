@@ -15,6 +15,7 @@ import numpy as np
 
 from . import residuals as res
 from .coupling import Coupling, runs
+from .linear import SPARSE_MIN_UNKNOWNS
 from .problem import BundleOptions, BundleProblem, image_components
 
 
@@ -129,6 +130,8 @@ class Setup:
             self.shift_col = col
             col += 2
         self.n_red = col
+        # Large blocks gather the camera block sparse (:mod:`.camera_block`).
+        self.sparse_camera = self.n_red >= SPARSE_MIN_UNKNOWNS
         self.L = 6 + max((b.shape[1] for b in self.refined), default=0)
         # (N, L) global columns of each residual's camera-side Jacobian; the
         # padding column n_red is dropped after assembly.
@@ -174,7 +177,12 @@ class Setup:
         self.A = np.array(rows).reshape(-1, self.n_red)
         # Layout of the height x camera coupling E.
         self.coupling = Coupling(
-            self.img[hmask], self.hidx[hmask], cols[hmask], self.n_heights, self.n_red
+            self.img[hmask],
+            self.hidx[hmask],
+            cols[hmask],
+            self.n_heights,
+            self.n_red,
+            sparse=self.sparse_camera,
         )
 
 

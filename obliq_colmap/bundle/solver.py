@@ -9,12 +9,14 @@ Algorithm (Levenberg-Marquardt with the heights eliminated):
 
 1. Evaluate residuals and analytic Jacobians, vectorised per camera model.
 2. Normal equations in the camera block C (6 per image + refined intrinsics
-   per camera, dense: a few hundred unknowns) and the height block h, which
-   is DIAGONAL because every residual touches at most one height.
+   per camera: dense for a few hundred unknowns, gathered sparse for large
+   blocks, :mod:`.camera_block`) and the height block h, which is DIAGONAL
+   because every residual touches at most one height.
 3. Marquardt damping ``H + lambda * clip(diag H, 1e-6, 1e32)`` on both blocks.
 4. Schur complement ``S = H_CC - E^T D_h^-1 E`` (E: sparse height-camera
-   coupling), dense solve of S with the gauge constraints (below) as a KKT
-   system, back-substitution of the heights.
+   coupling), solve of S with the gauge constraints (below) as a KKT system
+   (dense LU, or sparse for large blocks: :mod:`.linear`), back-substitution
+   of the heights.
 5. Accept the step if the robust cost decreases (gain ratio > 1e-3);
    Nielsen's update of lambda.
 
@@ -41,7 +43,7 @@ from collections.abc import Callable
 import numpy as np
 
 from ..geometry import Camera, Pose, rotation_exp
-from . import covariance
+from . import camera_block, covariance
 from .loss import robust_loss
 from .priors import (
     AttitudePrior,
@@ -379,6 +381,7 @@ def _levenberg_marquardt(
                 p.add_to(H_cc, g_c, st)
             if ties is not None:
                 ties.linearise(S, st, H_cc, g_c)
+            H_cc = camera_block.finish(H_cc)
             H_hh = H_hh + prior_w * prior_mask
             g_h = g_h + prior_w * prior_mask * (st.heights - heights0)
             schur = Schur(S.coupling, H_hh, g_h, F)
@@ -458,7 +461,9 @@ def _cofactor(
         p.add_to(H_cc, np.zeros(S.n_red), st)
     if ties is not None:
         ties.linearise(S, st, H_cc, np.zeros(S.n_red))
-        H_cc = H_cc - ties.reduced
+    H_cc = camera_block.to_dense(camera_block.finish(H_cc))
+    if ties is not None:
+        H_cc = H_cc - camera_block.to_dense(ties.reduced)
     offset_w = 1.0 / opts.horizontal_offset_sigma_m**2
     cov = covariance.camera_covariance(
         S, H_cc, Jc, Jh, w, prior_w * prior_mask, offset_w

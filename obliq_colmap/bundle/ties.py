@@ -26,6 +26,7 @@ from typing import NamedTuple
 import numpy as np
 
 from . import residuals as res
+from .camera_block import CameraBlock, add_block
 from .coupling import Coupling, runs
 from .loss import robust_loss
 from .problem import BundleOptions, BundleProblem
@@ -107,6 +108,7 @@ class TieRows:
             np.repeat(cols, 3, axis=0),
             3 * self.n_points,
             S.n_red,
+            sparse=S.sparse_camera,
         )
 
     # --- residuals -----------------------------------------------------------
@@ -154,7 +156,7 @@ class TieRows:
 
     # --- normal equations ----------------------------------------------------
 
-    def linearise(self, S: Setup, st: State, H_cc: np.ndarray, g_c: np.ndarray):
+    def linearise(self, S: Setup, st: State, H_cc: CameraBlock, g_c: np.ndarray):
         """Add the rows' camera terms to ``H_cc``, ``g_c`` (in place) and keep
         the point blocks and the whitened coupling of this linearisation."""
         r, Jc, Jp = self.evaluate(S, st, jac=True)
@@ -165,7 +167,7 @@ class TieRows:
             c, q = cols[ok], int(ok.sum())
             A = Jc[a:b][:, :, ok].reshape(-1, q)
             wA = wJc[a:b][:, :, ok].reshape(-1, q)
-            H_cc[np.ix_(c, c)] += A.T @ wA
+            add_block(H_cc, c, c, A.T @ wA)
             g_c[c] += wA.T @ r[a:b].ravel()
         T = self.n_points
         wJp = Jp * w[:, None, None]
@@ -189,9 +191,10 @@ class TieRows:
         self.reduced = self.coupling.gram(self.Ft, ones)
         self.rhs = self.coupling.rmatvec(self.Ft, self.gt)
 
-    def schur(self, lam: float) -> tuple[np.ndarray, np.ndarray]:
-        """(C, C) ``W^T B^-1 W`` and (C,) ``W^T B^-1 g_p`` for the damped point
-        blocks ``B = (1 + lam) H_pp``."""
+    def schur(self, lam: float):
+        """(C, C) ``W^T B^-1 W`` (dense, or CSR for a sparse camera block)
+        and (C,) ``W^T B^-1 g_p`` for the damped point blocks
+        ``B = (1 + lam) H_pp``."""
         return self.reduced / (1.0 + lam), self.rhs / (1.0 + lam)
 
     def step(self, dc: np.ndarray, lam: float) -> np.ndarray:
