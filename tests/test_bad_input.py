@@ -63,6 +63,23 @@ def _map(scene: Path, edit) -> None:
     path.write_text(json.dumps(edit(doc)))
 
 
+def _lonlat_keeping_crs(doc: dict) -> dict:
+    """The map reprojected to longitude / latitude, its 'crs' member (EPSG:25832)
+    left as it was."""
+    import pyproj
+
+    to_lonlat = pyproj.Transformer.from_crs("EPSG:25832", "EPSG:4326", always_xy=True)
+
+    def move(c):
+        if isinstance(c[0], (int, float)):
+            return list(to_lonlat.transform(c[0], c[1]))
+        return [move(v) for v in c]
+
+    for f in doc["features"]:
+        f["geometry"]["coordinates"] = move(f["geometry"]["coordinates"])
+    return doc
+
+
 def _shift_map(doc: dict, dx: float) -> dict:
     def shift(c):
         return (
@@ -143,6 +160,11 @@ CASES = {
     "longitude/latitude crs over projected coordinates": (
         lambda s: _map(s, lambda d: {**d, "crs": "EPSG:4326"}),
         "longitude/latitude but its coordinates",
+        (),
+    ),
+    "longitude/latitude under a projected crs member": (
+        lambda s: _map(s, _lonlat_keeping_crs),
+        "look like longitude/latitude",
         (),
     ),
     "map 500 km from the cameras": (

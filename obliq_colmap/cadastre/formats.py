@@ -85,6 +85,51 @@ def _degree_like(bounds: tuple[float, float, float, float]) -> bool:
     return max(abs(xmin), abs(xmax)) <= 180 and max(abs(ymin), abs(ymax)) <= 90
 
 
+def _refuse_degrees_in_projected_crs(
+    path: Path, crs: str, bounds: tuple[float, float, float, float]
+) -> None:
+    """One clear error for a map whose ``crs`` member names a projected CRS
+    while its coordinates look like longitude / latitude (a map reprojected
+    without updating the member, or the member copied from another file).
+
+    Small coordinates alone prove nothing (a local engineering frame has
+    them), so the map is refused only where pyproj places them outside the
+    CRS's area of use; without pyproj it is read as stated.
+    """
+    try:
+        import pyproj
+    except ModuleNotFoundError:
+        return
+    try:
+        source = pyproj.CRS.from_user_input(crs)
+    except pyproj.exceptions.CRSError:
+        return  # an unknown CRS is reported where it is used
+    area = source.area_of_use
+    if area is None:
+        return
+    to_lonlat = pyproj.Transformer.from_crs(source, "EPSG:4326", always_xy=True)
+    lon, lat = to_lonlat.transform(
+        0.5 * (bounds[0] + bounds[2]), 0.5 * (bounds[1] + bounds[3])
+    )
+    west, south, east, north = area.bounds
+    margin = 1.0  # degrees: maps at a zone's edge are still used in it
+    inside = (
+        np.isfinite(lon)
+        and np.isfinite(lat)
+        and south - margin <= lat <= north + margin
+        and (west - margin <= lon <= east + margin or west > east)
+    )
+    if not inside:
+        raise InputError(
+            path,
+            f"the map's 'crs' is {crs} (projected, metres) but its coordinates"
+            f" look like longitude/latitude (x in [{bounds[0]:g}, {bounds[2]:g}],"
+            f" y in [{bounds[1]:g}, {bounds[3]:g}]) and lie outside {crs}'s area"
+            f" of use ({area.name}): drop the 'crs' member for RFC 7946"
+            " longitude/latitude, or give the map in that CRS",
+        )
+
+
 def utm_zone_crs(lon: float, lat: float) -> str:
     """The WGS 84 / UTM zone of a longitude / latitude, as ``EPSG:326zz`` (north)
     or ``EPSG:327zz`` (south)."""
@@ -111,6 +156,8 @@ def to_projected(
     geographic = (crs is not None and crs.upper() in GEOGRAPHIC_CRS) or (
         crs is None and _degree_like(bounds) and not allow_degree_range
     )
+    if crs is not None and not geographic and _degree_like(bounds):
+        _refuse_degrees_in_projected_crs(path, crs, bounds)
     source = (crs or "EPSG:4326") if geographic else crs
     if target is None and not geographic:
         return features, crs
