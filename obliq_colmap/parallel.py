@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import hashlib
 import os
+import signal
 from collections.abc import Callable, Sequence
 from concurrent.futures import ProcessPoolExecutor
 from multiprocessing import get_context
@@ -39,6 +40,10 @@ def image_seed(name: str, seed: int = 0) -> int:
 
 
 def _start_worker(initializer: Callable | None, initargs: tuple) -> None:
+    # Ctrl-C reaches the whole process group; the calling process answers it
+    # (it cancels what has not started and joins the workers), so a worker
+    # ignores it instead of printing its own traceback.
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
     limit_threads()
     if initializer is not None:
         initializer(*initargs)
@@ -58,7 +63,7 @@ class WorkerPool:
     local_initializer : run once in the calling process when
         ``num_workers`` is 1 (None: ``initializer(*initargs)``), e.g. to hand
         over an object already loaded instead of loading it again.
-    progress : show a tqdm bar per :meth:`map`.
+    progress : show a tqdm bar per :meth:`map` (None: only on a terminal).
     unit : the bar's unit.
     dask_scheduler : run on a Dask cluster instead: a scheduler's address,
         or ``local`` for a LocalCluster of ``num_workers`` one-thread
@@ -75,7 +80,7 @@ class WorkerPool:
         initargs: tuple = (),
         *,
         local_initializer: Callable[[], None] | None = None,
-        progress: bool = True,
+        progress: bool | None = True,
         unit: str = "img",
         dask_scheduler: str | None = None,
     ) -> None:
@@ -104,9 +109,8 @@ class WorkerPool:
         """``[fn(item) for item in items]``, computed by the workers."""
         from tqdm import tqdm
 
-        bar = tqdm(
-            total=len(items), desc=desc, unit=self.unit, disable=not self.progress
-        )
+        disable = None if self.progress is None else not self.progress
+        bar = tqdm(total=len(items), desc=desc, unit=self.unit, disable=disable)
         try:
             if self.dask is not None:
                 return self.dask.map(fn, items, bar.update)

@@ -12,6 +12,8 @@ import numpy as np
 import pycolmap
 from tqdm import tqdm
 
+from obliq_colmap.parallel import WorkerPool
+
 if TYPE_CHECKING:
     from obliq_colmap.adjustment.tie_options import TiePointOptions
 
@@ -79,17 +81,9 @@ def extract_features(
         (img, options.max_image_size, options.max_num_features, options.num_threads)
         for img in gray_images
     ]
-    progress = dict(total=len(jobs), desc="tie points: SIFT", disable=None)
-    if options.num_workers > 1 and len(jobs) > 1:
-        from concurrent.futures import ProcessPoolExecutor
-        from multiprocessing import get_context
-
-        with ProcessPoolExecutor(
-            options.num_workers, mp_context=get_context("spawn")
-        ) as pool:
-            found = list(tqdm(pool.map(_sift_arrays, jobs), **progress))
-    else:
-        found = [_sift_arrays(j) for j in tqdm(jobs, **progress)]
+    workers = options.num_workers if len(jobs) > 1 else 1
+    with WorkerPool(workers, progress=None) as pool:
+        found = pool.map(_sift_arrays, jobs, desc="tie points: SIFT")
     out = []
     for k, d, kind, scale in found:
         # COLMAP's pixel convention (corner at 0): scaling is a plain division
