@@ -12,7 +12,7 @@ from shapely.geometry import Polygon
 from obliq_colmap.cli import main
 from obliq_colmap.colmap_io import Block, Georef, ImageRecord, Point3D, write_result
 from obliq_colmap.geometry import Camera, Pose
-from obliq_colmap.products.buildings import highest_cluster
+from obliq_colmap.products.buildings import eave_cluster
 from obliq_colmap.products.cityjson import city_model
 from obliq_colmap.products.discrepancies import DiscrepancyOptions, classify
 from obliq_colmap.products.esri import ascii_grid_text, esri_wkt
@@ -50,17 +50,36 @@ def test_terrain_from_wall_feet_beats_the_offset_corners():
     assert np.sqrt(np.mean(err**2)) < 0.25
 
 
-def test_eave_is_the_highest_shared_track_above_the_floor():
+def test_eave_is_the_highest_height_shared_by_the_most_walls():
     z = np.array([0.1, 0.0, 3.1, 3.0, 9.9, 10.1, 10.0, 17.3])  # 17.3: alone
-    h, n = highest_cluster(z, tol=0.5, min_count=2, floor=2.0)
+    h, n = eave_cluster(z, tol=0.5, min_count=2, floor=2.0)
     assert h == pytest.approx(10.0) and n == 3
-    h, n = highest_cluster(np.array([0.1, 0.2]), 0.5, 2, floor=2.0)
+    h, n = eave_cluster(np.array([0.1, 0.2]), 0.5, 2, floor=2.0)
     assert np.isnan(h) and n == 0
     # two tracks of a taller building behind, both on wall 0: not the eave
     walls = np.array([0, 1, 0, 1, 0, 1, 2, 0])
     z2 = np.append(z[:-1], 17.4)
-    h, n = highest_cluster(np.append(z2, 17.3), 0.5, 2, 2.0, np.append(walls, 0), 2)
+    h, n = eave_cluster(np.append(z2, 17.3), 0.5, 2, 2.0, np.append(walls, 0), 2)
     assert h == pytest.approx(10.0) and n == 3
+    # a taller building behind two walls, with more tracks there than the
+    # eave has (dense blocks): the eave runs round all four walls
+    eave = np.array([12.0, 12.1, 11.9, 12.0])
+    behind = np.array([31.0, 31.1, 31.2, 30.9, 31.0, 31.1])
+    floors = np.array([3.0, 3.1, 6.0, 6.1, 9.0, 9.1, 3.0, 6.0])
+    z3 = np.concatenate([eave, behind, floors])
+    w3 = np.concatenate([[0, 1, 2, 3], [0, 1, 0, 1, 0, 1], [0, 1, 2, 3, 0, 1, 2, 3]])
+    h, n = eave_cluster(z3, 0.5, 2, 2.0, w3, 2)
+    assert h == pytest.approx(12.0) and n == 4
+    # floor lines on as many walls as the eave: the highest of them
+    h, _ = eave_cluster(
+        np.concatenate([eave, floors]),
+        0.5,
+        2,
+        2.0,
+        np.concatenate([[0, 1, 2, 3], [0, 1, 2, 3] * 2]),
+        2,
+    )
+    assert h == pytest.approx(12.0)
 
 
 def _closed_and_outward(doc: dict) -> float:

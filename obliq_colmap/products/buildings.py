@@ -3,15 +3,16 @@
 * Ground height: the lowest terrain height (:mod:`.terrain`) at the
   footprint's vertices, as a building's base is where it meets the ground
   on its downhill side.
-* Eave height: the height of the highest facade constraint below the roof
-  rim. The highest horizontal edge a wall shows is where it meets its roof
-  (a flat roof's rim, a pitched roof's eave); tracks above it on the same
-  wall are edges of other buildings seen behind it, matched across images
-  but single (no other track of the building at that height), so the eave
-  is the highest height that at least ``min_tracks`` of the building's
-  tracks share within ``cluster_tol_m``, at least ``min_height_m`` above
-  the ground (lower clusters are the wall's foot). Buildings without such a
-  cluster get no eave height (NaN).
+* Eave height: the height where the building's walls meet its roof (a flat
+  roof's rim, a pitched roof's eave). It runs round the building, so it is
+  the height that the most walls share: of the heights that at least
+  ``min_tracks`` of the building's tracks share within ``cluster_tol_m``, on
+  at least ``min_walls`` walls and ``min_height_m`` above the ground (lower
+  ones are the wall's foot), those on the most walls, and of them the
+  highest (floor lines run round a building too, below its eave). Edges of
+  a taller building seen behind show on the walls facing it only; in dense
+  blocks they outnumber the eave's tracks there and lie far above it.
+  Buildings without such a height get none (NaN).
 """
 
 from __future__ import annotations
@@ -22,7 +23,7 @@ import numpy as np
 
 from obliq_colmap.cadastre import Cadastre
 
-__all__ = ["BuildingHeights", "HeightOptions", "building_heights", "highest_cluster"]
+__all__ = ["BuildingHeights", "HeightOptions", "building_heights", "eave_cluster"]
 
 
 @dataclass
@@ -36,7 +37,8 @@ class HeightOptions:
     #: or two walls; a single track may be another building's edge).
     min_tracks: int = 2
     #: walls (map edges) among those tracks: a building's eave runs round
-    #: it, while a taller building seen behind one wall shows on that wall.
+    #: it, while a taller building seen behind one wall shows on that wall
+    #: (and the eave is taken from the heights on the most walls).
     min_walls: int = 2
     #: an eave lower than this above the ground is a wall's foot (m).
     min_height_m: float = 2.0
@@ -65,7 +67,7 @@ class BuildingHeights:
         return self.eave_z - self.ground_z
 
 
-def highest_cluster(
+def eave_cluster(
     z: np.ndarray,
     tol: float,
     min_count: int,
@@ -73,21 +75,27 @@ def highest_cluster(
     walls: np.ndarray | None = None,
     min_walls: int = 1,
 ):
-    """The highest value of ``z`` (N,) above ``floor`` that at least
-    ``min_count`` values, on at least ``min_walls`` distinct ``walls`` (N,),
-    share within ``tol``: (height, count), or (NaN, 0). The height is the
-    median of those values."""
+    """The eave among the track heights ``z`` (N,) on ``walls`` (N,): of the
+    values above ``floor`` that at least ``min_count`` values on at least
+    ``min_walls`` distinct walls share within ``tol``, the highest of those
+    on the most walls. Returns (height, count): the median of the values
+    within ``tol`` of it and their number, or (NaN, 0)."""
     walls = np.zeros(len(z), int) if walls is None else np.asarray(walls)
     keep = z >= floor
-    order = np.argsort(z[keep])
-    z, walls = z[keep][order], walls[keep][order]
+    z, walls = z[keep], walls[keep]
     if len(z) == 0:
         return np.nan, 0
     near = np.abs(z[:, None] - z[None, :]) <= tol  # (N, N): a few tracks each
-    for i in np.flatnonzero(near.sum(axis=1) >= min_count)[::-1]:
-        if len(np.unique(walls[near[i]])) >= min_walls:
-            return float(np.median(z[near[i]])), int(near[i].sum())
-    return np.nan, 0
+    # distinct walls within tol of each value: (N, W) membership, a few walls
+    _, w = np.unique(walls, return_inverse=True)
+    n_walls = (near[:, :, None] & (w[None, :, None] == np.arange(w.max() + 1))).any(1)
+    n_walls = n_walls.sum(axis=1)
+    ok = (near.sum(axis=1) >= min_count) & (n_walls >= min_walls)
+    if not ok.any():
+        return np.nan, 0
+    cand = np.flatnonzero(ok & (n_walls == n_walls[ok].max()))
+    i = cand[np.argmax(z[cand])]
+    return float(np.median(z[near[i]])), int(near[i].sum())
 
 
 def building_heights(
@@ -123,7 +131,7 @@ def building_heights(
     starts = np.searchsorted(fb[:, 1], np.arange(B + 1))
     for b in np.flatnonzero(ntr):  # per building: a handful of tracks each
         rows = slice(starts[b], starts[b + 1])
-        eave[b], count[b] = highest_cluster(
+        eave[b], count[b] = eave_cluster(
             facade_xyz[fb[rows, 0], 2],
             options.cluster_tol_m,
             options.min_tracks,
