@@ -11,6 +11,8 @@ noise of ``sigma_px`` across and along.
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 
@@ -20,6 +22,7 @@ from obliq_colmap.georegister.relative_vp import (
     centre_from_rotation,
     horizontal_vps,
     place_with_rotations,
+    pool_directions,
     rotation_candidates,
 )
 
@@ -317,3 +320,199 @@ def test_refuses_without_matches():
         C, far, rays, X, F_PX, RelativeVPOptions(max_rotation_from_reference_deg=30)
     )
     assert k == -1 and c is None
+
+
+def test_pool_directions_is_a_sign_free_mean_within_tolerance():
+    down = np.array([0.0, 0.0, -1.0])
+
+    def d(deg):
+        return np.array([np.cos(np.radians(deg)), np.sin(np.radians(deg)), 0.0])
+
+    # members at 10.2 and 190.6 (= 10.6, the other sign), weights 1 and 3;
+    # 12 deg is beyond the 1 deg tolerance and must not count
+    pool = np.array([d(10.2), d(190.6), d(12.0)])
+    got = pool_directions(d(10.0)[None], pool, np.array([1.0, 3.0, 5.0]), down, 1.0)
+    ang = np.degrees(np.arctan2(got[0, 1], got[0, 0]))
+    # the axial mean: the doubled angles' weighted resultant, halved
+    z = np.exp(2j * np.radians(10.2)) + 3 * np.exp(2j * np.radians(10.6))
+    assert abs(ang - np.degrees(np.angle(z)) / 2) < 1e-9
+    # with nothing near, the direction is kept
+    kept = pool_directions(d(50.0)[None], pool, np.ones(3), down, 1.0)
+    np.testing.assert_allclose(kept[0], d(50.0), atol=1e-12)
+
+
+# --------------------------------------------------------------------------
+# The stage on a model: which images are missing, writing one, refusals
+# --------------------------------------------------------------------------
+
+
+def _model_of_two(tmp_path):
+    """A model of two registered images (im0, im1) with 20 points seen by
+    both, and an image folder holding them, a third (im2) and a text file."""
+    import cv2
+    import pycolmap
+
+    rec = pycolmap.Reconstruction()
+    cam = pycolmap.Camera(model="PINHOLE", width=W, height=H,
+                          params=[F_PX, F_PX, W / 2, H / 2])  # fmt: skip
+    cam.camera_id = 1
+    rec.add_camera_with_trivial_rig(cam)
+    rng = np.random.default_rng(0)
+    Ps = [_camera(-5.0, 2.0, [x, 0, 1.6]) for x in (-1.0, 1.0)]
+    X, _, _ = _points(Ps[0], rng, 20, 0.0)
+    for i, P in enumerate(Ps):
+        im = pycolmap.Image(name=f"im{i}.png", camera_id=1, image_id=i + 1)
+        uv, _ = _project(P, X)
+        im.points2D = pycolmap.Point2DList([pycolmap.Point2D(u) for u in uv])
+        pose = pycolmap.Rigid3d(pycolmap.Rotation3d(P[:, :3]), P[:, 3])
+        rec.add_image_with_trivial_frame(im, pose)
+    for k, Xk in enumerate(X):
+        track = pycolmap.Track()
+        track.add_element(1, k)
+        track.add_element(2, k)
+        rec.add_point3D(Xk, track, np.zeros(3, np.uint8))
+    folder = tmp_path / "images"
+    folder.mkdir()
+    for n in ("im0.png", "im1.png"):
+        cv2.imwrite(str(folder / n), np.zeros((H, W), np.uint8))
+    cv2.imwrite(str(folder / "im2.png"), np.zeros((40, 60), np.uint8))
+    (folder / "notes.txt").write_text("not an image")
+    return rec, folder, Ps, X
+
+
+def test_missing_images_and_write_placed(tmp_path):
+    from obliq_colmap.georegister.relative_vp import (
+        PlacedImage,
+        missing_images,
+        write_placed,
+    )
+
+    rec, folder, Ps, X = _model_of_two(tmp_path)
+    assert missing_images(rec, folder) == ["im2.png"]
+    P = _camera(0.0, 2.0, [0.0, -1.0, 1.6])
+    uv, _ = _project(P, X[:8])
+    ids = np.array(sorted(rec.points3D))[:8]
+    placed = PlacedImage(
+        "im2.png", "placed", "", cam_from_world=P, camera_id=1, points2D=uv,
+        point3D_ids=ids,
+    )  # fmt: skip
+    image_id = write_placed(rec, placed)
+    im = rec.images[image_id]
+    assert im.name == "im2.png" and im.has_pose
+    np.testing.assert_allclose(im.cam_from_world().matrix(), P, atol=1e-12)
+    # its keypoints observe the model's points: they reproject exactly
+    for p2 in im.points2D:
+        Xw = rec.points3D[p2.point3D_id].xyz
+        proj = im.camera.img_from_cam((im.cam_from_world() * Xw)[None])[0]
+        np.testing.assert_allclose(proj, p2.xy, atol=1e-9)
+    assert missing_images(rec, folder) == []
+
+
+def test_place_image_refuses_an_image_of_no_camera(tmp_path):
+    """im2 is 60 x 40 px, the model's camera 1536 x 1024: refused with a
+    message that says so (no exception)."""
+    from obliq_colmap.georegister.relative_vp import place_image
+
+    rec, folder, _, _ = _model_of_two(tmp_path)
+    placed = place_image(rec, folder, "im2.png", DOWN_WORLD, RelativeVPOptions())
+    assert placed.status == "unreadable"
+    assert "no camera of the model is 60 x 40 px" in placed.message
+    assert placed.cam_from_world is None
+
+
+def test_place_image_refuses_a_blank_image(tmp_path):
+    """A blank image of the right size has no vertical VP: refused."""
+    import cv2
+
+    from obliq_colmap.georegister.relative_vp import place_image
+
+    rec, folder, _, _ = _model_of_two(tmp_path)
+    cv2.imwrite(str(folder / "im3.png"), np.full((H, W), 128, np.uint8))
+    placed = place_image(rec, folder, "im3.png", DOWN_WORLD, RelativeVPOptions())
+    assert placed.status == "no_vertical_vp" and placed.cam_from_world is None
+
+
+HERZJESU = Path("/work/shared/data/strecha_herzjesu_p8_halfres")
+
+
+@pytest.mark.slow
+@pytest.mark.skipif(not HERZJESU.is_dir(), reason="Herz-Jesu-P8 not in ../shared")
+def test_herzjesu_image_placed_from_its_neighbours(tmp_path):
+    """A model of Herz-Jesu's TRUE cameras 0002 and 0004 whose points are
+    their SIFT matches triangulated with those cameras; 0003 is missing and
+    is placed by ``add_missing_images``. Its rotation comes from its VPs and
+    the neighbours' (one image's horizontal VP heading scatters by 0.1-0.3
+    deg on these images with true poses: 0.6 deg is 2-3 sd of two of them),
+    its centre from the matches (1.8 cm in the bench with 2,700 of them; a
+    rotation error e moves it by e x 15 m, 0.16 m at 0.6 deg)."""
+    import os
+
+    import pycolmap
+
+    from obliq_colmap.georegister.relative_vp import (
+        add_missing_images,
+        read_gray,
+        sift,
+        verified_matches,
+    )
+
+    gt = pycolmap.Reconstruction(str(HERZJESU / "gt_colmap_halfres_text"))
+    by_name = {gt.images[i].name: gt.images[i] for i in gt.reg_image_ids()}
+    folder = tmp_path / "images"
+    folder.mkdir()
+    for n in ("0002.jpg", "0003.jpg", "0004.jpg"):
+        os.symlink(HERZJESU / "images" / n, folder / n)
+    a, b = by_name["0002.jpg"], by_name["0004.jpg"]
+    cam = a.camera
+    fa, fb = (sift(read_gray(folder / n)) for n in ("0002.jpg", "0004.jpg"))
+    m = verified_matches(fa, fb, cam, cam)
+    # the rays' midpoints with the true cameras: (M, 3)
+    Xs = []
+    for im, xy in ((a, fa.xy[m[:, 0]]), (b, fb.xy[m[:, 1]])):
+        R = im.cam_from_world().rotation.matrix()
+        rays = np.column_stack([cam.cam_from_img(xy), np.ones(len(xy))]) @ R
+        Xs.append(
+            (im.projection_center(), rays / np.linalg.norm(rays, axis=1)[:, None])
+        )
+    (ca, da), (cb, db) = Xs
+    # closest points of the two rays: solve [da, -db] [s, t]^T = cb - ca
+    A = np.stack([da, -db], 2)  # (M, 3, 2)
+    AtA = np.einsum("mki,mkj->mij", A, A)
+    Atb = np.einsum("mki,k->mi", A, cb - ca)
+    s, t = np.linalg.solve(AtA, Atb[..., None])[..., 0].T
+    X = 0.5 * (ca + s[:, None] * da + cb + t[:, None] * db)
+    rec = pycolmap.Reconstruction()
+    # the truth's cameras of 0002-0004 share one lens (one camera per image)
+    cam = pycolmap.Camera(
+        model=cam.model, width=cam.width, height=cam.height, params=cam.params
+    )
+    cam.camera_id = 1
+    rec.add_camera_with_trivial_rig(cam)
+    for image_id, (im, f, col) in enumerate(((a, fa, 0), (b, fb, 1)), start=1):
+        new = pycolmap.Image(name=im.name, camera_id=1, image_id=image_id)
+        new.points2D = pycolmap.Point2DList(
+            [pycolmap.Point2D(xy) for xy in f.xy[m[:, col]]]
+        )
+        rec.add_image_with_trivial_frame(new, im.cam_from_world())
+    for k in range(len(X)):
+        track = pycolmap.Track()
+        track.add_element(1, k)
+        track.add_element(2, k)
+        rec.add_point3D(X[k], track, np.zeros(3, np.uint8))
+    # the truth's down: its z axis points down to within 0.3 deg (README)
+    report = add_missing_images(
+        rec, folder, np.array([0.0, 0.0, 1.0]), RelativeVPOptions(), progress=False
+    )
+    assert report["0003.jpg"]["status"] == "placed", report
+    placed = next(rec.images[i] for i in rec.reg_image_ids()
+                  if rec.images[i].name == "0003.jpg")  # fmt: skip
+    truth = by_name["0003.jpg"]
+    R_err = rotation_angle_deg(
+        placed.cam_from_world().rotation.matrix(),
+        truth.cam_from_world().rotation.matrix(),
+    )
+    c_err = np.linalg.norm(placed.projection_center() - truth.projection_center())
+    assert R_err < 0.6, (R_err, c_err)
+    assert c_err < 0.1 + np.radians(R_err) * 15.0, (R_err, c_err)
+    assert placed.num_points3D >= 100
+    print(f"0003: rotation {R_err:.3f} deg, centre {c_err:.3f} m")

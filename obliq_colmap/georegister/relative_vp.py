@@ -94,6 +94,12 @@ class RelativeVPOptions:
     #: candidates farther than this from the reference rotation are dropped
     max_rotation_from_reference_deg: float = 60.0
     # --- matches and position (step 3) ---
+    #: a neighbour's horizontal directions are refined by the same
+    #: directions (within ``pool_tolerance_deg``) of up to this many
+    #: registered images nearest in name order (0: the neighbour's alone);
+    #: one image's VP heading scatters by 0.1-0.3 deg (Herz-Jesu, true poses)
+    pool_images: int = 8
+    pool_tolerance_deg: float = 1.0
     #: registered images matched against (nearest in name order first)
     max_neighbours: int = 4
     #: a neighbour's keypoint is its SfM observation within this distance, px
@@ -590,7 +596,6 @@ class _Neighbour:
     image_id: int
     features: Features
     point3D_ids: np.ndarray
-    vps: ImageVPs | None = None
 
 
 class RegisteredImages:
@@ -599,6 +604,7 @@ class RegisteredImages:
     def __init__(self, rec, image_path: Path, options: RelativeVPOptions) -> None:
         self.rec, self.image_path, self.options = rec, Path(image_path), options
         self._n: dict[int, _Neighbour | None] = {}
+        self._vps: dict[int, ImageVPs] = {}
 
     def neighbour(self, image_id: int) -> _Neighbour | None:
         if image_id not in self._n:
@@ -617,14 +623,50 @@ class RegisteredImages:
         return self._n[image_id]
 
     def vps(self, image_id: int) -> ImageVPs:
-        nb = self.neighbour(image_id)
-        if nb is None:
-            return ImageVPs("unreadable", "unreadable")
-        if nb.vps is None:
+        if image_id not in self._vps:
             image = self.rec.images[image_id]
             gray = read_gray(self.image_path / image.name)
-            nb.vps = image_vps(gray, image.camera, self.options)
-        return nb.vps
+            self._vps[image_id] = (
+                ImageVPs("unreadable", "cannot read the image")
+                if gray is None
+                else image_vps(gray, image.camera, self.options)
+            )
+        return self._vps[image_id]
+
+    def world_directions(self, image_ids: list[int]) -> tuple[np.ndarray, np.ndarray]:
+        """The horizontal VPs of ``image_ids`` in the model frame (rows
+        ``R^T h``): (P, 3) directions and (P,) supporting segment counts."""
+        dirs, weights = [np.zeros((0, 3))], [np.zeros(0)]
+        for image_id in image_ids:
+            v = self.vps(image_id)
+            if v.status == "ok":
+                R = self.rec.images[image_id].cam_from_world().rotation.matrix()
+                dirs.append(v.horizontal.directions @ R)
+                weights.append(v.horizontal.num_inliers.astype(float))
+        return np.concatenate(dirs), np.concatenate(weights)
+
+
+def pool_directions(
+    h: np.ndarray,
+    pool: np.ndarray,
+    weights: np.ndarray,
+    down: np.ndarray,
+    tolerance_deg: float,
+) -> np.ndarray:
+    """(J, 3) horizontal directions ``h`` each replaced by the weighted axial
+    mean of the (P, 3) ``pool`` directions within ``tolerance_deg`` of it
+    (sign-free), all projected on the plane perpendicular to the (3,) unit
+    ``down``; a direction with no such pool member is kept."""
+    e1 = np.cross(down, [1.0, 0.0, 0.0] if abs(down[0]) < 0.9 else [0.0, 1.0, 0.0])
+    e1 /= np.linalg.norm(e1)
+    e2 = np.cross(down, e1)
+    phi_h = np.arctan2(h @ e2, h @ e1)  # (J,)
+    phi_p = np.arctan2(pool @ e2, pool @ e1)  # (P,)
+    # axial data: angles doubled, so that h and -h are one direction
+    diff = np.angle(np.exp(2j * (phi_p[None] - phi_h[:, None]))) / 2  # (J, P)
+    w = np.where(np.abs(diff) < np.radians(tolerance_deg), weights[None], 0.0)
+    mean = phi_h + np.angle(np.sum(w * np.exp(2j * diff), axis=1)) / 2
+    return np.cos(mean)[:, None] * e1 + np.sin(mean)[:, None] * e2
 
 
 def neighbour_order(rec, name: str, missing: list[str]) -> list[int]:
@@ -696,11 +738,15 @@ def neighbour_candidates(
     neighbour_ids: list[int],
     down_world: np.ndarray,
     cache: RegisteredImages,
+    pool_ids: list[int] | None = None,
 ) -> list[tuple[int, np.ndarray]]:
     """Per neighbour with horizontal VPs (in the given order): its id and the
     (C, 3, 3) rotation candidates of the image with ``vps``
     (:func:`rotation_candidates`, its horizontal VPs rotated into the model
-    frame by its pose)."""
+    frame by its pose, each refined by :func:`pool_directions` over the
+    registered images ``pool_ids``)."""
+    options = cache.options
+    pool, weights = cache.world_directions(pool_ids or [])
     out = []
     for image_id in neighbour_ids:
         nvps = cache.vps(image_id)
@@ -709,6 +755,10 @@ def neighbour_candidates(
             continue
         R_nb = rec.images[image_id].cam_from_world().rotation.matrix()
         h_world = nvps.horizontal.directions @ R_nb  # rows: R^T h
+        if len(pool):
+            h_world = pool_directions(
+                h_world, pool, weights, down_world, options.pool_tolerance_deg
+            )
         out.append(
             (image_id, rotation_candidates(
                 vps.down, vps.horizontal.directions, down_world, h_world
@@ -726,6 +776,8 @@ class MissingImage:
     camera: pycolmap.Camera
     vps: ImageVPs
     correspondences: Correspondences
+    #: registered images whose VPs refine the neighbours' directions
+    pool_ids: list[int] = field(default_factory=list)
 
 
 def prepare_image(
@@ -754,11 +806,13 @@ def prepare_image(
     vps = image_vps(gray, camera, options)
     if vps.status != "ok":
         return PlacedImage(name, vps.status, vps.message)
-    order = neighbour_order(rec, name, missing or [name])[: options.max_neighbours]
-    corr = correspondences_2d3d(rec, sift(gray), camera, order, cache, options)
+    order = neighbour_order(rec, name, missing or [name])
+    corr = correspondences_2d3d(
+        rec, sift(gray), camera, order[: options.max_neighbours], cache, options
+    )
     if not corr.neighbours:
         return PlacedImage(name, "no_matches", "no readable neighbour")
-    return MissingImage(name, camera, vps, corr)
+    return MissingImage(name, camera, vps, corr, order[: options.pool_images])
 
 
 def place_prepared(
@@ -791,7 +845,9 @@ def place_prepared(
         )
     xy, rays, X, pid = corr.xy, corr.rays, corr.X, corr.point3D_ids
     focal = float(image.camera.mean_focal_length())
-    found = neighbour_candidates(rec, image.vps, corr.neighbours, down_world, cache)
+    found = neighbour_candidates(
+        rec, image.vps, corr.neighbours, down_world, cache, image.pool_ids
+    )
     if not found:
         return PlacedImage(
             name, "no_horizontal_vp", "no matched neighbour has a horizontal VP",
@@ -870,3 +926,46 @@ def write_placed(rec: pycolmap.Reconstruction, placed: PlacedImage) -> int:
     for k, pid in enumerate(placed.point3D_ids):
         rec.add_observation(int(pid), pycolmap.TrackElement(image_id, k))
     return image_id
+
+
+def add_missing_images(
+    rec: pycolmap.Reconstruction,
+    image_path: Path,
+    down_world: np.ndarray,
+    options: RelativeVPOptions,
+    progress: bool = True,
+) -> dict[str, dict]:
+    """Place every image under ``image_path`` that ``rec`` lacks and add
+    those placed to ``rec`` (in place). Returns each image's report (its
+    status and message); an image that cannot be placed is named in a
+    warning with the reason and left out.
+
+    down_world : (3,) unit down direction in ``rec``'s frame.
+    """
+    from tqdm import tqdm
+
+    missing = missing_images(rec, image_path)
+    if not missing:
+        logger.info("missing images: none (every image is in the model)")
+        return {}
+    cache = RegisteredImages(rec, image_path, options)
+    placed_all = []
+    bar = tqdm(missing, desc="missing images", disable=not progress or None)
+    for name in bar:
+        placed = place_image(
+            rec, image_path, name, down_world, options, missing=missing, cache=cache
+        )
+        placed_all.append(placed)
+        if placed.status == "placed":
+            logger.info("%s: placed from VPs (%s)", name, placed.message)
+        else:
+            logger.warning("%s: not placed (%s): %s", name, placed.status,
+                           placed.message)  # fmt: skip
+    # added after all are placed: a placed image is no neighbour of another
+    # (its pose rests on a few matches and one VP pair)
+    for placed in placed_all:
+        if placed.status == "placed":
+            write_placed(rec, placed)
+    n = sum(p.status == "placed" for p in placed_all)
+    logger.info("missing images: %d of %d placed from VPs", n, len(missing))
+    return {p.name: p.report() for p in placed_all}
