@@ -54,7 +54,16 @@ from obliq_colmap.georegister.relative_vp import (
 from obliq_colmap.georegister.vertical import model_vertical
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from georegister_real import HJ, sfm  # noqa: E402
+from georegister_real import (  # noqa: E402
+    HJ,
+    UTM_OFFSET,
+    checks_of,
+    gcp_from_tracks,
+    relevelled_truth,
+    run_georegister,
+    sfm,
+    write_gcp_list,
+)
 
 CASES = ("0003.jpg", "0007.jpg", "0000.jpg", "0003.jpg,0004.jpg")
 SUBSETS = (3, 4, 5, 6, 8, 10, 15, 20, 30, 50)
@@ -193,6 +202,65 @@ def run_case(work: Path, left_out: list[str], truth, draws: int) -> dict:
                 rec, prepared, vertical.down, options, cache, align,
                 by_name[name], draws, outliers,
             )  # fmt: skip
+    out["command"] = through_the_command(work, model_path, left_out)
+    return out
+
+
+def through_the_command(work: Path, model_path: Path, left_out: list[str]) -> dict:
+    """``obliq-colmap georegister --add_missing_images 1`` with 2 control
+    points (as ``georegister_real``: SfM tracks triangulated with the
+    re-levelled truth), with and without the block adjustment: each
+    camera's tilt, heading (deg) and centre (m) errors, the left-out ones
+    apart."""
+    truth, _ = relevelled_truth(HJ / "images")
+    rec = pycolmap.Reconstruction(str(model_path))
+    points = gcp_from_tracks(rec, truth)
+    gcp = work / "gcp_2.txt"
+    write_gcp_list(gcp, points, "EPSG:32632")
+    out = {}
+    for block in (0, 1):
+        result = work / f"georegistered_added_{block}"
+        r = run_georegister(
+            model_path, HJ / "images", gcp, result, checks_of(points, 2),
+            ("--add_missing_images", "1", "--block_adjustment", str(block)),
+        )  # fmt: skip
+        errs = _camera_errors(result, truth)
+        out[f"block_adjustment_{block}"] = {
+            "missing_images": r["report"].get("missing_images"),
+            "left_out": {n: errs[n] for n in left_out if n in errs},
+            "registered_median": {
+                k: float(
+                    np.median([e[k] for n, e in errs.items() if n not in left_out])
+                )
+                for k in ("tilt_deg", "heading_deg", "centre_m")
+            },
+            "wall_s": r["wall_s"],
+        }
+    return out
+
+
+def _camera_errors(result: Path, truth) -> dict:
+    """Per camera of the output model: tilt, heading (deg), centre (m)
+    against the re-levelled truth (as ``georegister_real.camera_errors``)."""
+    rec = pycolmap.Reconstruction(str(result))
+    origin = np.array(json.loads((result / "georef.json").read_text())["origin"])
+    by_name = {truth.images[i].name: truth.images[i] for i in truth.reg_image_ids()}
+    out = {}
+    for i in rec.reg_image_ids():
+        im = rec.images[i]
+        t = by_name[im.name]
+        Re = im.cam_from_world().rotation.matrix()
+        Rt = t.cam_from_world().rotation.matrix()
+        up = np.array([0.0, 0.0, 1.0])
+        tilt = np.degrees(np.arccos(np.clip((Re @ up) @ (Rt @ up), -1, 1)))
+        dh = np.arctan2(Re[2, 1], Re[2, 0]) - np.arctan2(Rt[2, 1], Rt[2, 0])
+        heading = abs(np.degrees((dh + np.pi) % (2 * np.pi) - np.pi))
+        ce = im.projection_center() + origin - UTM_OFFSET
+        out[im.name] = {
+            "tilt_deg": float(tilt),
+            "heading_deg": float(heading),
+            "centre_m": float(np.linalg.norm(ce - t.projection_center())),
+        }
     return out
 
 
