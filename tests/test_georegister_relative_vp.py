@@ -312,6 +312,16 @@ def test_refuses_without_matches():
     rays_wrong = rays[rng.permutation(len(rays))]
     c, inl = centre_from_rotation(P[:, :3], rays_wrong, X, F_PX, opts)
     assert c is None and inl.sum() < opts.min_inliers
+    # 8 right of 40 or more (> min_inliers, < a quarter): refused as well;
+    # the same 8 alone are placed
+    X, rays, _ = _points(P, rng, 60, 0.5)
+    n = len(X)
+    assert n >= 40
+    mixed = np.concatenate([rays[:8], rays[8:][rng.permutation(n - 8)]])
+    c, inl = centre_from_rotation(P[:, :3], mixed, X, F_PX, opts)
+    assert c is None and inl[:8].all() and inl.sum() < 0.25 * n
+    c, inl = centre_from_rotation(P[:, :3], rays[:8], X[:8], F_PX, opts)
+    assert c is not None and inl.all()
     # and no candidate within reach of the reference: nothing tried
     C = rotation_candidates(P[:, :3] @ DOWN_WORLD, H_WORLD[:1] @ P[:, :3].T,
                             DOWN_WORLD, H_WORLD[:1])  # fmt: skip

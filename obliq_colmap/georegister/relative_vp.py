@@ -109,8 +109,11 @@ class RelativeVPOptions:
     ransac_threshold_px: float = 4.0
     #: hypotheses (pairs of correspondences) for the position, at most
     max_pairs: int = 2000
-    #: the position needs this many inlier correspondences
+    #: the position needs this many inlier correspondences, and this share
+    #: of all (COLMAP's mapper: ``abs_pose_min_inlier_ratio`` 0.25): a wrong
+    #: rotation candidate still gathers a few inliers among thousands
     min_inliers: int = 6
+    min_inlier_ratio: float = 0.25
     seed: int = 0
 
 
@@ -408,8 +411,8 @@ def centre_from_rotation(
 
     Returns
     -------
-    centre (3,) in the model frame (None: fewer than ``min_inliers``) and
-    the (N,) inlier mask.
+    centre (3,) in the model frame (None: fewer than ``min_inliers`` or
+    than ``min_inlier_ratio`` of N) and the (N,) inlier mask.
 
     Each correspondence holds the centre on the line through X_j along the
     world ray ``R^T rays_j``; two such lines (4 equations) give the centre
@@ -451,7 +454,7 @@ def centre_from_rotation(
     inl = _reprojection_px(R, best[None], rays, X, focal_px)[0] < (
         options.ransac_threshold_px
     )
-    if inl.sum() < options.min_inliers:
+    if inl.sum() < max(options.min_inliers, options.min_inlier_ratio * n):
         return None, inl
     return best, inl
 
