@@ -526,3 +526,17 @@ def test_herzjesu_image_placed_from_its_neighbours(tmp_path):
     assert c_err < 0.1 + np.radians(R_err) * 15.0, (R_err, c_err)
     assert placed.num_points3D >= 100
     print(f"0003: rotation {R_err:.3f} deg, centre {c_err:.3f} m")
+
+
+def test_place_image_refuses_a_truncated_jpeg(tmp_path):
+    """A JPEG cut short (it would decode with grey rows) is refused and
+    the reason named."""
+    import cv2
+
+    from obliq_colmap.georegister.relative_vp import place_image
+
+    rec, folder, _, _ = _model_of_two(tmp_path)
+    ok, buf = cv2.imencode(".jpg", np.full((H, W), 90, np.uint8))
+    (folder / "im4.jpg").write_bytes(buf.tobytes()[: len(buf) // 2])
+    placed = place_image(rec, folder, "im4.jpg", DOWN_WORLD, RelativeVPOptions())
+    assert placed.status == "unreadable" and "truncated JPEG" in placed.message

@@ -53,6 +53,7 @@ import pycolmap
 from scipy.spatial import cKDTree
 
 from obliq_colmap.geometry import Camera, rotation_angle_deg
+from obliq_colmap.images import image_problem
 from obliq_colmap.vanishing import VanishingOptions, VPPrior, detect_vertical_vp
 
 logger = logging.getLogger(__name__)
@@ -508,7 +509,10 @@ class Features:
 
 def read_gray(path: Path) -> np.ndarray | None:
     """(H, W) uint8 grey image read as COLMAP reads it (pycolmap's Bitmap:
-    the keypoints then equal an SfM model's from pycolmap), or None."""
+    the keypoints then equal an SfM model's from pycolmap), or None (see
+    :func:`image_problem` for why)."""
+    if image_problem(path) is not None:  # a truncated JPEG decodes grey
+        return None
     bitmap = pycolmap.Bitmap.read(str(path), False)
     if bitmap is None:
         return None
@@ -798,7 +802,8 @@ def prepare_image(
     cache = cache or RegisteredImages(rec, image_path, options)
     gray = read_gray(Path(image_path) / name)
     if gray is None:
-        return PlacedImage(name, "unreadable", "cannot read the image")
+        why = image_problem(Path(image_path) / name) or "cannot decode it"
+        return PlacedImage(name, "unreadable", why)
     h, w = gray.shape
     cams = [c for c in rec.cameras.values() if (c.width, c.height) == (w, h)]
     if not cams:
