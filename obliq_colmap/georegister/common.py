@@ -53,10 +53,11 @@ def upright(rec, vertical: ModelVertical | None) -> np.ndarray:
     return R
 
 
-def add_missing(rec, image_path, vertical, options) -> dict | None:
+def add_missing(rec, image_path, vertical, options, priors=None) -> dict | None:
     """With ``options.add_missing_images``: the images under ``image_path``
     that the UPRIGHT model lacks placed from VPs and added to it
-    (:mod:`.relative_vp`); their reports by name (None: not asked)."""
+    (:mod:`.relative_vp`); their reports by name (None: not asked).
+    ``priors``: name -> (3, 3) rough rotation in the model's frame."""
     if not options.add_missing_images:
         return None
     if vertical is None:
@@ -68,6 +69,7 @@ def add_missing(rec, image_path, vertical, options) -> dict | None:
         np.array([0.0, 0.0, -1.0]),  # the model is upright now
         options.relative_vp,
         options.progress,
+        priors,
     )
 
 

@@ -942,6 +942,7 @@ def add_missing_images(
     down_world: np.ndarray,
     options: RelativeVPOptions,
     progress: bool = True,
+    priors: dict[str, np.ndarray] | None = None,
 ) -> dict[str, dict]:
     """Place every image under ``image_path`` that ``rec`` lacks and add
     those placed to ``rec`` (in place). Returns each image's report (its
@@ -949,6 +950,9 @@ def add_missing_images(
     warning with the reason and left out.
 
     down_world : (3,) unit down direction in ``rec``'s frame.
+    priors : name -> (3, 3) rough cam_from_world rotation in ``rec``'s
+        frame (INS); the rotation candidates are chosen near it instead of
+        near the neighbour's.
     """
     from tqdm import tqdm
 
@@ -960,8 +964,9 @@ def add_missing_images(
     placed_all = []
     bar = tqdm(missing, desc="missing images", disable=not progress or None)
     for name in bar:
+        prior = None if priors is None else priors.get(name)
         placed = place_image(
-            rec, image_path, name, down_world, options, missing=missing, cache=cache
+            rec, image_path, name, down_world, options, prior, missing, cache
         )
         placed_all.append(placed)
         if placed.status == "placed":

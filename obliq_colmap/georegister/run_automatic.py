@@ -94,8 +94,10 @@ def georegister_automatic(
     tz = float(np.median(prior_c[:, 2] - placement.scale * model_c[:, 2]))
     t = np.r_[placement.translation, tz]
     rec.transform(pycolmap.Sim3d(placement.scale, pycolmap.Rotation3d(Rz), t))
-    # the model is upright and on the map; a turn about z keeps down at -z
-    missing = add_missing(rec, image_path, vertical, options)
+    # the model is upright and on the map (a turn about z keeps down at -z),
+    # in the priors' frame: their rotations choose among the VP candidates
+    rotations = {n: im.cam_from_world.rotation for n, im in by_name.items()}
+    missing = add_missing(rec, image_path, vertical, options, rotations)
     georef = Georef(
         origin=origin,
         crs=cad.crs,
