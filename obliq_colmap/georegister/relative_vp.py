@@ -108,8 +108,12 @@ class RelativeVPOptions:
     max_track_distance_px: float = 1.0
     #: RANSAC inlier threshold of the position, px
     ransac_threshold_px: float = 4.0
-    #: hypotheses (pairs of correspondences) for the position, at most
+    #: hypotheses (pairs of correspondences) for the position, at most,
+    #: scored on at most ``max_score_points`` of the correspondences (the
+    #: (pairs x points x 3) array stays under 50 MB; the winner's inliers
+    #: are counted on all)
     max_pairs: int = 2000
+    max_score_points: int = 1000
     #: the position needs this many inlier correspondences, and this share
     #: of all (COLMAP's mapper: ``abs_pose_min_inlier_ratio`` 0.25): a wrong
     #: rotation candidate still gathers a few inliers among thousands
@@ -420,7 +424,7 @@ def centre_from_rotation(
     as their least-squares meeting point. All pairs at once (at most
     ``max_pairs``), scored by inliers; the winner refit on its inliers with
     weights ``1 / range^2`` (distance to a line over the range is the
-    angular, i.e. pixel, error), twice.
+    angular, i.e. pixel, error), three times.
     """
     rng = np.random.default_rng(options.seed if rng is None else rng)
     n = len(X)
@@ -439,7 +443,10 @@ def centre_from_rotation(
     good = np.isfinite(c).all(1)
     if not good.any():
         return None, inl
-    err = _reprojection_px(R, c[good], rays, X, focal_px)
+    sub = np.arange(n)
+    if n > options.max_score_points:
+        sub = rng.choice(n, options.max_score_points, replace=False)
+    err = _reprojection_px(R, c[good], rays[sub], X[sub], focal_px)
     ninl = (err < options.ransac_threshold_px).sum(1)
     best = c[good][int(np.argmax(ninl))]
     for _ in range(3):
