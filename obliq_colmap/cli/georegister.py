@@ -4,7 +4,7 @@
         [--cadastre_path FILE] [--control_points_path GCP_FILE]
         [--priors_path PRIORS_MODEL] [--check_points NAME,...]
         [--camera_kind terrestrial|oblique|auto] [--crs EPSG:n]
-        --output_path OUT_MODEL
+        [--add_missing_images 0|1] --output_path OUT_MODEL
 
 Writes, like ``register``, the model files, ``georef.json`` (local frame:
 ``world_abs = model_xyz + origin``) and ``report.json`` directly into
@@ -64,6 +64,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "points weighted by their accuracy, each image's vertical VP; the lens "
         "refined (default 1)",
     )  # fmt: skip
+    parser.add_argument(
+        "--add_missing_images", type=int, choices=(0, 1), default=0,
+        help="images in --image_path that the model lacks: their rotation from "
+        "vanishing points against a registered neighbour, their position from "
+        "two or more SIFT matches to the model's points; added to the output "
+        "(default 0)",
+    )  # fmt: skip
     parser.add_argument("--no_progress", action="store_true")
 
 
@@ -77,6 +84,7 @@ def run(args: argparse.Namespace) -> int:
         check_points=tuple(n for n in args.check_points.split(",") if n),
         crs=args.crs,
         block_adjustment=bool(args.block_adjustment),
+        add_missing_images=bool(args.add_missing_images),
         cadastre_path=_path(args.cadastre_path),
         control_points_path=_path(args.control_points_path),
         priors_path=_path(args.priors_path),

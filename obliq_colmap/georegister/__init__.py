@@ -17,6 +17,9 @@ Modules, in the order a run uses them:
 - ``block``: the bundle block adjustment on pycolmap's Ceres adjuster (the
   SfM tracks, control point priors by their sigmas, each image's VP as an
   observation of its vertical; principal point and distortion refined).
+- ``relative_vp``: with ``--add_missing_images 1``, images that SfM left
+  out: their rotation from VPs against a registered neighbour (MetropoGIS
+  3.2.2), their centre from two or more matches to the model's points.
 - ``automatic`` and ``run_automatic``: without control points, stage 2 on
   every image from the priors' positions, then one similarity fitted to all
   their corner-to-ray pairs.

@@ -3,6 +3,7 @@ model, turning it upright, the result and the vertical's report."""
 
 from __future__ import annotations
 
+import logging
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -12,7 +13,10 @@ import pycolmap
 from obliq_colmap.colmap_io import Georef
 from obliq_colmap.errors import InputError
 
+from .relative_vp import add_missing_images
 from .vertical import ModelVertical
+
+logger = logging.getLogger(__name__)
 
 
 @dataclass
@@ -47,6 +51,26 @@ def upright(rec, vertical: ModelVertical | None) -> np.ndarray:
     R = vertical.upright_rotation()
     rec.transform(pycolmap.Sim3d(1.0, pycolmap.Rotation3d(R), np.zeros(3)))
     return R
+
+
+def add_missing(rec, image_path, vertical, options, priors=None) -> dict | None:
+    """With ``options.add_missing_images``: the images under ``image_path``
+    that the UPRIGHT model lacks placed from VPs and added to it
+    (:mod:`.relative_vp`); their reports by name (None: not asked).
+    ``priors``: name -> (3, 3) rough rotation in the model's frame."""
+    if not options.add_missing_images:
+        return None
+    if vertical is None:
+        logger.warning("missing images: not placed (the model has no vertical)")
+        return {}
+    return add_missing_images(
+        rec,
+        Path(image_path),
+        np.array([0.0, 0.0, -1.0]),  # the model is upright now
+        options.relative_vp,
+        options.progress,
+        priors,
+    )
 
 
 def vertical_report(vertical: ModelVertical | None, R_up: np.ndarray) -> dict:

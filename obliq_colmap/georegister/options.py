@@ -10,6 +10,7 @@ from obliq_colmap.control.model import (
     DEFAULT_SIGMA_VERTICAL_M,
 )
 from obliq_colmap.georegister.block import BlockAdjustmentOptions
+from obliq_colmap.georegister.relative_vp import RelativeVPOptions
 from obliq_colmap.registration import RegistrationOptions
 
 #: ``--camera_kind``: which prior stage 1 searches the vertical VP with.
@@ -53,6 +54,10 @@ class GeoregisterOptions:
     #: the bundle block adjustment after the similarity (``block``)
     block_adjustment: bool = True
     block: BlockAdjustmentOptions = field(default_factory=BlockAdjustmentOptions)
+    #: images under --image_path that the model lacks placed from VPs and a
+    #: few matches (``relative_vp``) and added to the model
+    add_missing_images: bool = False
+    relative_vp: RelativeVPOptions = field(default_factory=RelativeVPOptions)
     #: the automatic mode: stage 2 per image (its pairs then fit jointly)
     registration: RegistrationOptions = field(default_factory=RegistrationOptions)
     cadastre_path: Path | None = None

@@ -30,7 +30,13 @@ from obliq_colmap.control.triangulate import require_usable, triangulate_control
 from obliq_colmap.errors import InputError
 
 from .block import BlockAdjustmentSummary, adjust_block
-from .common import GeoregisterResult, read_sfm_model, upright, vertical_report
+from .common import (
+    GeoregisterResult,
+    add_missing,
+    read_sfm_model,
+    upright,
+    vertical_report,
+)
 from .options import GeoregisterOptions
 from .similarity import Similarity, similarity_7dof, similarity_upright
 from .vertical import model_vertical
@@ -135,6 +141,7 @@ def georegister(
             "3D control points (no vertical from the images)",
         )
     R_up = upright(rec, vertical)
+    missing = add_missing(rec, image_path, vertical, options)
     tri.xyz = tri.xyz @ R_up.T
     sim = _fit(tri, control, use, vertical)
     origin = _origin(control, use)
@@ -177,6 +184,8 @@ def georegister(
         "num_control_points_written": len(added),
         "block_adjustment": None if block is None else dataclasses.asdict(block),
     }
+    if missing is not None:
+        report["missing_images"] = missing
     return GeoregisterResult(rec, georef, report)
 
 

@@ -20,7 +20,13 @@ from obliq_colmap.priors import PriorsOptions, read_priors
 from obliq_colmap.registration import register_image
 
 from .automatic import Rays, fit_block, segment_rays
-from .common import GeoregisterResult, read_sfm_model, upright, vertical_report
+from .common import (
+    GeoregisterResult,
+    add_missing,
+    read_sfm_model,
+    upright,
+    vertical_report,
+)
 from .options import GeoregisterOptions
 from .similarity import similarity_upright
 from .vertical import model_vertical
@@ -88,6 +94,10 @@ def georegister_automatic(
     tz = float(np.median(prior_c[:, 2] - placement.scale * model_c[:, 2]))
     t = np.r_[placement.translation, tz]
     rec.transform(pycolmap.Sim3d(placement.scale, pycolmap.Rotation3d(Rz), t))
+    # the model is upright and on the map (a turn about z keeps down at -z),
+    # in the priors' frame: their rotations choose among the VP candidates
+    rotations = {n: im.cam_from_world.rotation for n, im in by_name.items()}
+    missing = add_missing(rec, image_path, vertical, options, rotations)
     georef = Georef(
         origin=origin,
         crs=cad.crs,
@@ -123,6 +133,8 @@ def georegister_automatic(
         },
         "block_adjustment": None,
     }
+    if missing is not None:
+        report["missing_images"] = missing
     return GeoregisterResult(rec, georef, report)
 
 
