@@ -14,7 +14,10 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["image_problem", "read_image"]
+__all__ = ["IMAGE_EXTENSIONS", "image_problem", "read_image"]
+
+#: Suffixes (lower case) of the image files a folder is searched for.
+IMAGE_EXTENSIONS = frozenset({".jpg", ".jpeg", ".png", ".tif", ".tiff", ".bmp"})
 
 # A JPEG ends with the end-of-image marker; some writers pad a few bytes after it.
 _JPEG_START, _JPEG_END, _TAIL = b"\xff\xd8", b"\xff\xd9", 64

@@ -24,11 +24,10 @@ from pathlib import Path
 
 from obliq_colmap.errors import InputError
 from obliq_colmap.files import write_json_atomic
+from obliq_colmap.images import IMAGE_EXTENSIONS
 from obliq_colmap.parallel import WorkerPool
 
 logger = logging.getLogger(__name__)
-
-IMAGE_EXTENSIONS = (".jpg", ".jpeg", ".png", ".tif", ".tiff", ".bmp")
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -82,9 +81,8 @@ def _list_images(image_path: Path) -> list[str]:
         if p.is_file() and p.suffix.lower() in IMAGE_EXTENSIONS
     )
     if not names:
-        raise InputError(
-            image_path, f"no images ({', '.join(IMAGE_EXTENSIONS)}) in this folder"
-        )
+        kinds = ", ".join(sorted(IMAGE_EXTENSIONS))
+        raise InputError(image_path, f"no images ({kinds}) in this folder")
     return names
 
 

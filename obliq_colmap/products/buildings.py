@@ -86,10 +86,9 @@ def eave_cluster(
     if len(z) == 0:
         return np.nan, 0
     near = np.abs(z[:, None] - z[None, :]) <= tol  # (N, N): a few tracks each
-    # distinct walls within tol of each value: (N, W) membership, a few walls
+    # distinct walls among the values within tol of each: (N, W) counts > 0
     _, w = np.unique(walls, return_inverse=True)
-    n_walls = (near[:, :, None] & (w[None, :, None] == np.arange(w.max() + 1))).any(1)
-    n_walls = n_walls.sum(axis=1)
+    n_walls = ((near.astype(int) @ np.eye(w.max() + 1, dtype=int)[w]) > 0).sum(1)
     ok = (near.sum(axis=1) >= min_count) & (n_walls >= min_walls)
     if not ok.any():
         return np.nan, 0

@@ -11,7 +11,7 @@ import numpy as np
 import pycolmap
 from scipy.spatial import cKDTree
 
-from obliq_colmap.images import image_problem
+from obliq_colmap.images import IMAGE_EXTENSIONS, image_problem
 
 from .options import ImageVPs, RelativeVPOptions
 from .vps import image_vps, rotation_candidates
@@ -107,7 +107,6 @@ def track_correspondences(
 # --------------------------------------------------------------------------
 
 #: file suffixes taken for images in ``--image_path``
-IMAGE_SUFFIXES = frozenset({".jpg", ".jpeg", ".png", ".tif", ".tiff", ".bmp"})
 
 
 def missing_images(rec: pycolmap.Reconstruction, image_path: Path) -> list[str]:
@@ -118,7 +117,7 @@ def missing_images(rec: pycolmap.Reconstruction, image_path: Path) -> list[str]:
     files = (
         p.relative_to(image_path).as_posix()
         for p in image_path.rglob("*")
-        if p.is_file() and p.suffix.lower() in IMAGE_SUFFIXES
+        if p.is_file() and p.suffix.lower() in IMAGE_EXTENSIONS
     )
     return sorted(f for f in files if f not in have)
 
