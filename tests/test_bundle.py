@@ -281,6 +281,8 @@ def test_noise_free_tie_points_recover_the_truth_and_link_components():
         horizontal_height=np.zeros(0, np.int64),
         horizontal_anchor_xy=np.zeros((0, 2)),
         horizontal_line=np.zeros((0, 3)),
+        horizontal_ends=None,
+        facade_direction=None,
     )
     assert len(P.tie_xyz) > 100
     opts = BundleOptions(corner_heights="fixed")
@@ -897,6 +899,7 @@ def test_height_camera_coupling_products_match_a_dense_E():
         horizontal_height=P1.horizontal_height[twice],
         horizontal_anchor_xy=P1.horizontal_anchor_xy[twice],
         horizontal_line=P1.horizontal_line[twice],
+        horizontal_ends=P1.horizontal_ends[twice],
     )
     for P, options in (
         (P1, BundleOptions(refine_aspect_ratio=True)),  # padding columns

@@ -72,9 +72,19 @@ class AdjustmentOptions:
     #: against 0.50; with the principal point held, houses-102 18 against 26
     #: of 36 below 2 px, urban-101 0.52 against 0.45 px).
     measured_vertical_directions: bool = False
+    #: The map's vertex noise (m, 1 sigma): with the facade lines
+    #: (``bundle.facade_lines``) it sets each line's prior angle about its
+    #: map edge, ``sqrt(2)`` times it over the edge's length.
+    map_vertex_sigma_m: float = 0.15
+    #: With the facade lines: a track this far (m) or more above the ground is
+    #: a level line (floors, eaves); nearer the ground, edges follow the
+    #: terrain (kerbs, the foot of a wall) and keep one row per observation.
+    level_height_m: float = 2.0
 
     def __post_init__(self) -> None:
         if self.outlier_rounds < 0 or self.outlier_factor <= 0:
             raise ValueError("outlier_rounds must be >= 0 and outlier_factor > 0")
+        if not self.map_vertex_sigma_m > 0:
+            raise ValueError("map_vertex_sigma_m must be > 0")
         if self.track_offset_sigma_m <= 0:
             raise ValueError("track_offset_sigma_m must be > 0")

@@ -21,6 +21,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
+from scipy.spatial import cKDTree
 
 from obliq_colmap.adjustment.facades import FacadeEdges, facade_edges
 from obliq_colmap.adjustment.matching import match_facade_edges
@@ -302,6 +303,8 @@ def build_bundle_problem(
     ties: TiePoints | None = None,
     tie_options: TiePointOptions | None = None,
     measured_directions: bool = False,
+    map_vertex_sigma_m: float = 0.15,
+    level_height_m: float = 2.0,
 ) -> BundleProblem:
     """The global bundle over the registered images (paper eq. 3).
 
@@ -313,7 +316,12 @@ def build_bundle_problem(
     :func:`vertical_constraints`). Tie points (``ties``, matched across the
     block): triangulated from the block as it stands, rows of the bundle
     (:func:`~obliq_colmap.adjustment.ties.tie_rows`). Sets
-    ``stage3.ends_raw`` and ``stage3.row_obs``.
+    ``stage3.ends_raw`` and ``stage3.row_obs``. For the facade lines
+    (``BundleOptions.facade_lines``): each observation's segment, each
+    track's map edge direction and the prior sd of the line's angle about
+    it, ``sqrt(2) map_vertex_sigma_m`` over the edge's length (two vertices'
+    noise across the edge); the tracks at least ``level_height_m`` above the
+    ground at the nearest observed map corner are level lines.
     """
     ids = stage3.ids
     v = vertical_constraints(inputs, outcomes, state, ids, measured_directions)
@@ -362,6 +370,12 @@ def build_bundle_problem(
         horizontal_height=t.track,
         horizontal_anchor_xy=t.anchor_xy[t.track],
         horizontal_line=lines,
+        horizontal_ends=ends,
+        facade_direction=_edge_direction(inputs.cadastre.edge_normal[t.edge]),
+        facade_angle_sigma=np.arctan2(
+            np.sqrt(2.0) * map_vertex_sigma_m, inputs.cadastre.edge_length[t.edge]
+        ),
+        facade_level=_level_tracks(t, v["xy"], v["height"], level_height_m),
         # The INS attitude and the GNSS centres, observations where the
         # bundle is given their sigmas (BundleOptions.rotation_prior_sigma_deg,
         # position_prior_sigma_m).
@@ -377,3 +391,22 @@ def build_bundle_problem(
         vertical_vp_covariances={i: outcomes[i].vp_covariance for i in with_vp},
         **tie,
     )
+
+
+def _edge_direction(normal: np.ndarray) -> np.ndarray:
+    """(J, 2) map edge directions ``u`` of (J, 2) outward normals ``n``, such
+    that ``n = (u_y, -u_x)`` (a facade line's positive offset is outward)."""
+    return np.column_stack([-normal[:, 1], normal[:, 0]])
+
+
+def _level_tracks(
+    tracks, corner_xy: np.ndarray, corner_height: np.ndarray, min_height_m: float
+) -> np.ndarray:
+    """(J,) whether each track lies ``min_height_m`` or more above the ground
+    (the height of the observed map corner nearest its anchor): floors and
+    eaves are level, kerbs and the foot of a wall follow the terrain. All
+    level where no corner is observed."""
+    if len(corner_xy) == 0:
+        return np.ones(tracks.num_tracks, bool)
+    _, nearest = cKDTree(corner_xy).query(tracks.anchor_xy)
+    return tracks.height - corner_height[nearest] >= min_height_m

@@ -36,6 +36,7 @@ from obliq_colmap.state import BlockState, ImageOutcome, Inputs
 __all__ = [
     "AdjustedBlock",
     "bundle_stage",
+    "with_solved_lines",
     "with_track_lines",
     "with_variance_components",
     "without_outliers",
@@ -99,6 +100,8 @@ def bundle_stage(
             ties,
             options.tie_point_options,
             options.measured_vertical_directions,
+            options.map_vertex_sigma_m,
+            options.level_height_m,
         )
         # The tie points enter from the second solve, triangulated from the
         # first and without the image pairs it shows on a wrong geometry
@@ -132,7 +135,11 @@ def bundle_stage(
             # then drop the map's constraints that disagree with them.
             rounds = options.outlier_rounds
             if rounds > 0:
-                first = dataclasses.replace(first, vp_in_fit=False)
+                # The facade lines enter from the second solve too: the
+                # first's rows, each a point on its map wall, are what shows
+                # a track of an edge off the wall (a taller building behind)
+                # as an outlier; a free 3D line would take it in.
+                first = dataclasses.replace(first, vp_in_fit=False, facade_lines=False)
             result = solve_bundle(problem, _precision_if(first, rounds == 0))
             initial = problem
             # Per horizontal row: the track observation it is (facade rows)
@@ -150,14 +157,18 @@ def bundle_stage(
                 obs = obs[kh]
                 if k == 0 and len(tie_obs[0]):
                     problem = with_tie_points(problem, result, *tie_obs, options)
-                if options.track_lines:
+                lines = bundle_options.facade_lines
+                if lines and len(result.facade_offsets):
+                    problem = with_solved_lines(problem, result)
+                elif options.track_lines or lines:
                     problem = with_track_lines(
-                        problem, result, inputs, stage3, obs, options
+                        problem, result, inputs, stage3, obs, options, lines
                     )
                 if options.variance_components:
                     # Each kind weighted by its own noise (map corners ~1 px,
-                    # facade edges ~0.15 px).
-                    unknowns = 2 if options.track_lines else 1
+                    # facade edges ~0.15 px). A facade line fits 3 of its
+                    # 2n rows and 2 prior rows: 1/2 unknown per observation.
+                    unknowns = 0.5 if lines else 2 if options.track_lines else 1
                     # The VPs are tested from the second round on: the first
                     # solve's map rows still held their own outliers.
                     problem, bundle_options = with_variance_components(
@@ -434,7 +445,7 @@ def with_variance_components(
     result: BundleResult,
     options: BundleOptions,
     kept: np.ndarray,
-    unknowns_per_track: int,
+    unknowns_per_track: float,
     test_vps: bool = True,
 ) -> tuple[BundleProblem, BundleOptions]:
     """Both residual kinds weighted by their robust standard deviation in
@@ -456,7 +467,8 @@ def with_variance_components(
     track = problem.horizontal_height
     n = np.bincount(track, minlength=len(problem.facade_heights))[track]
     u = unknowns_per_track
-    scaled = rh * np.sqrt(n / np.maximum(n - u, 1))
+    with np.errstate(divide="ignore", invalid="ignore"):
+        scaled = rh * np.sqrt(np.where(n > u, n / (n - u), 1.0))
     vp_scale, rejected = options.vp_sigma_scale, []
     if result.vp_chi2:
         vp_scale, rejected = vp_components(result, options.vp_sigma_scale, test_vps)
@@ -516,6 +528,7 @@ def with_track_lines(
     stage3: Stage3,
     obs: np.ndarray,
     options: AdjustmentOptions,
+    as_lines: bool = False,
 ) -> BundleProblem:
     """The problem with each track re-triangulated as a 3D horizontal line.
 
@@ -524,7 +537,9 @@ def with_track_lines(
     to the track's line (:func:`~obliq_colmap.adjustment.triangulate_tracks`,
     with the solved cameras) and its height restarted there. ``obs``:
     indices into the tracks' observations of the problem's horizontal
-    constraints.
+    constraints. ``as_lines``: the start of the facade lines
+    (``BundleOptions.facade_lines``): the offsets as their start, the
+    anchors left on the map edges.
     """
     t = stage3.tracks
     ids = problem.image_ids
@@ -549,6 +564,13 @@ def with_track_lines(
     J = t.num_tracks
     heights = result.facade_heights.copy()
     heights[:J] = np.where(np.isfinite(h), h, heights[:J])
+    if as_lines:
+        return dataclasses.replace(
+            problem,
+            facade_heights=heights,
+            facade_offsets=np.pad(d, (0, len(heights) - J)),
+            facade_angles=np.zeros(len(heights)),
+        )
     anchor = (t.anchor_xy + d[:, None] * normal)[problem.horizontal_height]
     return dataclasses.replace(
         problem,
@@ -559,6 +581,17 @@ def with_track_lines(
         # The offsets were fitted to these observations: the bundle's
         # precision counts them as unknowns.
         horizontal_offset_normal=normal[problem.horizontal_height],
+    )
+
+
+def with_solved_lines(problem: BundleProblem, result: BundleResult) -> BundleProblem:
+    """The problem started at the facade lines (height, offset, angle) that
+    the solve ``result`` gave (``BundleOptions.facade_lines``)."""
+    return dataclasses.replace(
+        problem,
+        facade_heights=result.facade_heights,
+        facade_offsets=result.facade_offsets,
+        facade_angles=result.facade_angles,
     )
 
 
@@ -609,6 +642,11 @@ def without_outliers(
             if p.horizontal_offset_normal is None
             else p.horizontal_offset_normal[kh]
         ),
+        horizontal_ends=None if p.horizontal_ends is None else p.horizontal_ends[kh],
+        facade_direction=p.facade_direction,
+        facade_angle_sigma=p.facade_angle_sigma,
+        facade_level=p.facade_level,
+        **_solved_lines(result),
         prior_rotations=p.prior_rotations,
         prior_centers=p.prior_centers,
         prior_principal_points=p.prior_principal_points,
@@ -627,6 +665,15 @@ def without_outliers(
         len(p.tie_image),
     )
     return reduced, kv, kh
+
+
+def _solved_lines(result: BundleResult) -> dict[str, np.ndarray]:
+    """The facade lines' offsets and angles of a solve that had them."""
+    if not len(result.facade_offsets):
+        return {}
+    return dict(
+        facade_offsets=result.facade_offsets, facade_angles=result.facade_angles
+    )
 
 
 def _ties_kept(

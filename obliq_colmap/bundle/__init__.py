@@ -21,6 +21,10 @@ camera model):
 * tie points (optional, ``BundleProblem.tie_*``): features matched across
   the images, each a free 3D point, two reprojection rows per observation;
   the points are eliminated by their 3x3 blocks (:mod:`.ties`).
+* facade lines (``BundleOptions.facade_lines``, off by default): each level
+  facade track a horizontal 3D line (height, offset, direction) observed at
+  both ends of every segment, eliminated by its 3x3 block
+  (:mod:`.facade_lines`), instead of the horizontal rows and heights above.
 
 Observed camera parameters (``priors``; each optional): INS attitude, GNSS
 centres, the principal points, and each image's vertical vanishing point
@@ -58,7 +62,9 @@ Modules, in reading order:
 - ``schur``: normal equations, the Schur complement on the heights and the
   damped step.
 - ``loss``: the robust losses.
-- ``ties``: the tie points' rows, their 3x3 blocks and their elimination.
+- ``blocks``: unknowns eliminated by their 3x3 blocks (layout and algebra).
+- ``ties``: the tie points' reprojection rows (:mod:`.blocks`).
+- ``facade_lines``: the facade tracks as 3D horizontal lines (:mod:`.blocks`).
 - ``priors``: the observed poses (INS attitude, GNSS centres), principal
   points and vertical vanishing points.
 - ``covariance``: the camera block's a-posteriori covariance and each

@@ -126,6 +126,12 @@ class BundleOptions:
     #: loss ``loss`` on ``|r|^2``, as Ceres' loss on a 2-row block): a wrong
     #: match loses its pull.
     tie_loss_scale_px: float = 3.0
+    #: Each facade track a horizontal 3D line (height, offset across its map
+    #: edge, direction), each observation two rows, one per segment end
+    #: (:mod:`~obliq_colmap.bundle.facade_lines`; needs
+    #: ``BundleProblem.horizontal_ends`` and ``facade_direction``). False: one
+    #: row per observation, the point ``(anchor, h_j)`` on the segment's line.
+    facade_lines: bool = False
 
     def __post_init__(self) -> None:
         for name, value, allowed in (
@@ -242,6 +248,23 @@ class BundleProblem:
         Image (index into ``image_ids``) and tie point of each observation.
     tie_xy : (O, 2) array, optional
         Observed pixel of each, RAW (distorted) pixels, COLMAP convention.
+    horizontal_ends : (H, 2, 2) array, optional
+        The observed segment of each horizontal constraint, its two ends in
+        RAW pixels (``BundleOptions.facade_lines``).
+    facade_direction : (J, 2) array, optional
+        Direction of each facade track's map edge (``facade_lines``).
+    facade_offsets, facade_angles : (J,) arrays, optional
+        Start of each track's offset across its map edge (m, along
+        ``(u_y, -u_x)`` of its direction u) and of its angle about the
+        vertical from that direction (rad); zeros by default.
+    facade_angle_sigma : (J,) array, optional
+        Prior standard deviation (rad) of each track's angle: the map edge's
+        direction is good to its vertices' noise over its length; 2 deg
+        where not given.
+    facade_level : (J,) bool array, optional
+        Which tracks are level lines (floors, eaves), observed at both ends;
+        the others (near the ground, following the terrain) keep one row per
+        observation at their start offset. None: all level.
     """
 
     cameras: dict[int, Camera]
@@ -268,6 +291,17 @@ class BundleProblem:
     tie_image: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
     tie_point: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
     tie_xy: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))
+    horizontal_ends: np.ndarray | None = None
+    facade_direction: np.ndarray | None = None
+    facade_offsets: np.ndarray | None = None
+    facade_angles: np.ndarray | None = None
+    facade_angle_sigma: np.ndarray | None = None
+    facade_level: np.ndarray | None = None
+
+    @property
+    def has_facade_lines(self) -> bool:
+        """Whether the facade tracks can be solved as 3D lines."""
+        return self.horizontal_ends is not None and self.facade_direction is not None
 
     def __post_init__(self) -> None:
         if self.image_ids is None:
@@ -322,6 +356,7 @@ class BundleProblem:
             self.horizontal_offset_normal = _as(
                 self.horizontal_offset_normal, (2,), "horizontal_offset_normal"
             )
+        self._check_facade_lines()
         self.tie_xyz = _as(self.tie_xyz, (3,), "tie_xyz")
         self.tie_image = _as(self.tie_image, (), "tie_image", np.int64)
         self.tie_point = _as(self.tie_point, (), "tie_point", np.int64)
@@ -370,6 +405,44 @@ class BundleProblem:
         ):
             if len(lines) and np.any(np.linalg.norm(lines[:, :2], axis=1) == 0):
                 raise ValueError(f"{name} has lines with a = b = 0")
+
+    def _check_facade_lines(self) -> None:
+        J, H = len(self.facade_heights), len(self.horizontal_image)
+        if self.horizontal_ends is not None:
+            self.horizontal_ends = np.asarray(self.horizontal_ends, float)
+            if self.horizontal_ends.shape != (H, 2, 2):
+                raise ValueError(f"horizontal_ends must have shape ({H}, 2, 2)")
+        for name, tail in (
+            ("facade_direction", (2,)),
+            ("facade_offsets", ()),
+            ("facade_angles", ()),
+            ("facade_angle_sigma", ()),
+            ("facade_level", ()),
+        ):
+            value = getattr(self, name)
+            if value is not None:
+                value = _as(
+                    value, tail, name, bool if name == "facade_level" else float
+                )
+                if len(value) != J:
+                    raise ValueError(f"{name} has the wrong length")
+            setattr(self, name, value)
+        if self.facade_angle_sigma is not None and not np.all(
+            self.facade_angle_sigma > 0
+        ):
+            raise ValueError("facade_angle_sigma must be > 0")
+
+    def facade_line_start(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(J,) offsets, angles and angle sigmas of the facade lines, with
+        their defaults (0, 0, 2 deg) where not given."""
+        J = len(self.facade_heights)
+        return (
+            np.zeros(J) if self.facade_offsets is None else self.facade_offsets,
+            np.zeros(J) if self.facade_angles is None else self.facade_angles,
+            np.full(J, np.radians(2.0))
+            if self.facade_angle_sigma is None
+            else self.facade_angle_sigma,
+        )
 
     def without_ties(self) -> BundleProblem:
         """A copy without tie points (the rest shared)."""
@@ -429,7 +502,9 @@ class BundleResult:
     facade_heights : (J,) array, metres.
     corner_heights : (C,) array, metres (the input values when fixed).
     vertical_residuals_px : (M,) final residuals in the problem's order.
-    horizontal_residuals_px : (H,) final residuals in the problem's order.
+    horizontal_residuals_px : (H,) final residuals in the problem's order
+        (with ``BundleOptions.facade_lines`` per observation the RMS of its
+        two ends' residuals, with the sign of their sum).
     summary : BundleSummary
     image_precision_px : dict image_id -> float
         Predicted RMS deviation (px) of the image's constrained points (map
@@ -467,6 +542,9 @@ class BundleResult:
     tie_residuals_scaled_px : (O, 2) array
         The same scaled by sqrt(2n / (2n - 3)), n the point's observations
         (its 3 unknowns fit part of its 2n rows): their spread is the noise's.
+    facade_offsets, facade_angles : (J,) arrays
+        With ``BundleOptions.facade_lines``: each track's solved offset (m)
+        across its map edge and angle (rad) from its direction; else empty.
     vp_loo : dict image_id -> ((2,) array, (2, 2) array)
         With them: the VP's residual at the solution without it and the
         others' cofactor of that direction, whitened by stage 1's STATED
@@ -496,6 +574,8 @@ class BundleResult:
     tie_residuals_scaled_px: np.ndarray = field(
         default_factory=lambda: np.zeros((0, 2))
     )
+    facade_offsets: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    facade_angles: np.ndarray = field(default_factory=lambda: np.zeros(0))
 
 
 def image_components(

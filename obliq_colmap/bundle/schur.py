@@ -81,11 +81,13 @@ class Schur:
         return out, rhs
 
 
-def damped_step(S: Setup, H_cc, g_c, H_hh, g_h, F, lam, schur: Schur, ties=None):
+def damped_step(S: Setup, H_cc, g_c, H_hh, g_h, F, lam, schur: Schur, blocks=()):
     """Solve the damped normal equations by the Schur complement on the
-    heights and, with ``ties`` (:class:`~obliq_colmap.bundle.ties.TieRows`,
-    linearised), on the tie points. Returns the camera, height and (T, 3)
-    point steps and the damping diagonals of the cameras and heights."""
+    heights and on the unknowns of each of ``blocks``
+    (:class:`~obliq_colmap.bundle.blocks.EliminatedBlocks`, linearised: the
+    tie points, the facade lines). Returns the camera and height steps, the
+    list of each block's (T, 3) steps and the damping diagonals of the
+    cameras and heights."""
     D_c = np.clip(diagonal(H_cc), 1e-6, 1e32)
     D_h = np.clip(H_hh, 1e-6, 1e32)
     dinv = 1.0 / (H_hh + lam * D_h)
@@ -93,8 +95,8 @@ def damped_step(S: Setup, H_cc, g_c, H_hh, g_h, F, lam, schur: Schur, ties=None)
     if S.n_heights:
         reduced, coupled = schur.at(H_hh, g_h, lam)
         A_red, rhs = A_red - reduced, rhs + coupled
-    if ties is not None:
-        t_reduced, t_coupled = ties.schur(lam)
+    for blk in blocks:
+        t_reduced, t_coupled = blk.schur(lam)
         A_red, rhs = A_red - t_reduced, rhs + t_coupled
     if sp.issparse(A_red):
         A_red = A_red + sp.diags(lam * D_c)
@@ -103,5 +105,5 @@ def damped_step(S: Setup, H_cc, g_c, H_hh, g_h, F, lam, schur: Schur, ties=None)
         A_red[np.diag_indices_from(A_red)] += lam * D_c
     dc = kkt_solve(A_red, S.A, rhs)  # dense, or sparse LU for large blocks
     dh = -dinv * (g_h + S.coupling.matvec(F, dc)) if S.n_heights else np.zeros(0)
-    dp = ties.step(dc, lam) if ties is not None else np.zeros((0, 3))
+    dp = [blk.step(dc, lam) for blk in blocks]
     return dc, dh, dp, D_c, D_h

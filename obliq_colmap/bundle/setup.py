@@ -48,24 +48,44 @@ class Setup:
         self.camera_ids = sorted({P.image_camera[i] for i in P.image_ids})
         cam_slot = {cid: s for s, cid in enumerate(self.camera_ids)}
         self.img_cam = np.array([cam_slot[P.image_camera[i]] for i in P.image_ids])
-        nv, nh = len(P.vertical_image), len(P.horizontal_image)
         free = opts.corner_heights == "free"
-        nJ = len(P.facade_heights)
+        #: The facade tracks as 3D lines (:mod:`.facade_lines`, eliminated by
+        #: their blocks), not as the scalar rows and heights here.
+        self.facade_lines = opts.facade_lines and P.has_facade_lines
+        h_img, h_height, h_anchor, h_line, nJ = (
+            (
+                np.zeros(0, np.int64),
+                np.zeros(0, np.int64),
+                np.zeros((0, 2)),
+                np.zeros((0, 3)),
+                0,
+            )
+            if self.facade_lines
+            else (
+                P.horizontal_image,
+                P.horizontal_height,
+                P.horizontal_anchor_xy,
+                P.horizontal_line,
+                len(P.facade_heights),
+            )
+        )
+        self.n_facade_heights = nJ
+        nv, nh = len(P.vertical_image), len(h_img)
 
         # Residuals: vertical then horizontal, then sorted (stably) by camera
         # model, kind, camera and image, so that each evaluation group (one
         # model and kind) and each of its cameras and images is a slice.
-        img = np.concatenate([P.vertical_image, P.horizontal_image])
+        img = np.concatenate([P.vertical_image, h_img])
         kind = np.concatenate([np.zeros(nv, np.int8), np.ones(nh, np.int8)])
-        xy = np.concatenate([P.corner_xy[P.vertical_corner], P.horizontal_anchor_xy])
-        line = np.concatenate([P.vertical_line, P.horizontal_line])
+        xy = np.concatenate([P.corner_xy[P.vertical_corner], h_anchor])
+        line = np.concatenate([P.vertical_line, h_line])
         line = line / np.linalg.norm(line[:, :2], axis=1, keepdims=True)
         hidx = np.concatenate(
-            [nJ + P.vertical_corner if free else np.full(nv, -1), P.horizontal_height]
+            [nJ + P.vertical_corner if free else np.full(nv, -1), h_height]
         )
         zfix = np.concatenate([P.corner_heights[P.vertical_corner], np.zeros(nh)])
         offset = np.zeros((nv + nh, 2))
-        if P.horizontal_offset_normal is not None:
+        if P.horizontal_offset_normal is not None and nh:
             offset[nv:] = P.horizontal_offset_normal
         models = [P.cameras[c].model for c in self.camera_ids]
         self.camera_model = models
@@ -99,6 +119,8 @@ class Setup:
         # an image is active with map rows or tie observations
         counts = np.bincount(self.img, minlength=K)
         counts += np.bincount(P.tie_image, minlength=K)
+        if self.facade_lines:
+            counts += np.bincount(P.horizontal_image, minlength=K)
         self.active_images = np.flatnonzero(counts > 0)
         col = 0
         self.pose_col = np.full(K, -1)
@@ -153,12 +175,24 @@ class Setup:
         ]
 
         # Components and gauge rows (over the camera block).
-        # Images are linked by a shared height or a shared tie point.
+        # Images are linked by a shared height, tie point or facade line.
         hmask = self.has_h
+        n_ties = len(P.tie_xyz)
+        line_img, line_track = (
+            (P.horizontal_image, P.horizontal_height)
+            if self.facade_lines
+            else (np.zeros(0, np.int64),) * 2
+        )
         self.num_components, self.labels = image_components(
             K,
-            np.concatenate([self.img[hmask], P.tie_image]),
-            np.concatenate([self.hidx[hmask], self.n_heights + P.tie_point]),
+            np.concatenate([self.img[hmask], P.tie_image, line_img]),
+            np.concatenate(
+                [
+                    self.hidx[hmask],
+                    self.n_heights + P.tie_point,
+                    self.n_heights + n_ties + line_track,
+                ]
+            ),
         )
         self.components = [
             tuple(P.image_ids[k] for k in np.flatnonzero(self.labels == c))
@@ -217,25 +251,34 @@ class _Group:
 
 
 class State:
-    def __init__(self, R, c, params, heights, shift=None, points=None):
+    def __init__(self, R, c, params, heights, shift=None, points=None, lines=None):
         self.R, self.c, self.params, self.heights = R, c, params, heights
         # horizontal offset of the priors' centres against the map (m;
         # BundleOptions.estimate_prior_offset)
         self.shift = np.zeros(2) if shift is None else shift
         #: (T, 3) tie points (m)
         self.points = np.zeros((0, 3)) if points is None else points
+        #: (J, 3) facade lines: height (m), offset (m), angle (rad)
+        self.lines = np.zeros((0, 3)) if lines is None else lines
 
     @classmethod
     def start(cls, P: BundleProblem, S: Setup) -> State:
         """The problem's start: its poses, cameras and heights (the corner
-        heights too where they are free unknowns)."""
-        free = S.n_heights > len(P.facade_heights)
+        heights too where they are free unknowns), tie points and facade
+        lines."""
+        free = S.n_heights > S.n_facade_heights
+        facade = [] if S.facade_lines else P.facade_heights
+        lines = None
+        if S.facade_lines:
+            offsets, angles, _ = P.facade_line_start()
+            lines = np.column_stack([P.facade_heights, offsets, angles]).astype(float)
         return cls(
             np.stack([P.poses[i].rotation for i in P.image_ids]),
             np.stack([P.poses[i].center for i in P.image_ids]),
             [P.cameras[c].params.copy() for c in S.camera_ids],
-            np.concatenate([P.facade_heights, P.corner_heights if free else []]),
+            np.concatenate([facade, P.corner_heights if free else []]),
             points=P.tie_xyz.copy(),
+            lines=lines,
         )
 
     def copy(self):
@@ -246,6 +289,7 @@ class State:
             self.heights.copy(),
             self.shift.copy(),
             self.points.copy(),
+            self.lines.copy(),
         )
 
 

@@ -44,6 +44,8 @@ import numpy as np
 
 from ..geometry import Camera, Pose, rotation_exp
 from . import camera_block, covariance
+from .blocks import EliminatedBlocks
+from .facade_lines import FacadeLineRows
 from .loss import robust_loss
 from .priors import (
     AttitudePrior,
@@ -96,9 +98,12 @@ def _solve(problem: BundleProblem, opts: BundleOptions) -> BundleResult:
     P = problem
     S = Setup(P, opts)
     free = opts.corner_heights == "free"
-    nJ = len(P.facade_heights)
+    nJ = S.n_facade_heights
     st = State.start(P, S)
     ties = TieRows(P, S, opts) if len(P.tie_image) else None
+    lines = FacadeLineRows(P, S, opts, st) if S.facade_lines else None
+    # The unknowns eliminated by their 3x3 blocks.
+    blocks = [b for b in (ties, lines) if b is not None]
     heights0 = st.heights.copy()
     prior_w = (
         1.0 / opts.corner_height_prior_m**2
@@ -130,12 +135,13 @@ def _solve(problem: BundleProblem, opts: BundleOptions) -> BundleResult:
             dh = (st.heights - heights0)[prior_mask]
             c += 0.5 * prior_w * float(dh @ dh)
         c += sum(p.cost(st) for p in pose_priors)
-        if ties is not None:
-            c += ties.cost(S, st)
+        c += sum(b.cost(S, st) for b in blocks)
         return c if np.isfinite(c) else np.inf
 
-    def rmse(r: np.ndarray) -> tuple[float, float]:
+    def rmse(r: np.ndarray, st: State) -> tuple[float, float]:
         v, h = r[S.kind == 0], r[S.kind == 1]
+        if lines is not None:
+            h = lines.evaluate(S, st, jac=False)[0].ravel()
         f = lambda a: float(np.sqrt(np.mean(a * a))) if len(a) else float("nan")  # noqa: E731
         return f(v), f(h)
 
@@ -146,16 +152,18 @@ def _solve(problem: BundleProblem, opts: BundleOptions) -> BundleResult:
             f"{len(bad)} constrained points are behind their camera (or project to "
             f"infinity) at the start, e.g. in image {P.image_ids[S.img[bad[0]]]}"
         )
-    if ties is not None:
-        r_tie = ties.evaluate(S, st, jac=False)[0]
-        if not np.all(np.isfinite(r_tie)):
-            bad = np.flatnonzero(~np.all(np.isfinite(r_tie), axis=1))
+    for b, what in ((ties, "tie point"), (lines, "facade line")):
+        if b is None:
+            continue
+        r_b = b.evaluate(S, st, jac=False)[0]
+        if not np.all(np.isfinite(r_b)):
+            bad = np.flatnonzero(~np.all(np.isfinite(r_b), axis=1))
             raise ValueError(
-                f"{len(bad)} tie point observations are behind their camera at"
-                f" the start, e.g. in image {P.image_ids[ties.img[bad[0]]]}"
+                f"{len(bad)} {what} observations are behind their camera at"
+                f" the start, e.g. in image {P.image_ids[b.img[bad[0]]]}"
             )
     cost = cost_of(r, st)
-    initial_cost, initial_rmse = cost, rmse(r)
+    initial_cost, initial_rmse = cost, rmse(r, st)
 
     # Height-only Gauss-Newton steps (cameras fixed): cheap, diagonal.
     for _ in range(opts.height_initialisation_steps):
@@ -176,23 +184,44 @@ def _solve(problem: BundleProblem, opts: BundleOptions) -> BundleResult:
         st, cost = trial, c_t
         r, Jc, Jh = evaluate(S, st, jac=True)
 
-    st, cost, r, it, n_ok, termination, converged = _levenberg_marquardt(
-        S,
-        opts,
-        st,
-        r,
-        Jc,
-        Jh,
-        cost,
-        cost_of,
-        pose_priors,
-        prior_w,
-        prior_mask,
-        heights0,
-        ties,
-    )
+    # The same on the facade lines (their 3x3 blocks, cameras fixed).
+    for _ in range(opts.height_initialisation_steps if lines is not None else 0):
+        lines.linearise(S, st, _scratch_camera_block(S), np.zeros(S.n_red))
+        trial = st.copy()
+        trial.lines = st.lines + lines.step(np.zeros(S.n_red), 0.0)
+        r_t, _, _ = evaluate(S, trial, jac=False)
+        c_t = cost_of(r_t, trial)
+        if not c_t < cost:
+            break
+        st, cost = trial, c_t
 
-    final_rmse = rmse(r)
+    it = n_ok = 0
+    for _ in range(1 + _REANCHOR_PASSES):
+        st, cost, r, it_, n_ok_, termination, converged = _levenberg_marquardt(
+            S,
+            opts,
+            st,
+            r,
+            Jc,
+            Jh,
+            cost,
+            cost_of,
+            pose_priors,
+            prior_w,
+            prior_mask,
+            heights0,
+            blocks,
+        )
+        it, n_ok = it + it_, n_ok + n_ok_
+        # The facade lines' end positions were fixed at the start; where the
+        # solve moved them (a distorted image of a line is no chord), solve
+        # again from where the ends' rays now meet the lines.
+        if lines is None or not lines.reanchor(P, S, st):
+            break
+        r, Jc, Jh = evaluate(S, st, jac=True)
+        cost = cost_of(r, st)
+
+    final_rmse = rmse(r, st)
     precision, variance_factor = {}, float("nan")
     pose_cov: dict[int, np.ndarray] = {}
     vp_stats = None
@@ -206,10 +235,10 @@ def _solve(problem: BundleProblem, opts: BundleOptions) -> BundleResult:
             opts.precision_max_camera_params,
         )
     elif want:
-        r, w, cov = _cofactor(S, opts, st, pose_priors, prior_w, prior_mask, ties)
+        r, w, cov = _cofactor(S, opts, st, pose_priors, prior_w, prior_mask, blocks)
         if opts.compute_precision:
             precision, variance_factor = _precision(
-                S, st, pose_priors, prior_w, prior_mask, heights0, r, w, cov, ties
+                S, st, pose_priors, prior_w, prior_mask, heights0, r, w, cov, blocks
             )
             if precision:
                 pose_cov = covariance.pose_covariances(S, variance_factor * cov)
@@ -217,6 +246,9 @@ def _solve(problem: BundleProblem, opts: BundleOptions) -> BundleResult:
             vp_stats = vp_obs.statistics(st, cov)
     r_problem = np.empty_like(r)
     r_problem[S.order] = r
+    r_horizontal = r_problem[S.nv :]
+    if lines is not None:
+        r_horizontal = lines.observation_residuals(S, st)
     cameras = {}
     for s, cid in enumerate(S.camera_ids):
         c0 = P.cameras[cid]
@@ -302,7 +334,7 @@ def _solve(problem: BundleProblem, opts: BundleOptions) -> BundleResult:
         converged=converged,
         components=S.components,
         num_vertical=S.nv,
-        num_horizontal=S.nh,
+        num_horizontal=len(P.horizontal_image),
         num_heights=S.n_heights,
         num_camera_params=S.n_red,
     )
@@ -317,10 +349,12 @@ def _solve(problem: BundleProblem, opts: BundleOptions) -> BundleResult:
     return BundleResult(
         cameras=cameras,
         poses=poses,
-        facade_heights=st.heights[:nJ].copy(),
+        facade_heights=(
+            st.lines[:, 0].copy() if lines is not None else st.heights[:nJ].copy()
+        ),
         corner_heights=st.heights[nJ:].copy() if free else P.corner_heights.copy(),
         vertical_residuals_px=r_problem[: S.nv],
-        horizontal_residuals_px=r_problem[S.nv :],
+        horizontal_residuals_px=r_horizontal,
         summary=summary,
         image_precision_px={
             iid: precision.get(k, float("nan")) for k, iid in enumerate(P.image_ids)
@@ -339,7 +373,20 @@ def _solve(problem: BundleProblem, opts: BundleOptions) -> BundleResult:
         tie_xyz=st.points.copy(),
         tie_residuals_px=tie_r,
         tie_residuals_scaled_px=tie_scaled,
+        facade_offsets=st.lines[:, 1].copy(),
+        facade_angles=st.lines[:, 2].copy(),
     )
+
+
+#: Solves again with the facade lines' end positions moved to where the
+#: solved rays meet them (:meth:`FacadeLineRows.reanchor`).
+_REANCHOR_PASSES = 2
+
+
+def _scratch_camera_block(S: Setup):
+    """A camera block to linearise into and throw away."""
+    n = S.n_red + 1
+    return camera_block.SparseTerms(S.n_red) if S.sparse_camera else np.zeros((n, n))
 
 
 def _levenberg_marquardt(
@@ -355,7 +402,7 @@ def _levenberg_marquardt(
     prior_w: float,
     prior_mask: np.ndarray,
     heights0: np.ndarray,
-    ties: TieRows | None = None,
+    blocks: list[EliminatedBlocks] = (),
 ):
     """The LM iterations from ``st`` (its residuals ``r``, Jacobians ``Jc``,
     ``Jh`` and robust cost ``cost``; ``cost_of(r, st)`` the cost of a trial).
@@ -379,29 +426,30 @@ def _levenberg_marquardt(
             H_cc, g_c, H_hh, g_h, F = normal_equations(S, Jc, Jh, r, w)
             for p in pose_priors:
                 p.add_to(H_cc, g_c, st)
-            if ties is not None:
-                ties.linearise(S, st, H_cc, g_c)
+            for b in blocks:
+                b.linearise(S, st, H_cc, g_c)
             H_cc = camera_block.finish(H_cc)
             H_hh = H_hh + prior_w * prior_mask
             g_h = g_h + prior_w * prior_mask * (st.heights - heights0)
             schur = Schur(S.coupling, H_hh, g_h, F)
             need_build = False
-        dc, dh, dp, D_c, D_h = damped_step(S, H_cc, g_c, H_hh, g_h, F, lam, schur, ties)
+        dc, dh, dp, D_c, D_h = damped_step(
+            S, H_cc, g_c, H_hh, g_h, F, lam, schur, blocks
+        )
         predicted = 0.5 * (
             lam * (dc @ (D_c * dc) + dh @ (D_h * dh)) - (g_c @ dc + g_h @ dh)
         )
-        if ties is not None:
-            predicted += ties.predicted(dp, lam)
-        trial = _apply(S, st, dc, dh, dp)
+        predicted += sum(b.predicted(d, lam) for b, d in zip(blocks, dp, strict=True))
+        trial = _apply(S, st, dc, dh, blocks, dp)
         r_t, _, _ = evaluate(S, trial, jac=False)
         c_t = cost_of(r_t, trial)
         x_norm = np.sqrt(
             np.sum(st.c[S.active_images] ** 2)
             + sum(float(p @ p) for p in st.params)
             + float(st.heights @ st.heights)
-            + float(np.sum(st.points * st.points))
+            + sum(float(np.sum(b.unknowns(st) ** 2)) for b in blocks)
         )
-        step_norm = np.sqrt(dc @ dc + dh @ dh + float(np.sum(dp * dp)))
+        step_norm = np.sqrt(dc @ dc + dh @ dh + sum(float(np.sum(d * d)) for d in dp))
         small_step = step_norm <= opts.parameter_tolerance * (
             x_norm + opts.parameter_tolerance
         )
@@ -448,7 +496,7 @@ def _cofactor(
     pose_priors: list[PosePrior],
     prior_w: float,
     prior_mask: np.ndarray,
-    ties: TieRows | None = None,
+    blocks: list[EliminatedBlocks] = (),
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Residuals ``r`` (N,), their weights ``w`` and the camera block's
     cofactor matrix at ``st`` (:func:`covariance.camera_covariance`, the
@@ -459,11 +507,11 @@ def _cofactor(
     H_cc = normal_equations(S, Jc, Jh, r, w)[0]
     for p in pose_priors:
         p.add_to(H_cc, np.zeros(S.n_red), st)
-    if ties is not None:
-        ties.linearise(S, st, H_cc, np.zeros(S.n_red))
+    for b in blocks:
+        b.linearise(S, st, H_cc, np.zeros(S.n_red))
     H_cc = camera_block.to_dense(camera_block.finish(H_cc))
-    if ties is not None:
-        H_cc = H_cc - camera_block.to_dense(ties.reduced)
+    for b in blocks:
+        H_cc = H_cc - camera_block.to_dense(b.reduced)
     offset_w = 1.0 / opts.horizontal_offset_sigma_m**2
     cov = covariance.camera_covariance(
         S, H_cc, Jc, Jh, w, prior_w * prior_mask, offset_w
@@ -481,7 +529,7 @@ def _precision(
     r: np.ndarray,
     w: np.ndarray,
     cov: np.ndarray,
-    ties: TieRows | None = None,
+    blocks: list[EliminatedBlocks] = (),
 ) -> tuple[dict[int, float], float]:
     """Each active image's a-posteriori precision (px) at ``st``, from the
     residuals ``r``, weights ``w`` and cofactor matrix ``cov`` of
@@ -498,13 +546,10 @@ def _precision(
         len(r) + int(prior_mask.sum()) + len(S.A) - S.n_red - S.n_heights - S.n_offsets
     )
     redundancy += sum(p.n_rows for p in pose_priors)
-    tie_wss = 0.0
-    if ties is not None:
-        redundancy += 2 * len(ties.img) - 3 * ties.n_points
-        r_t = ties.evaluate(S, st, jac=False)[0]
-        tie_wss = ties.weight * float(np.sum(ties.losses(r_t)[1] * np.sum(r_t**2, 1)))
+    redundancy += sum(b.redundancy for b in blocks)
+    block_wss = sum(b.weighted_sum_of_squares(S, st) for b in blocks)
     if redundancy > 0:
-        variance_factor = (float(np.sum(w * r * r)) + tie_wss) / redundancy
+        variance_factor = (float(np.sum(w * r * r)) + block_wss) / redundancy
         variance_factor += 2.0 * sum(p.cost(st) for p in pose_priors) / redundancy
         dh = (st.heights - heights0)[prior_mask]
         variance_factor += prior_w * float(dh @ dh) / redundancy
@@ -512,20 +557,27 @@ def _precision(
     return precision, variance_factor
 
 
-def _apply(S: Setup, st: State, dc: np.ndarray, dh: np.ndarray, dp=None) -> State:
+def _apply(
+    S: Setup,
+    st: State,
+    dc: np.ndarray,
+    dh: np.ndarray,
+    blocks: list[EliminatedBlocks] = (),
+    dp: list[np.ndarray] = (),
+) -> State:
     """New state: R <- Exp(omega) R, c <- c + dc, params += d, heights += dh,
-    tie points += dp."""
+    each block's unknowns (tie points, facade lines) += its step in dp."""
     new = st.copy()
     k = S.active_images
-    blocks = dc[S.pose_col[k][:, None] + np.arange(6)]  # (K_active, 6)
-    new.R[k] = rotation_exp(blocks[:, :3]) @ st.R[k]
-    new.c[k] = st.c[k] + blocks[:, 3:]
+    pose = dc[S.pose_col[k][:, None] + np.arange(6)]  # (K_active, 6)
+    new.R[k] = rotation_exp(pose[:, :3]) @ st.R[k]
+    new.c[k] = st.c[k] + pose[:, 3:]
     for s, basis in enumerate(S.refined):
         if basis.shape[1]:
             new.params[s] += basis @ dc[S.intr_col[s] + np.arange(basis.shape[1])]
     new.heights = st.heights + dh
-    if dp is not None and len(dp):
-        new.points = st.points + dp
+    for b, d in zip(blocks, dp, strict=True):
+        setattr(new, b.state_attr, b.unknowns(st) + d)
     if S.shift_col >= 0:
         new.shift = st.shift + dc[S.shift_col : S.shift_col + 2]
     return new

@@ -296,6 +296,16 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "(default %(default)s)",
     )
     bundle.add_argument(
+        "--bundle_facade_lines",
+        type=_bool01,
+        default=int(AdjustmentOptions().bundle.facade_lines),
+        metavar="{0,1}",
+        help="each facade track in the bundle a horizontal 3D line (height, offset "
+        "across its map edge, direction), observed at both ends of every segment: "
+        "the eaves' direction holds the block's tilt; 0: one point per segment "
+        "(default %(default)s)",
+    )
+    bundle.add_argument(
         "--tie_points",
         type=_bool01,
         default=int(AdjustmentOptions().tie_points),
@@ -369,6 +379,7 @@ def run(args: argparse.Namespace) -> int:
                         args.bundle_principal_point_sigma or None
                     ),
                     vp_observations=bool(args.bundle_vp_observations),
+                    facade_lines=bool(args.bundle_facade_lines),
                     loss_scale_px=args.loss_scale,
                 ),
                 tie_points=bool(args.tie_points),

@@ -17,6 +17,7 @@ import numpy as np
 from obliq_colmap import __version__
 from obliq_colmap.adjustment import Stage3, TiePointOptions, tie_points
 from obliq_colmap.bundle import BundleProblem, BundleResult
+from obliq_colmap.bundle.facade_lines import rotate
 from obliq_colmap.cadastre import visible_corners
 from obliq_colmap.colmap_io import Block, Georef, ImageRecord, Point3D, write_result
 from obliq_colmap.errors import InputError
@@ -151,7 +152,8 @@ def constrained_points(
       (:func:`cadastre.visible_corners`: inside the image, an adjacent wall
       facing the camera). Occlusion by other buildings is not tested.
     * After the bundle, every facade track's point ``x_j + h_j z``, observed
-      where it projects in the images of the track.
+      where it projects in the images of the track (with the facade lines,
+      the line's point nearest the anchor ``x_j``).
 
     Points seen in fewer than two images are dropped (COLMAP's dense stages
     need shared points).
@@ -181,7 +183,11 @@ def constrained_points(
     points = _one_point_per_place(X, obs, cad.corner_xy)
     if bundle is not None and stage3 is not None:
         t = stage3.tracks
-        F = np.column_stack([t.anchor_xy, bundle.facade_heights])
+        xy = t.anchor_xy
+        if len(bundle.facade_offsets):  # the facade lines' solved offsets
+            normal = rotate(inputs.cadastre.edge_normal[t.edge], bundle.facade_angles)
+            xy = xy + bundle.facade_offsets[:, None] * normal
+        F = np.column_stack([xy, bundle.facade_heights])
         fobs: list[list[tuple[int, np.ndarray]]] = [[] for _ in range(len(F))]
         for k, i in enumerate(stage3.ids):
             if i not in block.images:  # left out after the bundle

@@ -132,6 +132,7 @@ def make_synthetic_problem(
     view_cone_margin_deg: float | None = None,
     tie_points: int = 0,
     tie_noise_px: float | None = None,
+    end_noise_px: float | None = None,
 ) -> SyntheticBundle:
     """Build a synthetic bundle problem (see the module docstring).
 
@@ -153,6 +154,15 @@ def make_synthetic_problem(
     observed (with ``tie_noise_px`` of Gaussian noise per axis, default
     ``noise_px``) in every image they fall in (occlusion ignored) and kept
     where seen at least twice; their start is the truth 1 m off per axis.
+
+    Every horizontal observation also carries its segment's two ends
+    (``horizontal_ends``: the projections of the edge centre and of a point
+    3 m along the edge, on the observed line) and each track its map edge's
+    direction (``facade_direction``), for the facade lines. With
+    ``end_noise_px`` the ends are the projections of the points 40 % of the
+    wall's length either side of its centre (clipping ignored), each moved
+    across by its own Gaussian noise (drawn after everything else), and the
+    observed line is the line through them.
     """
     rng = np.random.default_rng(seed)
     ox, oy = origin_xy
@@ -252,8 +262,12 @@ def make_synthetic_problem(
     lv_xy = edge_mid[lv_edge]
     lv_pts = np.column_stack([lv_xy, lv_z])
     lv_pts2 = np.column_stack([lv_xy + 3.0 * edge_dir[lv_edge], lv_z])
+    # a segment over 80 % of the wall, for the noisy ends
+    half_len = 0.4 * np.linalg.norm(bnext - a, axis=2).ravel()[lv_edge]
+    lv_a = np.column_stack([lv_xy - half_len[:, None] * edge_dir[lv_edge], lv_z])
+    lv_b = np.column_stack([lv_xy + half_len[:, None] * edge_dir[lv_edge], lv_z])
 
-    h_img, h_lv, h_line = [], [], []
+    h_img, h_lv, h_line, h_ends = [], [], [], []
     v_img, v_corner, v_line = [], [], []
     g_pts = np.column_stack([corner_xy, corner_ground])
     r_pts = np.column_stack([corner_xy, corner_roof])
@@ -293,6 +307,12 @@ def make_synthetic_problem(
         h_img.append(np.full(m.sum(), k))
         h_lv.append(sel[m])
         h_line.append(lines_through(p1[m], p2[m]))
+        if end_noise_px:
+            pa, ia = project(k, lv_a[sel][m])
+            pb, ib = project(k, lv_b[sel][m])
+            h_ends.append(np.stack([pa, pb], axis=1))
+        else:
+            h_ends.append(np.stack([p1[m], p2[m]], axis=1))
         # corners: either adjacent facade faces the camera
         cf = facing.reshape(B, 4)
         corner_vis = (cf | np.roll(cf, 1, axis=1)).ravel()
@@ -307,7 +327,7 @@ def make_synthetic_problem(
         v_img.append(np.full(m.sum(), k))
         v_corner.append(sel[m])
         v_line.append(lines_through(q1[m], q2[m]))
-    h_img, h_lv, h_line = map(np.concatenate, (h_img, h_lv, h_line))
+    h_img, h_lv, h_line, h_ends = map(np.concatenate, (h_img, h_lv, h_line, h_ends))
     v_img, v_corner, v_line = map(np.concatenate, (v_img, v_corner, v_line))
     # keep levels seen in >= 2 images; re-index
     cnt = np.bincount(h_lv, minlength=len(lv_z))
@@ -316,6 +336,8 @@ def make_synthetic_problem(
     new_index[keep_lv] = np.arange(len(keep_lv))
     m = cnt[h_lv] >= 2
     h_img, h_height, h_line = h_img[m], new_index[h_lv[m]], h_line[m]
+    h_ends = h_ends[m]
+    facade_direction = edge_dir[lv_edge[keep_lv]]
     anchor = lv_xy[h_lv[m]]
     facade_true = lv_z[keep_lv]
 
@@ -341,6 +363,13 @@ def make_synthetic_problem(
     h_out = rng.random(len(h_line)) < outlier_fraction
     for L, o in ((v_line, v_out), (h_line, h_out)):
         L[o, 2] += rng.choice([-1, 1], o.sum()) * rng.uniform(10, 50, o.sum())
+
+    # the segments' ends on the observed (noisy) lines
+    nrm = h_line[:, :2] / np.linalg.norm(h_line[:, :2], axis=1, keepdims=True)
+    if not end_noise_px:
+        off = h_line[:, 2] / np.linalg.norm(h_line[:, :2], axis=1)
+        dist = np.einsum("nki,ni->nk", h_ends, nrm) + off[:, None]
+        h_ends = h_ends - dist[..., None] * nrm[:, None, :]
 
     # --- tie points on the terrain
     t_noise = noise_px if tie_noise_px is None else tie_noise_px
@@ -380,24 +409,39 @@ def make_synthetic_problem(
         focal, _, _ = res.focal_principal_extra_indices(cam.model)
         p[focal] *= 1 + rng.choice([-1, 1]) * focal_error
         start_cams[cid] = Camera(cam.model, cam.width, cam.height, p, cid)
+    # (the start draws in this order: the random stream of earlier problems)
+    corner_start = (
+        corner_ground
+        + rng.normal(0, 1, len(corner_ground)) * corner_height_start_sigma_m
+    )
+    facade_start = (
+        facade_true + rng.normal(0, 1, len(facade_true)) * height_start_sigma_m
+    )
+    tie_start = t_xyz + rng.normal(0, 1.0, t_xyz.shape)
+    if end_noise_px:
+        h_ends = (
+            h_ends
+            + rng.normal(0, end_noise_px, (len(h_ends), 2))[..., None] * nrm[:, None, :]
+        )
+        h_line = lines_through(h_ends[:, 0], h_ends[:, 1])
     problem = BundleProblem(
         cameras=start_cams,
         poses=start_poses,
         image_camera=image_camera,
         image_ids=tuple(image_ids),
         corner_xy=corner_xy,
-        corner_heights=corner_ground
-        + rng.normal(0, 1, len(corner_ground)) * corner_height_start_sigma_m,
+        corner_heights=corner_start,
         vertical_image=v_img,
         vertical_corner=v_corner,
         vertical_line=v_line,
-        facade_heights=facade_true
-        + rng.normal(0, 1, len(facade_true)) * height_start_sigma_m,
+        facade_heights=facade_start,
         horizontal_image=h_img,
         horizontal_height=h_height,
         horizontal_anchor_xy=anchor,
         horizontal_line=h_line,
-        tie_xyz=t_xyz + rng.normal(0, 1.0, t_xyz.shape),
+        horizontal_ends=h_ends,
+        facade_direction=facade_direction,
+        tie_xyz=tie_start,
         tie_image=np.asarray(t_img, np.int64),
         tie_point=np.asarray(t_pt, np.int64),
         tie_xy=np.asarray(t_xy, float).reshape(-1, 2),
@@ -429,6 +473,8 @@ def concatenate(a: SyntheticBundle, b: SyntheticBundle) -> SyntheticBundle:
         horizontal_height=cat([pa.horizontal_height, pb.horizontal_height + ja]),
         horizontal_anchor_xy=cat([pa.horizontal_anchor_xy, pb.horizontal_anchor_xy]),
         horizontal_line=cat([pa.horizontal_line, pb.horizontal_line]),
+        horizontal_ends=cat([pa.horizontal_ends, pb.horizontal_ends]),
+        facade_direction=cat([pa.facade_direction, pb.facade_direction]),
         tie_xyz=cat([pa.tie_xyz, pb.tie_xyz]),
         tie_image=cat([pa.tie_image, pb.tie_image + ka]),
         tie_point=cat([pa.tie_point, pb.tie_point + len(pa.tie_xyz)]),
