@@ -12,8 +12,13 @@ footprint shifted by each offset of a grid (+-``max_shift_m``), so that
 shift s.
 
 * A building whose best support is below ``absent_ratio`` times the block's
-  median best support, and on whose walls the facade tracks found no eave:
-  absent from the scene (demolished but mapped).
+  median best support, on whose walls the facade tracks found no eave, and
+  on whose footprint the views do not agree on a roof (:mod:`.roof`: a
+  height sweep of its interior): absent from the scene (demolished but
+  mapped). The roof test is what tells a demolished building from a present
+  one whose corners the images do not show (e.g. where a building the map
+  lacks adjoins it: the facade runs on past the mapped corner, and the
+  unmapped building hides its other corners).
 * A building whose best support comes with a shift longer than
   ``min_shift_m``, beats the unshifted support by ``min_gain`` of itself,
   and whose support is below ``shifted_ratio`` times the median unshifted
@@ -37,8 +42,16 @@ import shapely
 
 from obliq_colmap.colmap_io import read_model
 from obliq_colmap.errors import InputError
+from obliq_colmap.images import read_image
 from obliq_colmap.parallel import WorkerPool, available_cores
 from obliq_colmap.products.discrepancy_options import DiscrepancyOptions
+from obliq_colmap.products.roof import (
+    RoofView,
+    blurred,
+    footprint_samples,
+    height_profile,
+    stands,
+)
 from obliq_colmap.products.support import edge_support
 
 __all__ = ["DiscrepancyOptions", "classify", "find_discrepancies", "shift_grid"]
@@ -122,6 +135,46 @@ def shared_corners(cadastre, tol_m: float = 0.3) -> np.ndarray:
     return out
 
 
+def standing(
+    polygons: list,
+    ground_z: np.ndarray,
+    views: list[RoofView],
+    options: DiscrepancyOptions,
+) -> np.ndarray:
+    """(B,) bool: the height sweep finds something standing on each
+    footprint (:func:`.roof.stands`)."""
+    up = np.arange(
+        options.sweep_min_m, options.sweep_max_m + 1e-9, options.sweep_step_m
+    )
+    out = np.zeros(len(polygons), bool)
+    for b, poly in enumerate(polygons):
+        xy = footprint_samples(
+            poly, options.sweep_grid_m, options.sweep_inset_m, options.sweep_max_points
+        )
+        if len(xy) == 0 or not np.isfinite(ground_z[b]):
+            continue
+        ncc, n = height_profile(views, xy, ground_z[b] + up)
+        out[b] = stands(ncc, n, up, options.stand_height_m, options.stand_views)
+    return out
+
+
+def roof_views(block, image_path: Path, options: DiscrepancyOptions) -> list[RoofView]:
+    views = []
+    for im in block.images.values():
+        gray, _ = read_image(image_path / im.name)
+        if gray is not None:
+            # blurred, kept as uint8: 36 images of 2.7 Mpx in ~100 MB
+            g = blurred(gray, options.sweep_blur_px)
+            views.append(
+                RoofView(
+                    np.clip(np.rint(g), 0, 255).astype(np.uint8),
+                    block.cameras[im.camera_id],
+                    im.cam_from_world,
+                )
+            )
+    return views
+
+
 def find_discrepancies(
     input_path,
     image_path,
@@ -175,6 +228,19 @@ def find_discrepancies(
         np.add.at(support, b, sup)
         np.add.at(views, b, 1.0)
     v = classify(support, views, common["shifts"], np.isfinite(heights.eave_z), options)
+    cand = np.flatnonzero(v["kind"] == "absent")
+    if len(cand):
+        rv = roof_views(block, image_path, options)
+        st = standing(
+            [cad.polygons[b] for b in cand], heights.ground_z[cand], rv, options
+        )
+        logger.info(
+            "discrepancies: %d of %d absent footprints have a roof: not absent",
+            st.sum(),
+            len(cand),
+        )
+        v["kind"][cand[st]] = ""
+        v["score"][cand[st]] = 0.0
     o = c.georef.origin
     feats = []
     for b in np.flatnonzero(v["judged"]):
