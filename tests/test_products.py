@@ -306,7 +306,12 @@ def test_roof_sweep_tells_a_standing_building_from_an_empty_site():
     whose corners the images do not show (a building the map lacks adjoins
     them). Their roof is seen from every head: the views agree at the roof's
     height, while on an empty site they agree at the ground."""
-    from obliq_colmap.products.roof import footprint_samples, height_profile, stands
+    from obliq_colmap.products.roof import (
+        empty_site,
+        footprint_samples,
+        height_profile,
+        stands,
+    )
 
     square = Polygon([(-6, -6), (6, -6), (6, 6), (-6, 6)])
     xy = footprint_samples(square, 0.5, 1.0, 600)
@@ -317,3 +322,9 @@ def test_roof_sweep_tells_a_standing_building_from_an_empty_site():
         peak = up[np.nanargmax(ncc)]
         assert abs(peak - (roof or 0.0)) <= 0.5, (roof, peak)
         assert stands(ncc, n, up, 2.5, 3) is expect
+        # and the converse, which adds "absent" where the corners are seen
+        # nowhere clearly: the views agree on the ground
+        assert empty_site(ncc, n, up, 2.5, 3) is not expect
+        # two views are too few to read the profile either way
+        n2 = np.minimum(n, 2)
+        assert not stands(ncc, n2, up, 2.5, 3) and not empty_site(ncc, n2, up, 2.5, 3)

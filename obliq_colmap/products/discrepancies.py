@@ -18,7 +18,11 @@ shift s.
   mapped). The roof test is what tells a demolished building from a present
   one whose corners the images do not show (e.g. where a building the map
   lacks adjoins it: the facade runs on past the mapped corner, and the
-  unmapped building hides its other corners).
+  unmapped building hides its other corners). Conversely a building whose
+  corners are seen clearly nowhere (best support below ``shifted_ratio``
+  times the median), without an eave, whose views agree best at the ground
+  (:func:`.roof.empty_site`): absent too (its corners' support there is the
+  neighbours' and stray edges met under some shift).
 * A building whose best support comes with a shift longer than
   ``min_shift_m``, beats the unshifted support by ``min_gain`` of itself,
   and whose support is below ``shifted_ratio`` times the median unshifted
@@ -48,6 +52,7 @@ from obliq_colmap.products.discrepancy_options import DiscrepancyOptions
 from obliq_colmap.products.roof import (
     RoofView,
     blurred,
+    empty_site,
     footprint_samples,
     height_profile,
     stands,
@@ -140,9 +145,10 @@ def standing(
     ground_z: np.ndarray,
     views: list[RoofView],
     options: DiscrepancyOptions,
+    test=stands,
 ) -> np.ndarray:
     """(B,) bool: the height sweep finds something standing on each
-    footprint (:func:`.roof.stands`)."""
+    footprint (:func:`.roof.stands`; or another ``test`` of the profile)."""
     up = np.arange(
         options.sweep_min_m, options.sweep_max_m + 1e-9, options.sweep_step_m
     )
@@ -154,7 +160,7 @@ def standing(
         if len(xy) == 0 or not np.isfinite(ground_z[b]):
             continue
         ncc, n = height_profile(views, xy, ground_z[b] + up)
-        out[b] = stands(ncc, n, up, options.stand_height_m, options.stand_views)
+        out[b] = test(ncc, n, up, options.stand_height_m, options.stand_views)
     return out
 
 
@@ -229,8 +235,27 @@ def find_discrepancies(
         np.add.at(views, b, 1.0)
     v = classify(support, views, common["shifts"], np.isfinite(heights.eave_z), options)
     cand = np.flatnonzero(v["kind"] == "absent")
+    judged = v["judged"]
+    ref = float(np.median(v["best"][judged])) if judged.any() else 0.0
+    weak = np.flatnonzero(
+        judged
+        & (v["kind"] == "")
+        & (v["best"] < options.shifted_ratio * ref)
+        & ~np.isfinite(heights.eave_z)
+    )
+    rv = roof_views(block, image_path, options) if len(cand) + len(weak) else []
+    if len(weak):
+        # corners seen nowhere clearly, and the views agree on the ground
+        em = standing(
+            [cad.polygons[b] for b in weak],
+            heights.ground_z[weak],
+            rv,
+            options,
+            empty_site,
+        )
+        v["kind"][weak[em]] = "absent"
+        v["score"][weak[em]] = np.maximum(v["score"][weak[em]], 0.5)
     if len(cand):
-        rv = roof_views(block, image_path, options)
         st = standing(
             [cad.polygons[b] for b in cand], heights.ground_z[cand], rv, options
         )

@@ -20,7 +20,7 @@ import shapely
 
 from obliq_colmap.geometry import Camera, Pose
 
-__all__ = ["RoofView", "footprint_samples", "height_profile", "stands"]
+__all__ = ["RoofView", "empty_site", "footprint_samples", "height_profile", "stands"]
 
 
 @dataclass
@@ -131,3 +131,18 @@ def stands(
         return False
     k = int(np.nanargmax(profile))
     return bool(above_ground[k] >= min_height_m and views[k] >= min_views)
+
+
+def empty_site(
+    profile: np.ndarray,
+    views: np.ndarray,
+    above_ground: np.ndarray,
+    min_height_m: float,
+    min_views: int,
+) -> bool:
+    """The views agree best below ``min_height_m`` (at the ground), at
+    least ``min_views`` of them: nothing stands on the footprint."""
+    if not np.isfinite(profile).any():
+        return False
+    k = int(np.nanargmax(profile))
+    return bool(above_ground[k] < min_height_m and views[k] >= min_views)
