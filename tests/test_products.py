@@ -161,6 +161,32 @@ def test_discrepancy_verdicts():
     assert not v["judged"][4]
 
 
+def test_a_shift_seen_in_one_corner_view_is_chance():
+    """urban-101's false "shifted" verdicts: low support everywhere and the
+    best of 289 shifts met by one or two corner views of a building seen in
+    few. Against the building's own rate over all shifts the count at the
+    best shift is what chance gives; a shift that half the views see is
+    not."""
+    o = DiscrepancyOptions()
+    shifts = np.array([[0.0, 0.0], [1.0, 0.0], [-0.25, 0.0]])
+    n = o.num_samples
+    views = np.array([20.0, 20.0, 20.0, 8.0, 20.0])
+    frac = np.array(
+        [
+            [0.4, 0.1, 0.35],
+            [0.45, 0.1, 0.3],
+            [0.38, 0.05, 0.3],
+            [0.05, 0.25, 0.1],  # two views of 8 carry the shifted support
+            [0.05, 0.4, 0.1],  # ten views of 20 do
+        ]
+    )
+    seen = np.array([[8, 2, 7], [9, 2, 6], [8, 1, 6], [0, 2, 0], [1, 10, 2]], float)
+    v = classify(frac * views[:, None] * n, views, shifts, np.zeros(5, bool), o)
+    assert list(v["kind"][3:]) == ["shifted", "shifted"]
+    v = classify(frac * views[:, None] * n, views, shifts, np.zeros(5, bool), o, seen)
+    assert list(v["kind"]) == ["", "", "", "", "shifted"]
+
+
 def _tiny_model(tmp_path):
     """Two 10 x 10 m buildings on a 2 % slope; corners at the ground, feet
     and eaves (8 m, 12 m) on their walls, a floor line at 3 m."""

@@ -26,7 +26,9 @@ shift s.
 * A building whose best support comes with a shift longer than
   ``min_shift_m``, beats the unshifted support by ``min_gain`` of itself,
   and whose support is below ``shifted_ratio`` times the median unshifted
-  and above it shifted:
+  and above it shifted, and that chance does not explain
+  (:func:`chance_peaks`: the corner views seen at the shifted place against
+  the building's own rate over all shifts, < 1 such peak expected):
   shifted (a consistent offset of all its corners).
 
 Corners on another footprint's outline (party walls) are left out: the
@@ -43,6 +45,7 @@ from pathlib import Path
 
 import numpy as np
 import shapely
+from scipy.stats import binom
 
 from obliq_colmap.colmap_io import read_model
 from obliq_colmap.errors import InputError
@@ -74,12 +77,32 @@ def shift_grid(options: DiscrepancyOptions) -> np.ndarray:
     return S
 
 
+def chance_peaks(
+    seen: np.ndarray, views: np.ndarray, best_i: np.ndarray, options: DiscrepancyOptions
+) -> np.ndarray:
+    """(B,) how many shifts as well seen as the best one chance would give.
+
+    ``seen`` (B, S): corner views seen (half the samples on an edge) under
+    each shift. A building's background rate is its mean over all shifts
+    (clutter differs: trees, textured facades, neighbours' edges); the best
+    shift's count is a binomial tail against it, times the number of
+    distinct shift hypotheses, (2 max_shift / min_shift)^2: shifts closer
+    than the smallest one we call are one hypothesis.
+    """
+    n = np.maximum(views, 1).astype(int)
+    rate = np.clip(seen.mean(axis=1) / n, 1e-3, 1.0)
+    k = seen[np.arange(len(seen)), best_i].astype(int)
+    hypotheses = (2 * options.max_shift_m / options.min_shift_m) ** 2
+    return binom.sf(k - 1, n, rate) * hypotheses
+
+
 def classify(
     support: np.ndarray,
     views: np.ndarray,
     shifts: np.ndarray,
     has_eave: np.ndarray,
     options: DiscrepancyOptions,
+    seen: np.ndarray | None = None,
 ) -> dict[str, np.ndarray]:
     """Per building: best shift, supports, score and verdict.
 
@@ -88,6 +111,8 @@ def classify(
     support : (B, S) supported samples; views : (B,) sampled corner views.
     has_eave : (B,) bool, the facade tracks found an eave on its walls (a
         demolished building has none: no absent verdict then).
+    seen : (B, S) corner views seen under each shift (:func:`chance_peaks`);
+        None: that test is left out.
 
     Returns
     -------
@@ -111,6 +136,8 @@ def classify(
         & (s0 < options.shifted_ratio * ref)
         & (best >= options.shifted_ratio * ref)
     )
+    if seen is not None:
+        shifted &= chance_peaks(seen, views, best_i, options) < 1.0
     kind = np.where(absent, "absent", np.where(shifted, "shifted", ""))
     score = np.where(
         judged, np.maximum(1.0 - best / max(ref, 1e-9), 0.0) * (best < ref), 0.0
@@ -229,11 +256,21 @@ def find_discrepancies(
         results = pool.map(edge_support, tasks, "vertical edges")
     B, S = len(cad.polygons), len(common["shifts"])
     support, views = np.zeros((B, S)), np.zeros(B)
+    views_seen = np.zeros((B, S))
     for k, sup in results:
         b = cad.corner_building[k]
         np.add.at(support, b, sup)
         np.add.at(views, b, 1.0)
-    v = classify(support, views, common["shifts"], np.isfinite(heights.eave_z), options)
+        # a corner view is seen under a shift when half its vertical is
+        np.add.at(views_seen, b, 2 * sup >= options.num_samples)
+    v = classify(
+        support,
+        views,
+        common["shifts"],
+        np.isfinite(heights.eave_z),
+        options,
+        views_seen,
+    )
     cand = np.flatnonzero(v["kind"] == "absent")
     judged = v["judged"]
     ref = float(np.median(v["best"][judged])) if judged.any() else 0.0
