@@ -20,9 +20,11 @@ shift s.
   lacks adjoins it: the facade runs on past the mapped corner, and the
   unmapped building hides its other corners). Conversely a building whose
   corners are seen clearly nowhere (best support below ``shifted_ratio``
-  times the median), without an eave, whose views agree best at the ground
+  times the median) and whose views agree best at the ground
   (:func:`.roof.empty_site`): absent too (its corners' support there is the
-  neighbours' and stray edges met under some shift).
+  neighbours' and stray edges met under some shift; an eave found by the
+  facade tracks does not count against it: in dense blocks the tracks on a
+  demolished building's wall planes are the edges of the buildings behind).
 * A building whose best support comes with a shift longer than
   ``min_shift_m``, beats the unshifted support by ``min_gain`` of itself,
   and whose support is below ``shifted_ratio`` times the median unshifted
@@ -275,10 +277,7 @@ def find_discrepancies(
     judged = v["judged"]
     ref = float(np.median(v["best"][judged])) if judged.any() else 0.0
     weak = np.flatnonzero(
-        judged
-        & (v["kind"] == "")
-        & (v["best"] < options.shifted_ratio * ref)
-        & ~np.isfinite(heights.eave_z)
+        judged & (v["kind"] == "") & (v["best"] < options.shifted_ratio * ref)
     )
     rv = roof_views(block, image_path, options) if len(cand) + len(weak) else []
     if len(weak):
