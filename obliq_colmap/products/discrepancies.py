@@ -11,20 +11,20 @@ footprint shifted by each offset of a grid (+-``max_shift_m``), so that
 ``support[b, s]`` is the share of supported samples of building b under
 shift s.
 
-* A building whose best support is below ``absent_ratio`` times the block's
-  median best support, on whose walls the facade tracks found no eave, and
-  on whose footprint the views do not agree on a roof (:mod:`.roof`: a
-  height sweep of its interior): absent from the scene (demolished but
-  mapped). The roof test is what tells a demolished building from a present
-  one whose corners the images do not show (e.g. where a building the map
-  lacks adjoins it: the facade runs on past the mapped corner, and the
-  unmapped building hides its other corners). Conversely a building whose
-  corners are seen clearly nowhere (best support below ``shifted_ratio``
-  times the median) and whose views agree best at the ground
-  (:func:`.roof.empty_site`): absent too (its corners' support there is the
-  neighbours' and stray edges met under some shift; an eave found by the
-  facade tracks does not count against it: in dense blocks the tracks on a
-  demolished building's wall planes are the edges of the buildings behind).
+* A building not called shifted whose best support is below
+  ``shifted_ratio`` times the block's median best support (its corners
+  seen clearly nowhere), and whose views agree best at the ground of its
+  footprint (:mod:`.roof`, a height
+  sweep of its interior; :func:`.roof.empty_site`): absent from the scene
+  (demolished but mapped). The corners alone do not tell a demolished
+  building from a present one whose corners the images do not show (e.g.
+  where a building the map lacks adjoins it: the facade runs on past the
+  mapped corner, and the unmapped building hides its other corners), nor
+  from one the sweep cannot read (too few views): a standing building's
+  views agree at its roof, an empty site's at the ground. Stray support of
+  a demolished building's corners (neighbours' edges met under some shift)
+  and an "eave" on its walls (in dense blocks, the edges of the buildings
+  behind) do not count against the ground.
 * A building whose best support comes with a shift longer than
   ``min_shift_m``, beats the unshifted support by ``min_gain`` of itself,
   and whose support is below ``shifted_ratio`` times the median unshifted
@@ -60,7 +60,6 @@ from obliq_colmap.products.roof import (
     empty_site,
     footprint_samples,
     height_profile,
-    stands,
 )
 from obliq_colmap.products.support import edge_support
 
@@ -169,15 +168,14 @@ def shared_corners(cadastre, tol_m: float = 0.3) -> np.ndarray:
     return out
 
 
-def standing(
+def empty_sites(
     polygons: list,
     ground_z: np.ndarray,
     views: list[RoofView],
     options: DiscrepancyOptions,
-    test=stands,
 ) -> np.ndarray:
-    """(B,) bool: the height sweep finds something standing on each
-    footprint (:func:`.roof.stands`; or another ``test`` of the profile)."""
+    """(B,) bool: the height sweep of each footprint's interior agrees best
+    at the ground (:func:`.roof.empty_site`)."""
     up = np.arange(
         options.sweep_min_m, options.sweep_max_m + 1e-9, options.sweep_step_m
     )
@@ -189,7 +187,7 @@ def standing(
         if len(xy) == 0 or not np.isfinite(ground_z[b]):
             continue
         ncc, n = height_profile(views, xy, ground_z[b] + up)
-        out[b] = test(ncc, n, up, options.stand_height_m, options.stand_views)
+        out[b] = empty_site(ncc, n, up, options.stand_height_m, options.stand_views)
     return out
 
 
@@ -273,35 +271,31 @@ def find_discrepancies(
         options,
         views_seen,
     )
-    cand = np.flatnonzero(v["kind"] == "absent")
+    # absent: corners seen clearly nowhere, and the views agree on the ground
     judged = v["judged"]
     ref = float(np.median(v["best"][judged])) if judged.any() else 0.0
-    weak = np.flatnonzero(
-        judged & (v["kind"] == "") & (v["best"] < options.shifted_ratio * ref)
+    cand = np.flatnonzero(
+        judged & (v["kind"] != "shifted") & (v["best"] < options.shifted_ratio * ref)
     )
-    rv = roof_views(block, image_path, options) if len(cand) + len(weak) else []
-    if len(weak):
-        # corners seen nowhere clearly, and the views agree on the ground
-        em = standing(
-            [cad.polygons[b] for b in weak],
-            heights.ground_z[weak],
-            rv,
-            options,
-            empty_site,
-        )
-        v["kind"][weak[em]] = "absent"
-        v["score"][weak[em]] = np.maximum(v["score"][weak[em]], 0.5)
     if len(cand):
-        st = standing(
+        rv = roof_views(block, image_path, options)
+        empty = empty_sites(
             [cad.polygons[b] for b in cand], heights.ground_z[cand], rv, options
         )
+        was = v["kind"][cand] == "absent"
         logger.info(
-            "discrepancies: %d of %d absent footprints have a roof: not absent",
-            st.sum(),
+            "discrepancies: %d of %d weakly supported footprints seen empty "
+            "(%d of the %d the corners alone called absent)",
+            empty.sum(),
             len(cand),
+            (empty & was).sum(),
+            was.sum(),
         )
-        v["kind"][cand[st]] = ""
-        v["score"][cand[st]] = 0.0
+        v["kind"][cand] = np.where(empty, "absent", "")
+        # a site the sweep sees standing or cannot read keeps its low-support
+        # score unless the corners alone had called it absent
+        sc = v["score"][cand]
+        v["score"][cand] = np.where(empty, np.maximum(sc, 0.5), np.where(was, 0.0, sc))
     o = c.georef.origin
     feats = []
     for b in np.flatnonzero(v["judged"]):
