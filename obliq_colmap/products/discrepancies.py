@@ -11,13 +11,26 @@ footprint shifted by each offset of a grid (+-``max_shift_m``), so that
 ``support[b, s]`` is the share of supported samples of building b under
 shift s.
 
-* A building whose best support is below ``absent_ratio`` times the block's
-  median best support, and on whose walls the facade tracks found no eave:
-  absent from the scene (demolished but mapped).
+* A building not called shifted whose best support is below
+  ``shifted_ratio`` times the block's median best support (its corners
+  seen clearly nowhere), and whose views agree best at the ground of its
+  footprint (:mod:`.roof`, a height
+  sweep of its interior; :func:`.roof.empty_site`): absent from the scene
+  (demolished but mapped). The corners alone do not tell a demolished
+  building from a present one whose corners the images do not show (e.g.
+  where a building the map lacks adjoins it: the facade runs on past the
+  mapped corner, and the unmapped building hides its other corners), nor
+  from one the sweep cannot read (too few views): a standing building's
+  views agree at its roof, an empty site's at the ground. Stray support of
+  a demolished building's corners (neighbours' edges met under some shift)
+  and an "eave" on its walls (in dense blocks, the edges of the buildings
+  behind) do not count against the ground.
 * A building whose best support comes with a shift longer than
   ``min_shift_m``, beats the unshifted support by ``min_gain`` of itself,
   and whose support is below ``shifted_ratio`` times the median unshifted
-  and above it shifted:
+  and above it shifted, and that chance does not explain
+  (:func:`chance_peaks`: the corner views seen at the shifted place against
+  the building's own rate over all shifts, < 1 such peak expected):
   shifted (a consistent offset of all its corners).
 
 Corners on another footprint's outline (party walls) are left out: the
@@ -34,11 +47,20 @@ from pathlib import Path
 
 import numpy as np
 import shapely
+from scipy.stats import binom
 
 from obliq_colmap.colmap_io import read_model
 from obliq_colmap.errors import InputError
+from obliq_colmap.images import read_image
 from obliq_colmap.parallel import WorkerPool, available_cores
 from obliq_colmap.products.discrepancy_options import DiscrepancyOptions
+from obliq_colmap.products.roof import (
+    RoofView,
+    blurred,
+    empty_site,
+    footprint_samples,
+    height_profile,
+)
 from obliq_colmap.products.support import edge_support
 
 __all__ = ["DiscrepancyOptions", "classify", "find_discrepancies", "shift_grid"]
@@ -56,12 +78,32 @@ def shift_grid(options: DiscrepancyOptions) -> np.ndarray:
     return S
 
 
+def chance_peaks(
+    seen: np.ndarray, views: np.ndarray, best_i: np.ndarray, options: DiscrepancyOptions
+) -> np.ndarray:
+    """(B,) how many shifts as well seen as the best one chance would give.
+
+    ``seen`` (B, S): corner views seen (half the samples on an edge) under
+    each shift. A building's background rate is its mean over all shifts
+    (clutter differs: trees, textured facades, neighbours' edges); the best
+    shift's count is a binomial tail against it, times the number of
+    distinct shift hypotheses, (2 max_shift / min_shift)^2: shifts closer
+    than the smallest one we call are one hypothesis.
+    """
+    n = np.maximum(views, 1).astype(int)
+    rate = np.clip(seen.mean(axis=1) / n, 1e-3, 1.0)
+    k = seen[np.arange(len(seen)), best_i].astype(int)
+    hypotheses = (2 * options.max_shift_m / options.min_shift_m) ** 2
+    return binom.sf(k - 1, n, rate) * hypotheses
+
+
 def classify(
     support: np.ndarray,
     views: np.ndarray,
     shifts: np.ndarray,
     has_eave: np.ndarray,
     options: DiscrepancyOptions,
+    seen: np.ndarray | None = None,
 ) -> dict[str, np.ndarray]:
     """Per building: best shift, supports, score and verdict.
 
@@ -70,6 +112,8 @@ def classify(
     support : (B, S) supported samples; views : (B,) sampled corner views.
     has_eave : (B,) bool, the facade tracks found an eave on its walls (a
         demolished building has none: no absent verdict then).
+    seen : (B, S) corner views seen under each shift (:func:`chance_peaks`);
+        None: that test is left out.
 
     Returns
     -------
@@ -93,6 +137,8 @@ def classify(
         & (s0 < options.shifted_ratio * ref)
         & (best >= options.shifted_ratio * ref)
     )
+    if seen is not None:
+        shifted &= chance_peaks(seen, views, best_i, options) < 1.0
     kind = np.where(absent, "absent", np.where(shifted, "shifted", ""))
     score = np.where(
         judged, np.maximum(1.0 - best / max(ref, 1e-9), 0.0) * (best < ref), 0.0
@@ -120,6 +166,46 @@ def shared_corners(cadastre, tol_m: float = 0.3) -> np.ndarray:
     out = np.zeros(len(cadastre.corner_xy), bool)
     out[pt[other]] = True
     return out
+
+
+def empty_sites(
+    polygons: list,
+    ground_z: np.ndarray,
+    views: list[RoofView],
+    options: DiscrepancyOptions,
+) -> np.ndarray:
+    """(B,) bool: the height sweep of each footprint's interior agrees best
+    at the ground (:func:`.roof.empty_site`)."""
+    up = np.arange(
+        options.sweep_min_m, options.sweep_max_m + 1e-9, options.sweep_step_m
+    )
+    out = np.zeros(len(polygons), bool)
+    for b, poly in enumerate(polygons):
+        xy = footprint_samples(
+            poly, options.sweep_grid_m, options.sweep_inset_m, options.sweep_max_points
+        )
+        if len(xy) == 0 or not np.isfinite(ground_z[b]):
+            continue
+        ncc, n = height_profile(views, xy, ground_z[b] + up)
+        out[b] = empty_site(ncc, n, up, options.stand_height_m, options.stand_views)
+    return out
+
+
+def roof_views(block, image_path: Path, options: DiscrepancyOptions) -> list[RoofView]:
+    views = []
+    for im in block.images.values():
+        gray, _ = read_image(image_path / im.name)
+        if gray is not None:
+            # blurred, kept as uint8: 36 images of 2.7 Mpx in ~100 MB
+            g = blurred(gray, options.sweep_blur_px)
+            views.append(
+                RoofView(
+                    np.clip(np.rint(g), 0, 255).astype(np.uint8),
+                    block.cameras[im.camera_id],
+                    im.cam_from_world,
+                )
+            )
+    return views
 
 
 def find_discrepancies(
@@ -170,11 +256,46 @@ def find_discrepancies(
         results = pool.map(edge_support, tasks, "vertical edges")
     B, S = len(cad.polygons), len(common["shifts"])
     support, views = np.zeros((B, S)), np.zeros(B)
+    views_seen = np.zeros((B, S))
     for k, sup in results:
         b = cad.corner_building[k]
         np.add.at(support, b, sup)
         np.add.at(views, b, 1.0)
-    v = classify(support, views, common["shifts"], np.isfinite(heights.eave_z), options)
+        # a corner view is seen under a shift when half its vertical is
+        np.add.at(views_seen, b, 2 * sup >= options.num_samples)
+    v = classify(
+        support,
+        views,
+        common["shifts"],
+        np.isfinite(heights.eave_z),
+        options,
+        views_seen,
+    )
+    # absent: corners seen clearly nowhere, and the views agree on the ground
+    judged = v["judged"]
+    ref = float(np.median(v["best"][judged])) if judged.any() else 0.0
+    cand = np.flatnonzero(
+        judged & (v["kind"] != "shifted") & (v["best"] < options.shifted_ratio * ref)
+    )
+    if len(cand):
+        rv = roof_views(block, image_path, options)
+        empty = empty_sites(
+            [cad.polygons[b] for b in cand], heights.ground_z[cand], rv, options
+        )
+        was = v["kind"][cand] == "absent"
+        logger.info(
+            "discrepancies: %d of %d weakly supported footprints seen empty "
+            "(%d of the %d the corners alone called absent)",
+            empty.sum(),
+            len(cand),
+            (empty & was).sum(),
+            was.sum(),
+        )
+        v["kind"][cand] = np.where(empty, "absent", "")
+        # a site the sweep sees standing or cannot read keeps its low-support
+        # score unless the corners alone had called it absent
+        sc = v["score"][cand]
+        v["score"][cand] = np.where(empty, np.maximum(sc, 0.5), np.where(was, 0.0, sc))
     o = c.georef.origin
     feats = []
     for b in np.flatnonzero(v["judged"]):

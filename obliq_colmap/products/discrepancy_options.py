@@ -38,6 +38,26 @@ class DiscrepancyOptions:
     absent_ratio: float = 0.3
     #: corner views (corner x image) a building needs to be judged.
     min_views: int = 8
+    #: the height sweep of an "absent" footprint's interior (:mod:`.roof`):
+    #: heights above its ground from sweep_min_m to sweep_max_m in
+    #: sweep_step_m (about a pixel of parallax at 45 deg and 0.15 m/px,
+    #: with the blur below).
+    sweep_min_m: float = -3.0
+    sweep_max_m: float = 40.0
+    sweep_step_m: float = 0.5
+    #: grey images blurred by this (px) before sampling.
+    sweep_blur_px: float = 1.5
+    #: interior points: a grid of this spacing (m), this far inside the
+    #: outline (m: roof rims, parapets and overhangs are not at one height),
+    #: at most this many.
+    sweep_grid_m: float = 0.5
+    sweep_inset_m: float = 1.0
+    sweep_max_points: int = 600
+    #: something stands on the footprint when the views agree best at least
+    #: this high above its ground (m: the eave of a one-storey building) ...
+    stand_height_m: float = 2.5
+    #: ... and at least this many views see it there.
+    stand_views: int = 3
 
     def __post_init__(self) -> None:
         if self.num_samples < 1 or self.shift_step_m <= 0 or self.max_shift_m < 0:

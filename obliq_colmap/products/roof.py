@@ -1,0 +1,148 @@
+"""Is something standing on a footprint? A height sweep of its interior.
+
+A building's roof is the part of it that every oblique view sees (walls face
+half the heads, corners need a contrast, and a neighbour that the map lacks
+can hide them or merge with them). Points on a horizontal plane through the
+footprint's interior project to the same surface texture in every view only
+at the height of what is really there: the roof for a standing building, the
+ground for an empty site. :func:`height_profile` measures that agreement
+(the mean normalised cross-correlation over pairs of views of the interior's
+intensities) at each height of a sweep; :func:`stands` reads it.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+import shapely
+
+from obliq_colmap.geometry import Camera, Pose
+
+__all__ = ["RoofView", "empty_site", "footprint_samples", "height_profile", "stands"]
+
+
+@dataclass
+class RoofView:
+    """One image for the sweep: blurred grey (float32), camera, pose."""
+
+    gray: np.ndarray
+    camera: Camera
+    pose: Pose
+
+
+def blurred(gray: np.ndarray, sigma_px: float) -> np.ndarray:
+    """The image smoothed so that a sweep step's residual misalignment
+    (about a pixel) does not decorrelate pixel-scale texture."""
+    return cv2.GaussianBlur(gray.astype(np.float32), (0, 0), sigma_px)
+
+
+def footprint_samples(
+    polygon, step_m: float, inset_m: float, max_points: int
+) -> np.ndarray:
+    """(P, 2) grid points inside ``polygon`` at least ``inset_m`` from its
+    outline (the roof's rim, parapets and overhangs are left out: they are
+    not at one height), at most ``max_points`` (a regular thinning)."""
+    inner = polygon.buffer(-inset_m)
+    if inner.is_empty:
+        return np.zeros((0, 2))
+    x0, y0, x1, y1 = inner.bounds
+    gx, gy = np.meshgrid(np.arange(x0, x1, step_m), np.arange(y0, y1, step_m))
+    xy = np.column_stack([gx.ravel(), gy.ravel()])
+    xy = xy[shapely.contains_xy(inner, xy[:, 0], xy[:, 1])]
+    if len(xy) > max_points:
+        xy = xy[np.linspace(0, len(xy) - 1, max_points).astype(int)]
+    return xy
+
+
+def height_profile(
+    views: list[RoofView],
+    xy: np.ndarray,
+    z: np.ndarray,
+    min_inside: float = 0.9,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Agreement of the views at each height.
+
+    Parameters
+    ----------
+    xy : (P, 2) points on the footprint; z : (H,) heights swept (model frame).
+    min_inside : a view counts at a height when this share of the points
+        projects into it there (a tall sweep leaves the image at its top).
+
+    Returns
+    -------
+    ncc : (H,) mean NCC over pairs of views of the points' intensities
+        (NaN where fewer than 2 views count); views : (H,) int, how many.
+    """
+    H, P = len(z), len(xy)
+    X = np.empty((H, P, 3))
+    X[..., :2] = xy[None]
+    X[..., 2] = z[:, None]
+    cols, used = [], []
+    for v in views:
+        Xc = v.pose.transform(X.reshape(-1, 3))
+        q = v.camera.img_from_cam(Xc).reshape(H, P, 2)
+        h, w = v.gray.shape
+        ok = (
+            (Xc[:, 2].reshape(H, P) > 0)
+            & (q[..., 0] >= 0)
+            & (q[..., 0] <= w - 1)
+            & (q[..., 1] >= 0)
+            & (q[..., 1] <= h - 1)
+        )
+        counts = ok.mean(axis=1) >= min_inside  # (H,)
+        if not counts.any():
+            continue
+        mx = q[..., 0].astype(np.float32)
+        my = q[..., 1].astype(np.float32)
+        vals = cv2.remap(v.gray, mx, my, cv2.INTER_LINEAR, cv2.BORDER_REPLICATE)
+        cols.append(np.where(ok & counts[:, None], vals, np.nan))
+        used.append(counts)
+    if len(cols) < 2:
+        return np.full(H, np.nan), np.zeros(H, int)
+    A = np.stack(cols)  # (V, H, P), NaN where a view does not count
+    n = np.stack(used).sum(axis=0)  # (H,)
+    # each view's intensities normalised (exposure and shading differ)
+    valid = ~np.isnan(A)
+    A = np.where(valid, A, 0.0)
+    A -= A.sum(axis=2, keepdims=True) / np.maximum(valid.sum(axis=2, keepdims=True), 1)
+    A = np.where(valid, A, 0.0)
+    A /= np.linalg.norm(A, axis=2, keepdims=True) + 1e-9
+    s = A.sum(axis=0)  # (H, P)
+    # sum over ordered pairs of <a_u, a_v> = |sum a|^2 - sum |a|^2
+    pairs = np.maximum(n * (n - 1), 1)
+    ncc = ((s**2).sum(axis=1) - (A**2).sum(axis=(0, 2))) / pairs
+    return np.where(n >= 2, ncc, np.nan), n
+
+
+def stands(
+    profile: np.ndarray,
+    views: np.ndarray,
+    above_ground: np.ndarray,
+    min_height_m: float,
+    min_views: int,
+) -> bool:
+    """The views agree best on a surface at least ``min_height_m`` above
+    the ground, and at least ``min_views`` of them see it there: something
+    stands on the footprint. An empty site agrees best at the ground; with
+    too few views the profile is noise."""
+    if not np.isfinite(profile).any():
+        return False
+    k = int(np.nanargmax(profile))
+    return bool(above_ground[k] >= min_height_m and views[k] >= min_views)
+
+
+def empty_site(
+    profile: np.ndarray,
+    views: np.ndarray,
+    above_ground: np.ndarray,
+    min_height_m: float,
+    min_views: int,
+) -> bool:
+    """The views agree best below ``min_height_m`` (at the ground), at
+    least ``min_views`` of them: nothing stands on the footprint."""
+    if not np.isfinite(profile).any():
+        return False
+    k = int(np.nanargmax(profile))
+    return bool(above_ground[k] < min_height_m and views[k] >= min_views)
