@@ -17,7 +17,7 @@ import scipy.sparse as sp
 from .camera_block import SparseTerms, add_block, diagonal
 from .coupling import Coupling
 from .linear import kkt_solve
-from .setup import Setup
+from .setup import Setup, work_buffer
 
 
 def normal_equations(S: Setup, Jc, Jh, r, w):
@@ -29,16 +29,21 @@ def normal_equations(S: Setup, Jc, Jh, r, w):
     n = S.n_red + 1
     H_cc = SparseTerms(S.n_red) if S.sparse_camera else np.zeros((n, n))
     g_c = np.zeros(n)
-    wJ = Jc * w[:, None]
     for a, b, cols in S.image_runs:
-        add_block(H_cc, cols, cols, Jc[a:b].T @ wJ[a:b])
-        g_c[cols] += wJ[a:b].T @ r[a:b]
+        wJ = Jc[a:b] * w[a:b, None]  # per run: no (N, L) temporary
+        add_block(H_cc, cols, cols, Jc[a:b].T @ wJ)
+        g_c[cols] += wJ.T @ r[a:b]
     m = S.has_h
     H_hh = np.bincount(S.hidx[m], (w * Jh * Jh)[m], S.n_heights)
     g_h = np.bincount(S.hidx[m], (w * Jh * r)[m], S.n_heights)
-    F = np.multiply(Jc, (w * Jh)[:, None], order="C")
-    if S.h_runs != [(0, len(r))]:
-        F = np.concatenate([F[a:b] for a, b in S.h_runs] or [F[:0]])
+    # The rows with a height, in a buffer of S (the blocks of E, ~100 MB for
+    # a large block, live until the next linearisation).
+    n_h = sum(b - a for a, b in S.h_runs)
+    F = work_buffer(S, "coupling", (n_h, Jc.shape[1]))
+    start = 0
+    for a, b in S.h_runs:
+        np.multiply(Jc[a:b], (w[a:b] * Jh[a:b])[:, None], out=F[start : start + b - a])
+        start += b - a
     if not S.sparse_camera:
         H_cc = H_cc[:-1, :-1]  # SparseTerms drop the padding when summed
     return H_cc, g_c[:-1], H_hh, g_h, F
