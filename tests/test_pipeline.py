@@ -745,6 +745,37 @@ def test_an_image_held_by_few_facade_edges_is_left_out_as_imprecise(
     assert not o.registered and "determines its pose poorly" in o.message
 
 
+def test_an_image_whose_own_vp_the_block_rejects_is_written_with_a_warning(
+    initial_run,
+):
+    """One image's stage-1 VP turned by 3 deg (its covariance kept): the
+    rounds reject it against the block and that image alone is named in a
+    warning (one of its VP and its pose is wrong), and it stays written."""
+    from obliq_colmap import adjustment as adj
+    from obliq_colmap.geometry import rotation_from_axis_angle
+    from obliq_colmap.pipeline import warn_vp_disagreement
+
+    options, inputs, outcomes = _sample_after_stage2(initial_run)
+    target = next(i for i, o in outcomes.items() if o.name == "W_10.jpg")
+    o = outcomes[target]
+    assert o.vp is not None
+    K = inputs.priors.cameras[inputs.priors.images[target].camera_id].K
+    d = np.linalg.solve(K, o.vp)
+    o.vp = K @ (rotation_from_axis_angle(np.radians([3.0, 0.0, 0.0])) @ d)
+    state = adj.BlockState.from_outcomes(list(outcomes.values()))
+    state, result, stage3 = adj.bundle_stage(
+        inputs, outcomes, state, options.adjustment, {}
+    )
+    assert result is not None
+    assert list(stage3.vp_rejected) == [target]
+    assert 2.0 < stage3.vp_rejected[target] < 4.0
+    assert warn_vp_disagreement(state, stage3, outcomes) == [target]
+    assert "vanishing point and its solved pose disagree" in o.message
+    assert target in state.poses
+    others = [x for i, x in outcomes.items() if i != target]
+    assert not any("vanishing point" in x.message for x in others)
+
+
 def test_an_image_the_bundle_leaves_at_a_wrong_height_is_left_out(
     initial_run, monkeypatch
 ):

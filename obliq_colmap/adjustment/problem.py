@@ -82,6 +82,10 @@ class Stage3:
     #: head sees too, and the median reprojection error of all its tie
     #: observations (px), (count, median); absent without tie points.
     tie_fit: dict[int, tuple[int, float]] = field(default_factory=dict)
+    #: Per image id whose vertical VP the rounds rejected against the block
+    #: (:func:`~obliq_colmap.adjustment.rounds.vp_components`): the angle
+    #: (deg) between the VP and the image's solved vertical at the rejection.
+    vp_rejected: dict[int, float] = field(default_factory=dict)
     #: The last solve's problem (its tie rows go into the output with the
     #: solved points), None before a solve.
     bundle_problem: BundleProblem | None = None

@@ -171,9 +171,12 @@ def bundle_stage(
                     unknowns = 0.5 if lines else 2 if options.track_lines else 1
                     # The VPs are tested from the second round on: the first
                     # solve's map rows still held their own outliers.
+                    with_vp = set(problem.vertical_vps or {})
                     problem, bundle_options = with_variance_components(
                         problem, result, bundle_options, kh, unknowns, k > 0
                     )
+                    for i in with_vp - set(problem.vertical_vps or {}):
+                        stage3.vp_rejected[i] = result.vp_angle_deg.get(i, math.nan)
                 last = (kv.all() and kh.all()) or k == rounds - 1
                 result = solve_bundle(problem, _precision_if(bundle_options, last))
                 if last:

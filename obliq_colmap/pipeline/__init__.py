@@ -80,6 +80,7 @@ from obliq_colmap.pipeline.verdicts import (
     block_verdicts,
     leave_out_rejected,
     warn_imprecise,
+    warn_vp_disagreement,
 )
 from obliq_colmap.pipeline.workers import (
     ImageTask,
@@ -116,6 +117,7 @@ __all__ = [
     "initial_stage",
     "leave_out_rejected",
     "warn_imprecise",
+    "warn_vp_disagreement",
     "load_inputs",
     "overlay_name",
     "reregister_failed",

@@ -32,6 +32,7 @@ from obliq_colmap.pipeline.verdicts import (
     block_verdicts,
     leave_out_rejected,
     warn_imprecise,
+    warn_vp_disagreement,
 )
 from obliq_colmap.pipeline.workers import (
     ImageTask,
@@ -176,6 +177,7 @@ def block_stage(
     ]
     state = leave_out_rejected(state, stage3, by_id, rejected, imprecise, misplaced)
     warn_imprecise(state, stage3, by_id, options.warn_predicted_sd_px)
+    warn_vp_disagreement(state, stage3, by_id)
     return state, bundle_result, stage3, reregistered
 
 

@@ -1,7 +1,9 @@
 """The leave-outs: the images stage 3's verdicts name
 (:func:`block_verdicts`) leave the block as failures that say why
 (:func:`leave_out_rejected`); the written images the bundle determines
-worse than the registration criterion are named (:func:`warn_imprecise`).
+worse than the registration criterion (:func:`warn_imprecise`) and those
+whose own vanishing point contradicts them (:func:`warn_vp_disagreement`) are
+named.
 """
 
 from __future__ import annotations
@@ -17,7 +19,12 @@ from obliq_colmap.adjustment import Stage3, Verdicts, judge
 from obliq_colmap.pipeline.options import PipelineOptions
 from obliq_colmap.state import BlockState, ImageOutcome
 
-__all__ = ["block_verdicts", "leave_out_rejected", "warn_imprecise"]
+__all__ = [
+    "block_verdicts",
+    "leave_out_rejected",
+    "warn_imprecise",
+    "warn_vp_disagreement",
+]
 
 logger = logging.getLogger(__name__)
 
@@ -125,3 +132,38 @@ def warn_imprecise(
             ", ".join(outcomes[i].name for i in weak),
         )
     return weak
+
+
+def warn_vp_disagreement(
+    state: BlockState, stage3: Stage3 | None, outcomes: dict[int, ImageOutcome]
+) -> list[int]:
+    """Name the written images whose vertical VP the bundle's rounds
+    rejected against the block (:attr:`Stage3.vp_rejected`): the image's
+    own vertical and its solved pose disagree beyond the VP's covariance and
+    the block's, so one of the two is wrong, and the rows that hold the pose
+    may be a consistent wrong set (a registration on a few corners more than
+    chance: our generator's dense class, an image written 5 px and 0.69 deg
+    off whose VP the block rejected at 0.63 deg, with a predicted sd of 0.7
+    px). One warning for the block, the reason in each image's message; they
+    stay in the block (a wrong VP rejects the same way). Returns their ids."""
+    if stage3 is None:
+        return []
+    named = sorted(i for i in state.poses if i in stage3.vp_rejected)
+    for i in named:
+        o = outcomes[i]
+        note = (
+            "written with a warning: its vertical vanishing point and its solved"
+            f" pose disagree by {stage3.vp_rejected[i]:.2f} deg (rejected against"
+            " the block), so one of them is wrong and it may be more than 2 px off"
+        )
+        o.message = f"{o.message}; {note}" if o.message else note
+    if named:
+        logger.warning(
+            "%d written images disagree with their own vertical vanishing point"
+            " (one of the two is wrong; they may be more than 2 px off): %s",
+            len(named),
+            ", ".join(
+                f"{outcomes[i].name} ({stage3.vp_rejected[i]:.2f} deg)" for i in named
+            ),
+        )
+    return named
