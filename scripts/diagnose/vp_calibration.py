@@ -64,29 +64,6 @@ def mahalanobis(vp, cov, K, d_true):
         return np.nan
 
 
-def wall_corners(path, external_edges) -> np.ndarray:
-    """(N, 2, 3) wall corners base to eave: the external format's
-    (``vp_edge_oracle.true_edges``) or ``obliq-colmap synth``'s (ground and
-    eave corners of each building, paired by position)."""
-    data = json.loads(path.read_text())
-    if "corner_kind" not in data:
-        return external_edges(path)
-    X = np.asarray(data["corners"], float)
-    kind = np.asarray(data["corner_kind"])
-    bld = np.asarray(data["corner_building"])
-    edges = []
-    for b in np.unique(bld):
-        g = X[(bld == b) & (kind == "ground")]
-        e = X[(bld == b) & (kind == "eave")]
-        if not len(g) or not len(e):
-            continue
-        d = np.linalg.norm(g[:, None, :2] - e[None, :, :2], axis=2)
-        j = d.argmin(1)
-        near = d[np.arange(len(g)), j] < 0.05
-        edges += [(a, c) for a, c in zip(g[near], e[j[near]], strict=True)]
-    return np.array(edges, float)
-
-
 def draw_overlay(out_dir, im, gt, img, res, edges) -> None:
     """The image with stage 1's segments, the true wall corners and the VPs."""
     pose = im.cam_from_world()
@@ -156,9 +133,9 @@ def main():
         from pathlib import Path
 
         sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-        from vp_edge_oracle import true_edges
+        from vp_edge_oracle import wall_corners
 
-        edges = wall_corners(Path(S) / "gt_buildings.json", true_edges)
+        edges = wall_corners(Path(S) / "gt_buildings.json")
         os.makedirs(a.overlay_path, exist_ok=True)
     for im in sorted(gt.images.values(), key=lambda i: i.name):
         if a.names and im.name not in a.names:
