@@ -918,3 +918,49 @@ def test_aerial_prior_wants_a_finite_vp_below_the_image():
     far = 3.0 * w * np.tan(np.radians(85.0))  # the longest lens, steepest tilt
     assert without_k(np.array([[w / 2, h / 2 + 0.9 * far, 1.0]]))[0]
     assert not without_k(np.array([[w / 2, h / 2 + 1.1 * far, 1.0]]))[0]
+
+
+def test_short_clean_verticals_among_short_clutter_are_significant_at_a_finer_precision():
+    """Low halls among trees and cars (issue 25, class a): 25 short verticals
+    (20-35 px, endpoints within 0.1 px) among 3000 short segments of random
+    orientation. At the RANSAC threshold alone (1 px) a 12-35 px segment
+    meets any VP with probability 0.04-0.1, so the true pencil is no more
+    than chance; the test at a quarter of it finds it (this draw: significance
+    -0.3 against 5.0; the margin varies with the draw, the order does not)."""
+    from obliq_colmap.vanishing.pencil import normaliser
+    from obliq_colmap.vanishing.ransac import significance_test
+
+    rng = np.random.default_rng(5)
+    vp = np.array([330.0, 2600.0, 1.0])
+    ends = []
+    for _ in range(25):
+        q = rng.uniform([20, 60], [W - 20, H - 60])
+        half = 0.5 * rng.uniform(20, 35)
+        e = np.array(
+            [
+                [point_on_line_at_y(vp, q, q[1] - half), q[1] - half],
+                [point_on_line_at_y(vp, q, q[1] + half), q[1] + half],
+            ]
+        )
+        ends.append(e + rng.normal(0, 0.1, (2, 2)))
+    for _ in range(3000):
+        c = rng.uniform([10, 10], [W - 10, H - 10])
+        a = rng.uniform(0, np.pi)
+        ends.append(
+            c
+            + np.outer(
+                [-0.5, 0.5], rng.uniform(12, 25) * np.array([np.cos(a), np.sin(a)])
+            )
+        )
+    ends = np.array(ends)
+    segs = Segments(ends, np.tile([1.0, 0.0], (len(ends), 1)), np.ones(len(ends)))
+    T, s = normaliser(W, H)
+    v_n = T @ vp / np.linalg.norm(T @ vp)
+
+    def significance(precisions):
+        options = VanishingOptions(significance_precisions=precisions)
+        test = significance_test(segs, 300, T, 1.0, 1.0, 1.0 / s, options)
+        return float(test(v_n)[0])
+
+    assert significance((1.0,)) <= 0.0
+    assert significance(VanishingOptions().significance_precisions) >= 3.0
