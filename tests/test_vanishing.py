@@ -920,7 +920,7 @@ def test_aerial_prior_wants_a_finite_vp_below_the_image():
     assert not without_k(np.array([[w / 2, h / 2 + 1.1 * far, 1.0]]))[0]
 
 
-def test_short_clean_verticals_among_short_clutter_are_significant_at_a_finer_precision():
+def test_short_verticals_among_short_clutter_significant_at_a_finer_precision():
     """Low halls among trees and cars (issue 25, class a): 25 short verticals
     (20-35 px, endpoints within 0.1 px) among 3000 short segments of random
     orientation. At the RANSAC threshold alone (1 px) a 12-35 px segment
@@ -964,3 +964,33 @@ def test_short_clean_verticals_among_short_clutter_are_significant_at_a_finer_pr
 
     assert significance((1.0,)) <= 0.0
     assert significance(VanishingOptions().significance_precisions) >= 3.0
+
+
+def test_a_wider_starts_vp_outside_the_cone_must_beat_the_prior_odds():
+    """With an INS prior, a wider start's VP outside the prior's own cone (a
+    pencil of tree flanks and a street, 12 deg off on our industrial class)
+    replaces the cone's VP only when its significance beats the cone's by
+    the prior's log10 odds of the two directions (3 sigma = the cone)."""
+    from obliq_colmap.vanishing import VanishingResult
+    from obliq_colmap.vanishing.detect import _within_prior_odds
+
+    down = np.array([0.0, 0.6, 0.8])
+    prior = VPPrior(kind="ins", down_cam=down, cone_deg=6.0)
+
+    def at(deg, significance):
+        d = rotation_from_axis_angle([np.radians(deg), 0.0, 0.0]) @ down
+        return VanishingResult(
+            "ok", vp=CAMERA.K @ d, vertical_direction=d, significance=significance
+        )
+
+    inside, outside = at(1.0, 7.0), at(12.0, 12.0)
+    # The outside pencil is longer and more significant, but 6 sigma from
+    # the prior: log10 odds -7.8 against -0.05.
+    assert _within_prior_odds(outside, [inside, outside], [2.5, 2.8], prior) is inside
+    # A prior really 7 deg off (its cone is wrong) and a far stronger pencil.
+    strong = at(7.0, 40.0)
+    assert _within_prior_odds(strong, [inside, strong], [2.5, 6.0], prior) is strong
+    # No VP inside the cone: the longest stands.
+    assert (
+        _within_prior_odds(outside, [at(9.0, 5.0), outside], [1, 2], prior) is outside
+    )
