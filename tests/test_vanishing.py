@@ -879,17 +879,12 @@ def test_local_contrast_finds_the_edges_of_facades_in_shadow(seed):
         x = sp.endpoints.mean(axis=1)[:, 0]
         return sp.lengths[x < half].sum(), sp.lengths[x >= half].sum()
 
-    # One round of the second pass: a second one, through each run's own
-    # refined VP, finds 6-12 % more edge length in the lit half, so the
-    # halves would no longer compare as the same edges.
     plain = detect_vertical_vp(
-        img,
-        VanishingOptions(contrast_clip_limit=0.0, second_pass_rounds=1),
-        camera=CAMERA,
+        img, VanishingOptions(contrast_clip_limit=0.0), camera=CAMERA
     )
     lit, dark = lengths(plain)
     assert dark < 0.1 * lit
-    res = detect_vertical_vp(img, VanishingOptions(second_pass_rounds=1), camera=CAMERA)
+    res = detect_vertical_vp(img, VanishingOptions(), camera=CAMERA)
     lit_eq, dark_eq = lengths(res)
     assert res.status == "ok" and dark_eq > 0.5 * lit_eq
     assert lit_eq == pytest.approx(lit, rel=0.05)  # the lit half as before
@@ -1040,5 +1035,3 @@ def test_sector_weights_keep_a_street_of_leaning_chains_from_pulling_the_vp():
     assert error_weighted < 0.25 * error_equal, (error_weighted, error_equal)
     # Width 0: equal weights.
     assert np.array_equal(sector_weights(S, v0, 0.0), np.ones(len(S)))
-    with pytest.raises(ValueError, match="second_pass_rounds"):
-        VanishingOptions(second_pass_rounds=0)

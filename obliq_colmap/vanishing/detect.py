@@ -264,21 +264,6 @@ def _with_second_pass(
         comps = result.competing_vps @ T.T
         comps /= np.linalg.norm(comps, axis=1, keepdims=True)
         v_n, keep, use = refine_on_chains(sp, v_n, comps, options, s_px)
-        # The chains are extracted through the VP they are to correct (the
-        # gradient across the line towards it): from a first-pass VP 1 deg off
-        # they lean with it. Extracted again through the refined VP, the fit
-        # comes nearer the edges' own (industrial s2, INS prior: 28 -> 29 / 36
-        # within 0.5 deg; urban-101 20 -> 23; journal 2026-12-05).
-        Tinv = np.linalg.inv(T)
-        for _ in range(options.second_pass_rounds - 1):
-            t1 = time.perf_counter()
-            vp = canonical_sign(Tinv @ v_n / np.linalg.norm(Tinv @ v_n))
-            again = run_second_pass(img, vp, options.second_pass, camera, T, grads)
-            result.time_s["second_pass"] += time.perf_counter() - t1
-            if len(again.scatter) < 3:
-                break
-            sp = again
-            v_n, keep, use = refine_on_chains(sp, v_n, comps, options, s_px)
         method = options.second_pass_covariance
         cov_n = None
         if method != "first_pass":

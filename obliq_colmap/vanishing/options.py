@@ -152,9 +152,6 @@ class VanishingOptions:
     second_pass: SecondPassOptions | None = field(default_factory=SecondPassOptions)
     #: refine the VP once more on the second pass's edge points ...
     refine_with_second_pass: bool = True
-    #: ... extracting the chains this many times, each time through the VP
-    #: refined on the previous ones (1: once, through the first pass's VP).
-    second_pass_rounds: int = 2
     #: ... on the chains whose RMS distance to their line through the VP is
     #: at most this many robust standard deviations of those RMS values (and
     #: at most ``second_pass.max_rms_px``).
@@ -272,10 +269,6 @@ class VanishingOptions:
             raise ValueError(
                 "contrast_clip_limit must be >= 0 and contrast_tiles >= 1, got"
                 f" {self.contrast_clip_limit}, {self.contrast_tiles}"
-            )
-        if self.second_pass_rounds < 1:
-            raise ValueError(
-                f"second_pass_rounds must be >= 1, got {self.second_pass_rounds}"
             )
         if not self.start_cones or min(self.start_cones) <= 0:
             raise ValueError(
