@@ -1035,3 +1035,25 @@ def test_sector_weights_keep_a_street_of_leaning_chains_from_pulling_the_vp():
     assert error_weighted < 0.25 * error_equal, (error_weighted, error_equal)
     # Width 0: equal weights.
     assert np.array_equal(sector_weights(S, v0, 0.0), np.ones(len(S)))
+
+
+def test_without_a_cone_the_longest_start_stands_among_nearby_vps():
+    """Restarts without a cone are exchangeable: of two VPs 1.5 deg apart
+    (one VP by ``restarts_same_deg``) the longer second pass is returned,
+    not the first start's; with an INS prior the first start's (its cone)."""
+    from obliq_colmap.vanishing import VanishingResult
+    from obliq_colmap.vanishing.detect import _choose
+
+    down = np.array([0.0, 0.6, 0.8])
+
+    def at(deg):
+        d = rotation_from_axis_angle([np.radians(deg), 0.0, 0.0]) @ down
+        return VanishingResult(
+            "ok", vp=CAMERA.K @ d, vertical_direction=d, significance=10.0
+        )
+
+    first, second = at(1.5), at(0.0)
+    pair, lengths = [first, second], [9066.0, 9444.0]
+    assert _choose(pair, lengths, VPPrior.aerial(), CAMERA.K, 2.0) is second
+    ins = VPPrior(kind="ins", down_cam=down, cone_deg=6.0)
+    assert _choose(pair, lengths, ins, CAMERA.K, 2.0) is first
