@@ -996,47 +996,6 @@ def test_a_wider_starts_vp_outside_the_cone_must_beat_the_prior_odds():
     )
 
 
-def test_sector_weights_keep_a_street_of_leaning_chains_from_pulling_the_vp():
-    """Eight building corners spread over the image, and 40 short chains in
-    one narrow sector (a street along the camera's azimuth: curbs, parked
-    cars) that lean towards a point 200 px beside the VP. With equal weights
-    the street pulls the VP; with each sector counting about once it stays
-    near the corners' VP."""
-    from obliq_colmap.vanishing.pencil import normaliser
-    from obliq_colmap.vanishing.refine import sector_weights
-
-    rng = np.random.default_rng(2)
-    vp = np.array([330.0, 2600.0, 1.0])
-    T, _ = normaliser(W, H)
-
-    def chain(x, y0, y1, target=vp, n=40):
-        """Scatter (3, 3) of n points on the line from (x, y0) towards
-        ``target``, normalised coordinates."""
-        q = np.array([x, 0.5 * (y0 + y1)])
-        y = np.linspace(y0, y1, n)
-        x_line = np.array([point_on_line_at_y(target, q, yy) for yy in y])
-        p = np.column_stack([x_line + rng.normal(0, 0.05, n), y, np.ones(n)])
-        p = p @ T.T
-        return p.T @ p
-
-    corners = [chain(x, 100, 300) for x in (40, 100, 160, 220, 420, 480, 540, 600)]
-    aside = vp + np.array([200.0, 0.0, 0.0])
-    street = [chain(320 + 4 * i / 40, 250, 280, target=aside) for i in range(40)]
-    S = np.array(corners + street)
-    v0 = T @ vp / np.linalg.norm(T @ vp)
-    Ti = np.linalg.inv(T)
-    w = sector_weights(S, v0, 1.0)
-    assert w.mean() == pytest.approx(1.0)
-    assert w[:8].min() > 10 * w[8:].max()  # the street's 40 chains share a sector
-    equal = refine_vp(S, v0)[0]
-    weighted = refine_vp(S * w[:, None, None], v0)[0]
-    error_equal = direction_error_deg(Ti @ equal, vp)
-    error_weighted = direction_error_deg(Ti @ weighted, vp)
-    assert error_weighted < 0.25 * error_equal, (error_weighted, error_equal)
-    # Width 0: equal weights.
-    assert np.array_equal(sector_weights(S, v0, 0.0), np.ones(len(S)))
-
-
 def test_without_a_cone_the_longest_start_stands_among_nearby_vps():
     """Restarts without a cone are exchangeable: of two VPs 1.5 deg apart
     (one VP by ``restarts_same_deg``) the longer second pass is returned,

@@ -305,8 +305,9 @@ def _choose(
     the pencil, not the most accurate VP within it; and a VP outside the cone
     must beat the prior's odds (:func:`_within_prior_odds`). Without a cone
     the starts are exchangeable draws and the first has no standing: the
-    longest stands (urban-101 N_08, aerial prior: two starts 1.75 and 0.23
-    deg off, 1.5 deg apart after the second pass, and the first was taken).
+    longest stands (urban-101 N_08, aerial prior, with the sector weights
+    tried on 2026-12-05: two starts 1.75 and 0.23 deg off, 1.5 deg apart
+    after the second pass, and the first was taken).
     """
     best = results[int(np.argmax(lengths))]
     if prior.kind != "ins":

@@ -156,15 +156,6 @@ class VanishingOptions:
     #: at most this many robust standard deviations of those RMS values (and
     #: at most ``second_pass.max_rms_px``).
     second_pass_rms_factor: float = 3.0
-    #: ... each chain weighted by one over the chains whose direction towards
-    #: the VP lies within this many degrees of its own (0: equal weights): a
-    #: street full of cars and curbs in one sector of the pencil counts about
-    #: as much as one building corner (:func:`refine.sector_weights`).
-    sector_weight_deg: float = 1.0
-    #: ... with the weight raised to this power (1: each sector counts once;
-    #: 0.5: a sector of n chains counts sqrt(n) times: a lone chain, which
-    #: may be a stray edge, does not weigh as much as a whole facade).
-    sector_weight_power: float = 0.5
     #: covariance of the VP refined on the second pass (the bundle uses it
     #: with VP observations): "first_pass" (the first pass's, on LSD segments, as before
     #: 2026-12-04), "chains" (a jackknife over the chains), "blocks" (a

@@ -192,39 +192,6 @@ def _alternate(S_all, vps, cov, thr_n, direction, cos_sep, options):
     return vps, cov, assign
 
 
-def sector_weights(
-    S: np.ndarray, v_n: np.ndarray, half_width_deg: float, power: float = 1.0
-) -> np.ndarray:
-    """(G,) weight of each chain (scatter ``S``, normalised coordinates): one
-    over the number of chains whose direction towards the VP ``v_n`` lies
-    within ``half_width_deg`` of its own (itself included), to the ``power``;
-    all ones for a width of 0. Scaled to mean 1.
-
-    The chains of one sector of the pencil share their errors: a street
-    seen along the camera's azimuth gives dozens of chains (curbs, parked
-    cars, tree trunks) in one narrow sector that lean together by a fraction
-    of a pixel and outweigh the few spread building corners that fix the
-    VP (industrial halls: the VP refitted from the truth on all chains 21 /
-    36 within 0.5 deg, so weighted 32 / 36; docs/journal/independent-scenes.md,
-    2026-12-05). Weighted so, each sector counts about once
-    (``power`` 1; ``VanishingOptions.sector_weight_power`` tempers it).
-    """
-    if half_width_deg <= 0 or len(S) == 0:
-        return np.ones(len(S))
-    centre = S[:, :2, 2] / np.maximum(S[:, 2, 2], 1e-12)[:, None]
-    towards = v_n[:2][None] - centre * v_n[2]
-    angle = np.degrees(np.arctan2(towards[:, 0], towards[:, 1])) % 180.0
-    # Circular counts in one sort: the angles, and copies 180 deg either side.
-    ring = np.sort(np.concatenate([angle - 180.0, angle, angle + 180.0]))
-    n = np.searchsorted(ring, angle + half_width_deg, side="right") - np.searchsorted(
-        ring, angle - half_width_deg, side="left"
-    )
-    w = np.maximum(n, 1) ** -float(power)
-    # Mean 1: the fit's minimum is the same, its residual's degrees of
-    # freedom (``refine_vp``'s covariance) stay those of the chains' points.
-    return w * (len(w) / w.sum())
-
-
 def refine_on_chains(
     sp: SecondPass,
     v_n: np.ndarray,
@@ -263,10 +230,7 @@ def refine_on_chains(
     if use.sum() < 3:
         use[:] = True
     for _ in range(max(options.refine_rounds, 1) + 2):
-        w = sector_weights(
-            S[use], v_n, options.sector_weight_deg, options.sector_weight_power
-        )
-        v_n, _, _, _ = refine_vp(S[use] * w[:, None, None], v_n)
+        v_n, _, _, _ = refine_vp(S[use], v_n)
         cost = pencil_cost(S, v_n) / n_pts
         # Robust scale of the chains' RMS distances: straight edges through
         # the VP share one noise level. The VP is refined on the chains within
