@@ -1211,3 +1211,22 @@ def test_tie_fit_counts_only_points_another_head_sees():
     result = types.SimpleNamespace(tie_residuals_px=np.column_stack([err, 0 * err]))
     fit = _tie_fit(problem, result)
     assert fit == {5: (1, 2.0), 7: (0, 4.0), 9: (1, 5.5), 11: (0, 6.5)}  # 13: none
+
+
+def test_an_image_without_a_precision_from_the_bundle_is_warned():
+    """A NaN predicted sd (the pose's covariance not positive: an image held
+    by too little, houses-102 E_00 placed by its tie points and written 6726
+    px off) is no precision: the image is written with a warning, as one
+    above the limit; an image with no entry (no covariance computed) and
+    one within the limit are not."""
+    from types import SimpleNamespace
+
+    from obliq_colmap.pipeline import warn_imprecise
+
+    state = SimpleNamespace(poses={1: None, 2: None, 3: None, 4: None})
+    stage3 = SimpleNamespace(bundle_precision={1: 0.4, 2: float("nan"), 3: 2.5})
+    outcomes = {i: SimpleNamespace(name=f"I_{i}.jpg", message="") for i in range(1, 5)}
+    assert warn_imprecise(state, stage3, outcomes, 1.0) == [2, 3]
+    assert "cannot state its precision" in outcomes[2].message
+    assert "2.50 px" in outcomes[3].message
+    assert outcomes[1].message == "" and outcomes[4].message == ""

@@ -918,3 +918,101 @@ def test_aerial_prior_wants_a_finite_vp_below_the_image():
     far = 3.0 * w * np.tan(np.radians(85.0))  # the longest lens, steepest tilt
     assert without_k(np.array([[w / 2, h / 2 + 0.9 * far, 1.0]]))[0]
     assert not without_k(np.array([[w / 2, h / 2 + 1.1 * far, 1.0]]))[0]
+
+
+def test_short_verticals_among_short_clutter_significant_at_a_finer_precision():
+    """Low halls among trees and cars (issue 25, class a): 25 short verticals
+    (20-35 px, endpoints within 0.1 px) among 3000 short segments of random
+    orientation. At the RANSAC threshold alone (1 px) a 12-35 px segment
+    meets any VP with probability 0.04-0.1, so the true pencil is no more
+    than chance; the test at a quarter of it finds it (this draw: significance
+    -0.3 against 5.0; the margin varies with the draw, the order does not)."""
+    from obliq_colmap.vanishing.pencil import normaliser
+    from obliq_colmap.vanishing.ransac import significance_test
+
+    rng = np.random.default_rng(5)
+    vp = np.array([330.0, 2600.0, 1.0])
+    ends = []
+    for _ in range(25):
+        q = rng.uniform([20, 60], [W - 20, H - 60])
+        half = 0.5 * rng.uniform(20, 35)
+        e = np.array(
+            [
+                [point_on_line_at_y(vp, q, q[1] - half), q[1] - half],
+                [point_on_line_at_y(vp, q, q[1] + half), q[1] + half],
+            ]
+        )
+        ends.append(e + rng.normal(0, 0.1, (2, 2)))
+    for _ in range(3000):
+        c = rng.uniform([10, 10], [W - 10, H - 10])
+        a = rng.uniform(0, np.pi)
+        ends.append(
+            c
+            + np.outer(
+                [-0.5, 0.5], rng.uniform(12, 25) * np.array([np.cos(a), np.sin(a)])
+            )
+        )
+    ends = np.array(ends)
+    segs = Segments(ends, np.tile([1.0, 0.0], (len(ends), 1)), np.ones(len(ends)))
+    T, s = normaliser(W, H)
+    v_n = T @ vp / np.linalg.norm(T @ vp)
+
+    def significance(precisions):
+        options = VanishingOptions(significance_precisions=precisions)
+        test = significance_test(segs, 300, T, 1.0, 1.0, 1.0 / s, options)
+        return float(test(v_n)[0])
+
+    assert significance((1.0,)) <= 0.0
+    assert significance(VanishingOptions().significance_precisions) >= 3.0
+
+
+def test_a_wider_starts_vp_outside_the_cone_must_beat_the_prior_odds():
+    """With an INS prior, a wider start's VP outside the prior's own cone (a
+    pencil of tree flanks and a street, 12 deg off on our industrial class)
+    replaces the cone's VP only when its significance beats the cone's by
+    the prior's log10 odds of the two directions (3 sigma = the cone)."""
+    from obliq_colmap.vanishing import VanishingResult
+    from obliq_colmap.vanishing.detect import _within_prior_odds
+
+    down = np.array([0.0, 0.6, 0.8])
+    prior = VPPrior(kind="ins", down_cam=down, cone_deg=6.0)
+
+    def at(deg, significance):
+        d = rotation_from_axis_angle([np.radians(deg), 0.0, 0.0]) @ down
+        return VanishingResult(
+            "ok", vp=CAMERA.K @ d, vertical_direction=d, significance=significance
+        )
+
+    inside, outside = at(1.0, 7.0), at(12.0, 12.0)
+    # The outside pencil is longer and more significant, but 6 sigma from
+    # the prior: log10 odds -7.8 against -0.05.
+    assert _within_prior_odds(outside, [inside, outside], [2.5, 2.8], prior) is inside
+    # A prior really 7 deg off (its cone is wrong) and a far stronger pencil.
+    strong = at(7.0, 40.0)
+    assert _within_prior_odds(strong, [inside, strong], [2.5, 6.0], prior) is strong
+    # No VP inside the cone: the longest stands.
+    assert (
+        _within_prior_odds(outside, [at(9.0, 5.0), outside], [1, 2], prior) is outside
+    )
+
+
+def test_without_a_cone_the_longest_start_stands_among_nearby_vps():
+    """Restarts without a cone are exchangeable: of two VPs 1.5 deg apart
+    (one VP by ``restarts_same_deg``) the longer second pass is returned,
+    not the first start's; with an INS prior the first start's (its cone)."""
+    from obliq_colmap.vanishing import VanishingResult
+    from obliq_colmap.vanishing.detect import _choose
+
+    down = np.array([0.0, 0.6, 0.8])
+
+    def at(deg):
+        d = rotation_from_axis_angle([np.radians(deg), 0.0, 0.0]) @ down
+        return VanishingResult(
+            "ok", vp=CAMERA.K @ d, vertical_direction=d, significance=10.0
+        )
+
+    first, second = at(1.5), at(0.0)
+    pair, lengths = [first, second], [9066.0, 9444.0]
+    assert _choose(pair, lengths, VPPrior.aerial(), CAMERA.K, 2.0) is second
+    ins = VPPrior(kind="ins", down_cam=down, cone_deg=6.0)
+    assert _choose(pair, lengths, ins, CAMERA.K, 2.0) is first

@@ -108,19 +108,41 @@ def warn_imprecise(
     their ids."""
     if stage3 is None:
         return []
-    weak = sorted(
-        i for i in state.poses if stage3.bundle_precision.get(i, math.nan) > max_sd_px
+    precision = stage3.bundle_precision
+    # A NaN sd: the bundle's covariance of that pose is not positive (the
+    # image is held by too little, e.g. placed by its tie points alone);
+    # that is no precision at all (houses-102 E_00, 2026-12-05: written
+    # 6726 px off with NaN and no warning). An image without an entry (no
+    # covariance computed) is not judged.
+    undetermined = sorted(
+        i for i in state.poses if i in precision and not math.isfinite(precision[i])
     )
+    weak = sorted(i for i in state.poses if precision.get(i, math.nan) > max_sd_px)
+    for i in undetermined:
+        o = outcomes[i]
+        note = (
+            "written with a warning: the bundle cannot state its precision (its"
+            " pose's covariance is not positive), so it may be more than 2 px off"
+        )
+        o.message = f"{o.message}; {note}" if o.message else note
+    if undetermined:
+        logger.warning(
+            "%d of %d written images have no precision from the bundle (they may"
+            " be more than 2 px off): %s",
+            len(undetermined),
+            len(state.poses),
+            ", ".join(outcomes[i].name for i in undetermined),
+        )
     for i in weak:
         o = outcomes[i]
         note = (
             f"written with a warning: the bundle predicts its projections to"
-            f" {stage3.bundle_precision[i]:.2f} px (sd; above {max_sd_px:g} px),"
+            f" {precision[i]:.2f} px (sd; above {max_sd_px:g} px),"
             " so it may be more than 2 px off"
         )
         o.message = f"{o.message}; {note}" if o.message else note
     if weak:
-        sd = [stage3.bundle_precision[i] for i in weak]
+        sd = [precision[i] for i in weak]
         logger.warning(
             "%d of %d written images are determined worse than %g px (predicted"
             " sd %.2f-%.2f px; they may be more than 2 px off): %s",
@@ -131,7 +153,7 @@ def warn_imprecise(
             max(sd),
             ", ".join(outcomes[i].name for i in weak),
         )
-    return weak
+    return sorted(weak + undetermined)
 
 
 def warn_vp_disagreement(

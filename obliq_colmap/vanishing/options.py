@@ -230,6 +230,11 @@ class VanishingOptions:
     #: first; 0: significance alone. Without intrinsics orthogonality is
     #: unknown and not used.
     orthogonal_support_tol_deg: float = 4.0
+    #: the significance test is made at the inlier threshold times each of
+    #: these, the best counting (:func:`ransac.significance_test`): the few
+    #: short verticals of low halls among trees and cars are chance at the
+    #: RANSAC threshold and plain at a finer one. (1.0,): one precision.
+    significance_precisions: tuple[float, ...] = (1.0, 0.5, 0.25)
     #: fewer inlier segments than this: no VP at all.
     min_inliers: int = 4
     #: status "ok" needs this many inliers ...

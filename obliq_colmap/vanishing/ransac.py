@@ -232,18 +232,32 @@ def significance_test(
     # (where hundreds of short segments make any VP look like chance) are
     # both recognised. Number of tests: the hypotheses RANSAC may examine
     # (fixed a priori by max_trials), not all pairs of segments.
-    n_tests = 3 * min(n_candidates * (n_candidates - 1) / 2, options.max_trials)
+    # Precisions: a pencil of short clean edges among many short clutter
+    # segments (low industrial halls among trees and cars) is chance at the
+    # RANSAC threshold (a 12 px segment meets it with probability 0.1 at any
+    # VP) and plain at a quarter of it; the test is made at each precision
+    # too, the best counting, the tests multiplied by their number (the a
+    # contrario multi-precision test of LSD).
+    precisions = tuple(options.significance_precisions) or (1.0,)
+    n_tests = (
+        3
+        * len(precisions)
+        * min(n_candidates * (n_candidates - 1) / 2, options.max_trials)
+    )
     # The classes are nested: one scatter for the first, masks for the others.
     sel = segments.lengths >= options.min_length_px * factor
     L1 = segments.lengths[sel]
     S_sig = endpoint_scatter(segments.endpoints[sel] @ T[:2, :2].T + T[:2, 2])
-    p_chance = np.minimum(
-        1.0, np.arcsin(np.minimum(1.0, thr_px / (0.5 * L1))) / (np.pi / 2)
-    )
     classes = [
         m
         for m in (mult * options.min_length_px * factor <= L1 for mult in (1, 2, 4))
         if m.any()
+    ]
+    p_chance = [
+        np.minimum(
+            1.0, np.arcsin(np.minimum(1.0, f * thr_px / (0.5 * L1))) / (np.pi / 2)
+        )
+        for f in precisions
     ]
 
     def significance_of(V):
@@ -252,10 +266,12 @@ def significance_test(
         best = np.full(len(V), -np.inf)
         if not classes:
             return best
-        consistent = np.sqrt(pencil_costs_each(S_sig, V) / 2.0) <= thr_n  # (P, G)
-        for m in classes:
-            k = np.count_nonzero(consistent[:, m], axis=1)
-            best = np.maximum(best, significance(k, p_chance[m], n_tests))
+        rms = np.sqrt(pencil_costs_each(S_sig, V) / 2.0)  # (P, G)
+        for f, p in zip(precisions, p_chance, strict=True):
+            consistent = rms <= f * thr_n
+            for m in classes:
+                k = np.count_nonzero(consistent[:, m], axis=1)
+                best = np.maximum(best, significance(k, p[m], n_tests))
         return best
 
     return significance_of

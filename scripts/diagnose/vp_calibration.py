@@ -15,6 +15,15 @@ status ok / any VP.
 Run (from the repository root)::
 
     python scripts/diagnose/vp_calibration.py SCENE [--json out.json]
+        [--prior aerial] [--overlay_path DIR [--names N_00.jpg ...]]
+
+Each image is seeded from its name as ``register`` seeds it
+(:func:`obliq_colmap.parallel.image_seed`). ``--prior aerial``: the aerial
+prior with the priors' camera (``obliq-colmap vanishing --input_path priors
+--vp_prior aerial``), i.e. stage 1 without the INS prior. ``--overlay_path``:
+the images drawn (first-pass inliers blue, second-pass segments red, the
+projected true wall corners green, lines to the true VP thin green and to
+the found VP thin yellow).
 
 Environment: ``CONE`` (deg, default 5.681...: ``PipelineOptions().cone_deg``),
 ``VPOPTS`` (JSON of VanishingOptions fields).
@@ -22,6 +31,7 @@ Environment: ``CONE`` (deg, default 5.681...: ``PipelineOptions().cone_deg``),
 
 import argparse
 import collections
+import dataclasses
 import json
 import os
 
@@ -30,6 +40,7 @@ import numpy as np
 import pycolmap
 
 from obliq_colmap.geometry import Camera
+from obliq_colmap.parallel import image_seed
 from obliq_colmap.vanishing import VanishingOptions, VPPrior, detect_vertical_vp
 
 
@@ -53,11 +64,60 @@ def mahalanobis(vp, cov, K, d_true):
         return np.nan
 
 
+def draw_overlay(out_dir, im, gt, img, res, edges) -> None:
+    """The image with stage 1's segments, the true wall corners and the VPs."""
+    pose = im.cam_from_world()
+    R, t = pose.rotation.matrix(), pose.translation
+    K = gt.cameras[im.camera_id].calibration_matrix()
+    H, W = img.shape
+    out = cv2.cvtColor(img, cv2.COLOR_GRAY2BGR)
+
+    def line(p, q, color, thick=1):
+        p, q = np.round(np.asarray(p) - 0.5), np.round(np.asarray(q) - 0.5)
+        cv2.line(out, tuple(map(int, p)), tuple(map(int, q)), color, thick, cv2.LINE_AA)
+
+    vt = K @ R[:, 2]
+    for vp, color in ((vt, (0, 160, 0)), (res.vp, (0, 220, 220))):
+        if vp is None:
+            continue
+        for x in np.linspace(0.05, 0.95, 7) * W:
+            # from the image's top edge towards the VP, to the bottom edge
+            p = np.array([x, 0.0])
+            d = vp[:2] - p * vp[2]
+            if abs(d[1]) < 1e-9:
+                continue
+            line(p, p + d * (H / d[1]), color)
+    Xc = edges.reshape(-1, 3) @ R.T + t
+    ok = (Xc[:, 2] > 0).reshape(-1, 2).all(1)
+    px = Xc @ K.T
+    px = (px[:, :2] / px[:, 2:]).reshape(-1, 2, 2)
+    for e in px[ok]:
+        line(e[0], e[1], (0, 255, 0), 3)
+    for e in res.segments.endpoints[res.inliers]:
+        line(e[0], e[1], (255, 128, 0), 2)
+    if res.vertical_segments is not None:
+        for e in res.vertical_segments.endpoints:
+            line(e[0], e[1], (0, 0, 255), 2)
+    cv2.putText(
+        out,
+        f"{im.name} {res.status}",
+        (20, 40),
+        cv2.FONT_HERSHEY_SIMPLEX,
+        1.2,
+        (0, 0, 255),
+        2,
+    )
+    cv2.imwrite(os.path.join(out_dir, im.name.rsplit(".", 1)[0] + ".png"), out)
+
+
 def main():
     ap = argparse.ArgumentParser()
     ap.add_argument("scene")
     ap.add_argument("--json")
     ap.add_argument("--verbose", action="store_true")
+    ap.add_argument("--prior", choices=("ins", "aerial"), default="ins")
+    ap.add_argument("--overlay_path")
+    ap.add_argument("--names", nargs="*")
     a = ap.parse_args()
     S = a.scene
     vo = json.loads(os.environ.get("VPOPTS", "{}"))
@@ -67,15 +127,33 @@ def main():
     pr = pycolmap.Reconstruction(S + "/priors")
     pri = {i.name: i for i in pr.images.values()}
     rows = []
+    edges = None
+    if a.overlay_path:
+        import sys
+        from pathlib import Path
+
+        sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+        from vp_edge_oracle import wall_corners
+
+        edges = wall_corners(Path(S) / "gt_buildings.json")
+        os.makedirs(a.overlay_path, exist_ok=True)
     for im in sorted(gt.images.values(), key=lambda i: i.name):
+        if a.names and im.name not in a.names:
+            continue
         p = pri[im.name]
         pc = pr.cameras[p.camera_id]
         cam = Camera(pc.model.name, pc.width, pc.height, np.asarray(pc.params))
         R = im.cam_from_world().rotation.matrix()
         K = gt.cameras[im.camera_id].calibration_matrix()
         img = cv2.imread(S + "/images/" + im.name, cv2.IMREAD_GRAYSCALE)
-        prior = VPPrior.from_rotation(p.cam_from_world().rotation.matrix(), cone)
-        res = detect_vertical_vp(img, opts, camera=cam, prior=prior)
+        if a.prior == "ins":
+            prior = VPPrior.from_rotation(p.cam_from_world().rotation.matrix(), cone)
+        else:
+            prior = VPPrior.aerial()
+        seeded = dataclasses.replace(opts, seed=image_seed(im.name, opts.seed))
+        res = detect_vertical_vp(img, seeded, camera=cam, prior=prior)
+        if edges is not None:
+            draw_overlay(a.overlay_path, im, gt, img, res, edges)
         row = dict(
             name=im.name,
             status=res.status,

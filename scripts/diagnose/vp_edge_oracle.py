@@ -17,6 +17,10 @@ these edges; the second says where the clutter pulls the fit.
 Run (from the repository root)::
 
     python scripts/diagnose/vp_edge_oracle.py SCENE IMAGE_NAME [IMAGE_NAME ...]
+
+SCENE: the external format or an ``obliq-colmap synth`` scene (its
+``gt_buildings.json`` lists ground and eave corners; the wall corners are
+those pairs, :func:`wall_corners`).
 """
 
 import argparse
@@ -44,6 +48,29 @@ def true_edges(gt_buildings: Path) -> np.ndarray:
         for ring, zs in zip(b["footprint"], b["base_z"], strict=True):
             for (x, y), z in zip(ring, zs, strict=True):
                 edges.append(((x, y, z), (x, y, b["eave_z"])))
+    return np.array(edges, float)
+
+
+def wall_corners(path: Path) -> np.ndarray:
+    """(N, 2, 3) wall corners base to eave: the external format's
+    (:func:`true_edges`) or ``obliq-colmap synth``'s (ground and
+    eave corners of each building, paired by position)."""
+    data = json.loads(path.read_text())
+    if "corner_kind" not in data:
+        return true_edges(path)
+    X = np.asarray(data["corners"], float)
+    kind = np.asarray(data["corner_kind"])
+    bld = np.asarray(data["corner_building"])
+    edges = []
+    for b in np.unique(bld):
+        g = X[(bld == b) & (kind == "ground")]
+        e = X[(bld == b) & (kind == "eave")]
+        if not len(g) or not len(e):
+            continue
+        d = np.linalg.norm(g[:, None, :2] - e[None, :, :2], axis=2)
+        j = d.argmin(1)
+        near = d[np.arange(len(g)), j] < 0.05
+        edges += [(a, c) for a, c in zip(g[near], e[j[near]], strict=True)]
     return np.array(edges, float)
 
 
@@ -102,7 +129,7 @@ def main() -> None:
     args = ap.parse_args()
     gt = pycolmap.Reconstruction(str(args.scene / "gt"))
     by_name = {im.name: im for im in gt.images.values()}
-    edges = true_edges(args.scene / "gt_buildings.json")
+    edges = wall_corners(args.scene / "gt_buildings.json")
     opts = VanishingOptions()
     for name in args.names:
         print(one_image(args.scene, gt, by_name[name], edges, opts), flush=True)
