@@ -120,6 +120,13 @@ def _rename_images(scene: Path) -> None:
         image.rename(image.with_name("x_" + image.name))
 
 
+def _truncate_images(scene: Path) -> None:
+    for image in (scene / "images").iterdir():
+        data = image.read_bytes()
+        image.unlink()  # a link to the sample's image: never write through it
+        image.write_bytes(data[: int(0.4 * len(data))])
+
+
 CASES = {
     "missing image folder": (
         lambda s: shutil.rmtree(s / "images"),
@@ -127,6 +134,11 @@ CASES = {
         (),
     ),
     "image names not in the priors": (_rename_images, "images", ()),
+    "every image truncated": (
+        _truncate_images,
+        "none of its 16 images can be read",
+        (),
+    ),
     "missing map": (lambda s: (s / "cadastre.geojson").unlink(), "cadastre", ()),
     "map not JSON": (
         lambda s: (s / "cadastre.geojson").write_text("{not json"),

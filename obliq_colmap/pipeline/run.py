@@ -15,6 +15,7 @@ from obliq_colmap import __version__
 from obliq_colmap.adjustment import Stage3
 from obliq_colmap.bundle import BundleResult
 from obliq_colmap.colmap_io import Georef, Point3D
+from obliq_colmap.errors import InputError
 from obliq_colmap.pipeline.block import block_stage
 from obliq_colmap.pipeline.initial import initial_stage
 from obliq_colmap.pipeline.inputs import image_tasks, load_inputs
@@ -84,6 +85,14 @@ def run_register(
         workers, init_args, cad, options.progress, options.dask_scheduler
     ) as pool:
         outcomes, _, rescued = initial_stage(pool, tasks, options, timings)
+        if outcomes and all(o.status == "unreadable" for o in outcomes):
+            # a folder of which no image reads is the user's input, not a
+            # failed registration
+            raise InputError(
+                image_path,
+                f"none of its {len(outcomes)} images can be read, e.g."
+                f" {outcomes[0].message}",
+            )
         for o in outcomes:
             if o.status == "unreadable" or not o.registered:
                 logger.warning("%s: left out: %s", o.name, o.message)
