@@ -17,7 +17,7 @@ from obliq_colmap.synthetic.bundle_problem import make_synthetic_problem
 LINES = BundleOptions(facade_lines=True, refine_extra_params=True)
 
 
-def _perturbed_lines(P, st: State, seed: int = 0) -> None:
+def _perturbed_lines(st: State, seed: int = 0) -> None:
     """Offsets of ~0.5 m and angles of ~3 deg on the start lines (in place)."""
     rng = np.random.default_rng(seed)
     st.lines[:, 1] = rng.normal(0.0, 0.5, len(st.lines))
@@ -32,7 +32,7 @@ def test_facade_line_jacobians_match_finite_differences(model):
     P = syn.problem
     S = Setup(P, LINES)
     st = State.start(P, S)
-    _perturbed_lines(P, st)
+    _perturbed_lines(st)
     rows = FacadeLineRows(P, S, LINES, st)
     _, Jc, Jp = rows.evaluate(S, st, jac=True)
 

@@ -173,6 +173,16 @@ class EliminatedBlocks:
 
     # --- residuals -----------------------------------------------------------
 
+    def outputs(self, S: Setup, st: State, jac: bool):
+        """For :meth:`evaluate`: the (O, 2) residuals, (O, 2, L) camera and
+        (O, 2, 3) unknowns' Jacobians to fill (None without ``jac``), and
+        the rotations as a (3, 3, K) array."""
+        n_obs = len(self.img)
+        r = np.empty((n_obs, 2))
+        Jc = np.zeros((n_obs, 2, S.L)) if jac else None
+        Jp = np.empty((n_obs, 2, 3)) if jac else None
+        return r, Jc, Jp, st.R.transpose(1, 2, 0)
+
     def unknowns(self, st: State) -> np.ndarray:
         return getattr(st, self.state_attr)
 

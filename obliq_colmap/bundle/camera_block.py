@@ -23,6 +23,7 @@ __all__ = [
     "add_block",
     "add_entries",
     "diagonal",
+    "empty",
     "finish",
     "to_dense",
 ]
@@ -56,6 +57,12 @@ class SparseTerms:
 
 
 CameraBlock = np.ndarray | SparseTerms
+
+
+def empty(n: int, sparse: bool) -> CameraBlock:
+    """An empty camera block of ``n`` unknowns plus the padding column:
+    gathered terms (``sparse``) or a dense (n + 1, n + 1) array."""
+    return SparseTerms(n) if sparse else np.zeros((n + 1, n + 1))
 
 
 def add_block(H: CameraBlock, rows: np.ndarray, cols: np.ndarray, block) -> None:

@@ -132,11 +132,7 @@ class FacadeLineRows(EliminatedBlocks):
     def evaluate(self, S: Setup, st: State, jac: bool):
         """(O, 2) residuals (px, end 0 and end 1) and, if jac, the (O, 2, L)
         camera and (O, 2, 3) line Jacobians (h, d, theta)."""
-        n_obs = len(self.img)
-        r = np.empty((n_obs, 2))
-        Jc = np.zeros((n_obs, 2, S.L)) if jac else None
-        Jp = np.empty((n_obs, 2, 3)) if jac else None
-        Rk = st.R.transpose(1, 2, 0)
+        r, Jc, Jp, Rk = self.outputs(S, st, jac)
         for g in self.groups:
             a, b = g.start, g.end
             n = b - a

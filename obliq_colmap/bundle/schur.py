@@ -14,7 +14,7 @@ from __future__ import annotations
 import numpy as np
 import scipy.sparse as sp
 
-from .camera_block import SparseTerms, add_block, diagonal
+from .camera_block import add_block, diagonal, empty
 from .coupling import Coupling
 from .linear import kkt_solve
 from .setup import Setup, work_buffer
@@ -26,9 +26,8 @@ def normal_equations(S: Setup, Jc, Jh, r, w):
     terms: :func:`~.camera_block.finish`), diagonal heights, and the (Nh, L)
     blocks F of the coupling E (rows with a height; products with E by
     :class:`Coupling`)."""
-    n = S.n_red + 1
-    H_cc = SparseTerms(S.n_red) if S.sparse_camera else np.zeros((n, n))
-    g_c = np.zeros(n)
+    H_cc = empty(S.n_red, S.sparse_camera)
+    g_c = np.zeros(S.n_red + 1)
     for a, b, cols in S.image_runs:
         wJ = Jc[a:b] * w[a:b, None]  # per run: no (N, L) temporary
         add_block(H_cc, cols, cols, Jc[a:b].T @ wJ)

@@ -186,7 +186,8 @@ def _solve(problem: BundleProblem, opts: BundleOptions) -> BundleResult:
 
     # The same on the facade lines (their 3x3 blocks, cameras fixed).
     for _ in range(opts.height_initialisation_steps if lines is not None else 0):
-        lines.linearise(S, st, _scratch_camera_block(S), np.zeros(S.n_red))
+        scratch = camera_block.empty(S.n_red, S.sparse_camera)
+        lines.linearise(S, st, scratch, np.zeros(S.n_red))
         trial = st.copy()
         trial.lines = st.lines + lines.step(np.zeros(S.n_red), 0.0)
         r_t, _, _ = evaluate(S, trial, jac=False)
@@ -381,12 +382,6 @@ def _solve(problem: BundleProblem, opts: BundleOptions) -> BundleResult:
 #: Solves again with the facade lines' end positions moved to where the
 #: solved rays meet them (:meth:`FacadeLineRows.reanchor`).
 _REANCHOR_PASSES = 2
-
-
-def _scratch_camera_block(S: Setup):
-    """A camera block to linearise into and throw away."""
-    n = S.n_red + 1
-    return camera_block.SparseTerms(S.n_red) if S.sparse_camera else np.zeros((n, n))
 
 
 def _levenberg_marquardt(

@@ -42,11 +42,7 @@ class TieRows(EliminatedBlocks):
     def evaluate(self, S: Setup, st: State, jac: bool):
         """(O, 2) residuals (px) and, if jac, the (O, 2, L) camera and (O, 2, 3)
         point Jacobians."""
-        n_obs = len(self.img)
-        r = np.empty((n_obs, 2))
-        Jc = np.zeros((n_obs, 2, S.L)) if jac else None
-        Jp = np.empty((n_obs, 2, 3)) if jac else None
-        Rk = st.R.transpose(1, 2, 0)
+        r, Jc, Jp, Rk = self.outputs(S, st, jac)
         for g in self.groups:
             a, b = g.start, g.end
             img = self.img[a:b]

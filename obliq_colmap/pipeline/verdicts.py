@@ -94,6 +94,11 @@ def leave_out_rejected(
     )
 
 
+def _add_note(outcome: ImageOutcome, note: str) -> None:
+    """Append ``note`` to the image's message (its status stays)."""
+    outcome.message = f"{outcome.message}; {note}" if outcome.message else note
+
+
 def warn_imprecise(
     state: BlockState,
     stage3: Stage3 | None,
@@ -119,12 +124,11 @@ def warn_imprecise(
     )
     weak = sorted(i for i in state.poses if precision.get(i, math.nan) > max_sd_px)
     for i in undetermined:
-        o = outcomes[i]
-        note = (
+        _add_note(
+            outcomes[i],
             "written with a warning: the bundle cannot state its precision (its"
-            " pose's covariance is not positive), so it may be more than 2 px off"
+            " pose's covariance is not positive), so it may be more than 2 px off",
         )
-        o.message = f"{o.message}; {note}" if o.message else note
     if undetermined:
         logger.warning(
             "%d of %d written images have no precision from the bundle (they may"
@@ -134,13 +138,12 @@ def warn_imprecise(
             ", ".join(outcomes[i].name for i in undetermined),
         )
     for i in weak:
-        o = outcomes[i]
-        note = (
+        _add_note(
+            outcomes[i],
             f"written with a warning: the bundle predicts its projections to"
             f" {precision[i]:.2f} px (sd; above {max_sd_px:g} px),"
-            " so it may be more than 2 px off"
+            " so it may be more than 2 px off",
         )
-        o.message = f"{o.message}; {note}" if o.message else note
     if weak:
         sd = [precision[i] for i in weak]
         logger.warning(
@@ -172,13 +175,12 @@ def warn_vp_disagreement(
         return []
     named = sorted(i for i in state.poses if i in stage3.vp_rejected)
     for i in named:
-        o = outcomes[i]
-        note = (
+        _add_note(
+            outcomes[i],
             "written with a warning: its vertical vanishing point and its solved"
             f" pose disagree by {stage3.vp_rejected[i]:.2f} deg (rejected against"
-            " the block), so one of them is wrong and it may be more than 2 px off"
+            " the block), so one of them is wrong and it may be more than 2 px off",
         )
-        o.message = f"{o.message}; {note}" if o.message else note
     if named:
         logger.warning(
             "%d written images disagree with their own vertical vanishing point"

@@ -308,8 +308,8 @@ def make_synthetic_problem(
         h_lv.append(sel[m])
         h_line.append(lines_through(p1[m], p2[m]))
         if end_noise_px:
-            pa, ia = project(k, lv_a[sel][m])
-            pb, ib = project(k, lv_b[sel][m])
+            pa, _ = project(k, lv_a[sel][m])  # clipping ignored
+            pb, _ = project(k, lv_b[sel][m])
             h_ends.append(np.stack([pa, pb], axis=1))
         else:
             h_ends.append(np.stack([p1[m], p2[m]], axis=1))
