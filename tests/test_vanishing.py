@@ -620,7 +620,7 @@ def test_orthogonal_partner_picks_the_vertical_over_a_bigger_strip_pencil():
         # Within 4 predicted sigmas of the verticals alone (0.25 px noise).
         err = direction_error_deg(res.vp, vp)
         assert err < 4 * res.direction_std_deg, (err, res.direction_std_deg)
-        # Significance alone takes the false pencil.
+        # Significance alone takes the false pencil (or a pencil near it).
         plain = estimate_vertical_vp(
             segs,
             (W, H),
@@ -628,7 +628,7 @@ def test_orthogonal_partner_picks_the_vertical_over_a_bigger_strip_pencil():
             CAMERA,
             VPPrior.aerial(),
         )
-        assert direction_error_deg(plain.vp, false) < 2.0
+        assert direction_error_deg(plain.vp, vp) > 20.0
 
 
 # --------------------------------------------------------------------------
@@ -1016,3 +1016,68 @@ def test_without_a_cone_the_longest_start_stands_among_nearby_vps():
     assert _choose(pair, lengths, VPPrior.aerial(), CAMERA.K, 2.0) is second
     ins = VPPrior(kind="ins", down_cam=down, cone_deg=6.0)
     assert _choose(pair, lengths, ins, CAMERA.K, 2.0) is first
+
+
+def test_pieces_of_one_line_count_once():
+    """Pieces of one image line (a dashed centre line, a curb behind cars)
+    are one line for the VP they point at (issue 25, class a: houses-102's
+    streets outvoted its short house corners, 272 pieces on 124 lines against
+    160 on 143)."""
+    from obliq_colmap.vanishing.collinear import distinct_lines, line_length
+
+    rng = np.random.default_rng(3)
+    # One line in 12 pieces, and 5 separate segments.
+    t = np.linspace(0, 1, 25)[:-1].reshape(12, 2)
+    a, b = np.array([100.0, 20.0]), np.array([140.0, 460.0])
+    pieces = a + t[..., None] * (b - a)
+    others = rng.uniform(0, 400, (5, 2, 2))
+    ends = np.concatenate([pieces + rng.normal(0, 0.1, pieces.shape), others])
+    lengths = np.linalg.norm(ends[:, 1] - ends[:, 0], axis=1)
+    total = line_length(ends, 1.0)
+    np.testing.assert_allclose(total[:12], lengths[:12].sum())
+    np.testing.assert_allclose(total[12:], lengths[12:])
+    v = np.cross(np.append(a, 1.0), np.append(b, 1.0))  # some point ...
+    v = np.cross(v, [1.0, 0.0, -120.0])  # ... on the line: x = 120
+    assert distinct_lines(ends[:12], v, 1.0) == 1
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_a_street_in_pieces_does_not_outvote_short_verticals(seed):
+    """30 short verticals (15-25 px) through the true VP; three lines of a
+    street (curbs behind cars, a centre line: pieces of 20 px, 5 px apart)
+    through a wrong VP 10 deg away, both inside the INS cone. Counted by
+    pieces the street has 54 segments of 20 px to the buildings' 30 of
+    15-25; counted by lines, 3 to 30 (before: 10.9-13.7 deg off in all three
+    draws)."""
+    rng = np.random.default_rng(seed)
+    R = rotation_from_axis_angle(np.radians(-45.0) * np.array([1.0, 0.0, 0.0]))
+    down = R @ np.array([0.0, 0.0, -1.0])
+    vp = CAMERA.K @ down
+    turn = rotation_from_axis_angle(np.radians(10.0) * np.array([0.0, 0.0, 1.0]))
+    wrong = CAMERA.K @ (turn @ down)
+    ends = []
+    for _ in range(30):
+        q = rng.uniform([20, 40], [W - 20, H - 40])
+        half = 0.5 * rng.uniform(15, 25)
+        e = [
+            [point_on_line_at_y(vp, q, q[1] - half), q[1] - half],
+            [point_on_line_at_y(vp, q, q[1] + half), q[1] + half],
+        ]
+        ends.append(np.array(e) + rng.normal(0, 0.1, (2, 2)))
+    for x in (250.0, 262.0, 274.0):
+        for y in np.arange(10.0, H - 30.0, 25.0):
+            q = np.array([x, y])
+            e = [
+                [point_on_line_at_y(wrong, q, y), y],
+                [point_on_line_at_y(wrong, q, y + 20.0), y + 20.0],
+            ]
+            ends.append(np.array(e) + rng.normal(0, 0.1, (2, 2)))
+    ends = np.array(ends)
+    segs = Segments(ends, np.tile([1.0, 0.0], (len(ends), 1)), np.ones(len(ends)))
+    prior = VPPrior.from_rotation(R, 15.0)
+    res = estimate_vertical_vp(
+        segs, (W, H), VanishingOptions(min_length_px=8.0, seed=1), CAMERA, prior
+    )
+    assert res.status == "ok", res.message
+    assert direction_error_deg(res.vp, vp) < 0.5
+    assert res.inliers[30:].mean() < 0.1

@@ -20,6 +20,7 @@ from obliq_colmap.lines import (
     equalize_local_contrast,
     gradients,
 )
+from obliq_colmap.vanishing.collinear import line_length
 from obliq_colmap.vanishing.options import VanishingOptions, VanishingResult, VPPrior
 from obliq_colmap.vanishing.pencil import (
     canonical_sign,
@@ -101,7 +102,11 @@ def estimate_vertical_vp(
     lines_n /= np.linalg.norm(lines_n, axis=1, keepdims=True)
     length = segments.lengths[idx]
     prior_ok = PriorTest(prior, W, H, T, K)
-    weight = length**options.score_length_power
+    # Pieces of one image line share the weight the whole line would have
+    # as one segment (:mod:`.collinear`): length**power for the line, split
+    # among its pieces by their lengths.
+    line = line_length(ends_n, thr_n) * s
+    weight = length * line ** (options.score_length_power - 1.0)
     v, inl, n_hyp = ransac_vp(
         lines_n, mid_n, half_n, weight, thr_n, prior_ok, options, rng
     )
@@ -167,7 +172,8 @@ def _set_vp(result, v_n, cov_n, T, K, Knom, prior) -> None:
     nv = np.linalg.norm(v)
     J = (np.eye(3) - np.outer(v, v) / nv**2) / nv @ Tinv
     v = v / nv
-    cov = J @ cov_n @ J.T
+    # Fewer than three inliers leave the VP unconstrained (cov_n infinite).
+    cov = J @ cov_n @ J.T if np.isfinite(cov_n).all() else np.full((3, 3), np.inf)
     flip = canonical_sign(v)
     result.vp = flip
     result.covariance = cov

@@ -268,6 +268,8 @@ def vertical_direction(
 
 def direction_std_deg(vp: np.ndarray, cov: np.ndarray, K: np.ndarray) -> float:
     """1-sigma angle (deg) of normalise(K^-1 vp) from the covariance of vp."""
+    if not np.isfinite(cov).all():
+        return np.inf
     Kinv = np.linalg.inv(K)
     m = Kinv @ vp
     nm = np.linalg.norm(m)

@@ -8,6 +8,7 @@ from scipy.special import pdtrc
 
 from obliq_colmap.geometry import cross, tangent_basis
 from obliq_colmap.lines import Segments
+from obliq_colmap.vanishing.collinear import distinct_lines
 from obliq_colmap.vanishing.options import VanishingOptions, VPPrior
 from obliq_colmap.vanishing.pencil import (
     canonical_sign,
@@ -247,7 +248,8 @@ def significance_test(
     # The classes are nested: one scatter for the first, masks for the others.
     sel = segments.lengths >= options.min_length_px * factor
     L1 = segments.lengths[sel]
-    S_sig = endpoint_scatter(segments.endpoints[sel] @ T[:2, :2].T + T[:2, 2])
+    E1 = segments.endpoints[sel] @ T[:2, :2].T + T[:2, 2]
+    S_sig = endpoint_scatter(E1)
     classes = [
         m
         for m in (mult * options.min_length_px * factor <= L1 for mult in (1, 2, 4))
@@ -270,7 +272,10 @@ def significance_test(
         for f, p in zip(precisions, p_chance, strict=True):
             consistent = rms <= f * thr_n
             for m in classes:
-                k = np.count_nonzero(consistent[:, m], axis=1)
+                # Distinct lines, not pieces (:mod:`.collinear`).
+                k = np.array(
+                    [distinct_lines(E1[c & m], v, f * thr_n) for c, v in zip(consistent, V)]
+                )
                 best = np.maximum(best, significance(k, p[m], n_tests))
         return best
 
