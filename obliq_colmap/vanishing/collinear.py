@@ -25,7 +25,14 @@ def line_length(ends: np.ndarray, tol: float) -> np.ndarray:
 
     Two segments are on one line when the total-least-squares line of their
     four endpoints passes within ``tol`` of each, whatever the gap between
-    them.
+    them: far apart, when each one's direction agrees with the line joining
+    them to within its own precision (``tol`` over half its length), i.e.
+    as far as the two segments can tell they are one line. Rows of street
+    trees, parked cars, curbs and dashes along a street are such lines;
+    verticals through one VP are not, except where they share a line of its
+    pencil (a facade's column of window jambs). Pairs, not chains: the sum
+    counts the length lying along each segment's own line. O(S^2) in
+    chunks (about 0.1 s for 1,400 segments).
 
     Parameters
     ----------

@@ -144,7 +144,8 @@ def refine_with_competitors(
         # candidate with a significant orthogonal partner goes before any
         # without one.
         partner = np.where(ortho, np.maximum(sig, 0.0)[None, :], 0.0).max(axis=1)
-        score = np.where(allowed, sig + partner, -np.inf)
+        score = np.full(len(vps), -np.inf)
+        score[allowed] = sig[allowed] + partner[allowed]
         paired = allowed & (partner >= options.ok_min_significance)
         if paired.any():
             score = np.where(paired, score, -np.inf)
