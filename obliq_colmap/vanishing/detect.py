@@ -102,11 +102,13 @@ def estimate_vertical_vp(
     lines_n /= np.linalg.norm(lines_n, axis=1, keepdims=True)
     length = segments.lengths[idx]
     prior_ok = PriorTest(prior, W, H, T, K)
-    # Pieces of one image line share the weight the whole line would have
-    # as one segment (:mod:`.collinear`): length**power for the line, split
-    # among its pieces by their lengths.
-    line = line_length(ends_n, thr_n) * s
-    weight = length * line ** (options.score_length_power - 1.0)
+    weight = length**options.score_length_power
+    if options.line_weights:
+        # Pieces of one image line share the weight the whole line would
+        # have as one segment (:mod:`.collinear`): length**power for the
+        # line, split among its pieces by their lengths.
+        line = line_length(ends_n, thr_n) * s
+        weight = length * line ** (options.score_length_power - 1.0)
     v, inl, n_hyp = ransac_vp(
         lines_n, mid_n, half_n, weight, thr_n, prior_ok, options, rng
     )

@@ -274,7 +274,10 @@ def significance_test(
             for m in classes:
                 # Distinct lines, not pieces (:mod:`.collinear`).
                 k = np.array(
-                    [distinct_lines(E1[c & m], v, f * thr_n) for c, v in zip(consistent, V)]
+                    [
+                        distinct_lines(E1[c & m], v, f * thr_n)
+                        for c, v in zip(consistent, V, strict=True)
+                    ]
                 )
                 best = np.maximum(best, significance(k, p[m], n_tests))
         return best
