@@ -47,8 +47,10 @@ vertical direction ``n = +-normalise(K^-1 v)`` is oriented down the world:
 ``n_y > 0`` (docs/DESIGN.md, conventions).
 
 Significance: the best hypothesis is judged a contrario: the number of
-segments consistent with it is compared with the number expected if the
-segment orientations were random (Poisson tail, times the number of
+distinct lines through it that its consistent segments lie on (pieces of one
+line, a dashed centre line or a curb behind parked cars, count once:
+:mod:`~obliq_colmap.vanishing.collinear`) is compared with the number expected
+if the segment orientations were random (Poisson tail, times the number of
 hypotheses RANSAC may test), in three length classes (the best counts, the
 number of tests tripled). An image without vertical structure (water,
 fields, sky, noise) gives a "no_vp" result instead of a confident wrong VP.

@@ -185,11 +185,10 @@ class VanishingOptions:
     score_length_power: float = 0.5
     #: RANSAC: pieces of one image line share the weight the whole line has
     #: as one segment (:func:`~obliq_colmap.vanishing.collinear.line_length`).
-    #: Off: on the external scenes it takes a street seen along the heading
-    #: out of the vertical pencil (houses-102 15 -> 31 / 36 below 2 px), on
-    #: our generator's houses and dense classes it loses images (houses s1
-    #: 35 -> 23 / 36): the pairwise test calls far-apart short segments one
-    #: line (docs/journal/independent-scenes.md, 2026-12-05 21:49).
+    #: Off: it takes a street seen along the heading out of the vertical
+    #: pencil on the external renderer's houses, but loses images on our
+    #: generator's houses and dense classes for a cause not yet found
+    #: (docs/journal/independent-scenes.md, "pieces of one image line").
     line_weights: bool = False
     #: RANSAC: hypotheses per batch, least and most hypotheses, confidence.
     batch_size: int = 512

@@ -222,8 +222,9 @@ def significance_test(
     (P,) significance of each of (P, 3) VPs (normalised).
     """
     # Background model: every segment has a uniform orientation (deviation
-    # from the line to the VP uniform in [0, pi/2]); k counts those consistent
-    # with the VP, whichever VP they were assigned to. The prior only limits
+    # from the line to the VP uniform in [0, pi/2]); k counts the distinct
+    # lines through the VP that the segments consistent with it lie on,
+    # whichever VP they were assigned to (random segments rarely share one). The prior only limits
     # where hypotheses may lie (fewer tests); using the candidates' narrow
     # orientation band as the chance range would make a strong pencil of 400
     # verticals look like chance under a tight INS cone. The test is made in
