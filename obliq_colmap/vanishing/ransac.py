@@ -225,9 +225,9 @@ def significance_test(
     # from the line to the VP uniform in [0, pi/2]); k counts the distinct
     # lines through the VP that the segments consistent with it lie on,
     # whichever VP they were assigned to (random segments rarely share one).
-    # The prior only limits where hypotheses may lie (fewer tests); using the candidates' narrow
-    # orientation band as the chance range would make a strong pencil of 400
-    # verticals look like chance under a tight INS cone. The test is made in
+    # The prior only limits where hypotheses may lie (fewer tests); using the
+    # candidates' narrow orientation band as the chance range would make a
+    # strong pencil of 400 verticals look like chance under a tight INS cone. The test is made in
     # three length classes (at least 1, 2 and 4 times min_length_px), the
     # best one counting, with the number of tests multiplied by 3: a pencil of
     # many short segments and one of a few long ones in a textured image
