@@ -221,25 +221,23 @@ def significance_test(
     threshold in pixels / normalised units. Returns ``significance_of(V)``:
     (P,) significance of each of (P, 3) VPs (normalised).
     """
-    # Background model: every segment has a uniform orientation (deviation
-    # from the line to the VP uniform in [0, pi/2]); k counts the distinct
-    # lines through the VP that the segments consistent with it lie on,
-    # whichever VP they were assigned to (random segments rarely share one).
-    # The prior only limits where hypotheses may lie (fewer tests); using the
-    # candidates' narrow orientation band as the chance range would make a
-    # strong pencil of 400 verticals look like chance under a tight INS cone. The test is made in
-    # three length classes (at least 1, 2 and 4 times min_length_px), the
-    # best one counting, with the number of tests multiplied by 3: a pencil of
-    # many short segments and one of a few long ones in a textured image
-    # (where hundreds of short segments make any VP look like chance) are
-    # both recognised. Number of tests: the hypotheses RANSAC may examine
-    # (fixed a priori by max_trials), not all pairs of segments.
-    # Precisions: a pencil of short clean edges among many short clutter
-    # segments (low industrial halls among trees and cars) is chance at the
-    # RANSAC threshold (a 12 px segment meets it with probability 0.1 at any
-    # VP) and plain at a quarter of it; the test is made at each precision
-    # too, the best counting, the tests multiplied by their number (the a
-    # contrario multi-precision test of LSD).
+    # Background model: every segment has a uniform orientation (deviation from the line
+    # to the VP uniform in [0, pi/2]); k counts the distinct lines through the VP that
+    # the segments consistent with it lie on, whichever VP they were assigned to (random
+    # segments rarely share one). The prior only limits where hypotheses may lie (fewer
+    # tests); using the candidates' narrow orientation band as the chance range would
+    # make a strong pencil of 400 verticals look like chance under a tight INS cone. The
+    # test is made in three length classes (at least 1, 2 and 4 times min_length_px),
+    # the best one counting, with the number of tests multiplied by 3: a pencil of many
+    # short segments and one of a few long ones in a textured image (where hundreds of
+    # short segments make any VP look like chance) are both recognised. Number of tests:
+    # the hypotheses RANSAC may examine (fixed a priori by max_trials), not all pairs of
+    # segments.
+    # Precisions: a pencil of short clean edges among many short clutter segments (low
+    # industrial halls among trees and cars) is chance at the RANSAC threshold (a 12 px
+    # segment meets it with probability 0.1 at any VP) and plain at a quarter of it; the
+    # test is made at each precision too, the best counting, the tests multiplied by
+    # their number (the a contrario multi-precision test of LSD).
     precisions = tuple(options.significance_precisions) or (1.0,)
     n_tests = (
         3
