@@ -1080,3 +1080,28 @@ def test_a_street_in_pieces_does_not_outvote_short_verticals(seed):
     assert res.status == "ok", res.message
     assert direction_error_deg(res.vp, vp) < 0.5
     assert res.inliers[30:].mean() < 0.1
+
+
+@pytest.mark.parametrize("flag, expected", [("0", False), ("1", True)])
+def test_register_passes_vp_line_weights(tmp_path, monkeypatch, flag, expected):
+    import obliq_colmap.cli.register as register_cli
+
+    class Stop(Exception):
+        pass
+
+    seen = {}
+
+    def fake_run(image_path, cadastre_path, input_path, options):
+        seen["options"] = options
+        raise Stop
+
+    monkeypatch.setattr(register_cli, "run_register", fake_run)
+    from pathlib import Path
+
+    sample = Path(__file__).resolve().parents[1] / "data_samples" / "oblique_small"
+    args = ["register", "--image_path", f"{sample}/images"]
+    args += ["--cadastre_path", f"{sample}/cadastre.geojson"]
+    args += ["--input_path", f"{sample}/priors", "--output_path", str(tmp_path / "o")]
+    with pytest.raises(Stop):
+        main([*args, "--vp_line_weights", flag])
+    assert seen["options"].vanishing.line_weights is expected

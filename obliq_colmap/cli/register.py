@@ -189,6 +189,18 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="ground height under the images in the priors' vertical datum, m "
         "(default: estimated per image)",
     )
+    vanishing = parser.add_argument_group("Vanishing point")
+    vanishing.add_argument(
+        "--vp_line_weights",
+        type=_bool01,
+        default=int(PipelineOptions().vanishing.line_weights),
+        metavar="{0,1}",
+        help="stage 1's RANSAC gives the pieces of one image line (a dashed "
+        "centre line, a curb behind parked cars) one line's weight between "
+        "them: streets seen along the heading no longer pull the vertical VP "
+        "(better on suburban scenes of an external renderer, worse on some of "
+        "our own; docs/STATUS.md) (default %(default)s)",
+    )
     bundle = parser.add_argument_group("Bundle")
     bdefaults = AdjustmentOptions().bundle
     bundle.add_argument(
@@ -355,6 +367,10 @@ def run(args: argparse.Namespace) -> int:
             overlay_path=Path(args.overlay_path) if args.overlay_path else None,
             progress=not args.no_progress,
             head_focal_min_images=head_focal,
+            vanishing=dataclasses.replace(
+                PipelineOptions().vanishing,
+                line_weights=bool(args.vp_line_weights),
+            ),
             refine_segments=RefineOptions() if args.refine_facade_segments else None,
             registration=RegistrationOptions(
                 prior_position_sigma_m=args.prior_position_sigma,
