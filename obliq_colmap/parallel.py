@@ -15,8 +15,10 @@ from __future__ import annotations
 import hashlib
 import os
 import signal
-from collections.abc import Callable, Sequence
+import threading
+from collections.abc import Callable, Iterator, Sequence
 from concurrent.futures import ProcessPoolExecutor
+from contextlib import contextmanager
 from multiprocessing import get_context
 from typing import Any
 
@@ -42,14 +44,34 @@ def image_seed(name: str, seed: int = 0) -> int:
 def _start_worker(initializer: Callable | None, initargs: tuple) -> None:
     # Ctrl-C reaches the whole process group; the calling process answers it
     # (it cancels what has not started and joins the workers), so a worker
-    # ignores it instead of printing its own traceback.
+    # ignores it instead of printing its own traceback. It was started with
+    # SIGINT blocked (:func:`_sigint_blocked`): one that came while it was
+    # still importing is pending, and ignoring it before unblocking drops it.
     signal.signal(signal.SIGINT, signal.SIG_IGN)
+    signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT})
     limit_threads()
     if initializer is not None:
         initializer(*initargs)
 
 
-#: The worker's thread limits, kept alive for the process's life.
+@contextmanager
+def _sigint_blocked() -> Iterator[None]:
+    """SIGINT held back in the calling thread while workers are spawned.
+
+    A spawned worker inherits the signal mask, so a Ctrl-C that arrives while
+    it imports (before :func:`_start_worker` runs) waits instead of raising a
+    KeyboardInterrupt with a traceback in it; the calling process gets its
+    own pending Ctrl-C when the block ends. Only the main thread receives
+    SIGINT, so elsewhere nothing is blocked.
+    """
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    old = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
+    try:
+        yield
+    finally:
+        signal.pthread_sigmask(signal.SIG_SETMASK, old)
 
 
 class WorkerPool:
@@ -120,7 +142,9 @@ class WorkerPool:
                     out.append(fn(item))
                     bar.update()
                 return out
-            futures = [self.pool.submit(fn, item) for item in items]
+            # ProcessPoolExecutor spawns its workers as items are submitted.
+            with _sigint_blocked():
+                futures = [self.pool.submit(fn, item) for item in items]
             for f in futures:
                 f.add_done_callback(lambda _: bar.update())
             return [f.result() for f in futures]
