@@ -1,61 +1,26 @@
-"""The bundle block adjustment of the second workflow (MetropoGIS 3.5).
+"""The block adjustment in Ceres (``BlockAdjustmentOptions.solver="ceres"``):
+the check of the project's solver on the same problem.
 
-After the similarity, the whole block is adjusted at once: the SfM tracks as
-reprojection residuals through pycolmap's camera models (the model's own
-points and observations, pycolmap's Ceres bundle adjuster), the control
-points as observed 3D points (a prior on each coordinate weighted by its
-stated accuracy; a 2D point's height is free) AND through their image
-observations (they are tracks of the model), and each image's vertical
-vanishing point as an observation of its camera's vertical (two rows: the
-world's down as the camera sees it against stage 1's direction, weighted by
-its sd). The principal point and the distortion are refined: an SfM model's
-lens is what limits the similarity alone (Herz-Jesu: the principal point
-8-9 px off moved the cameras ~9 cm). The focal length is held by default:
-with two or three control points it trades against the cameras' distance
-(an SfM-like paper block: centres 0.33 m -> 2.1 m with it refined, 0.50 m
-without; Herz-Jesu 0.031 -> 0.024 m).
-
-The prior and the vertical rows are few (one per control point, one per
-image) and are Python cost functions; the tracks, by far the most rows, are
-pycolmap's C++ costs. The solve is ``pyceres.solve``, which releases the GIL.
+pycolmap's Ceres bundle adjuster on the model itself (the SfM tracks, C++
+reprojection costs through its camera models, Cauchy loss), plus the few
+rows it lacks as pyceres Python cost functions: a prior on each control
+point's coordinates and each image's vertical VP. ``pyceres.solve``
+releases the GIL.
 """
 
 from __future__ import annotations
 
 import logging
-from dataclasses import dataclass
 
 import numpy as np
 import pyceres
 import pycolmap
 
+from obliq_colmap.geometry import calibration_matrix, tangent_basis
+
+from .block import BlockAdjustmentOptions, BlockAdjustmentSummary, VerticalRow
+
 logger = logging.getLogger(__name__)
-
-
-@dataclass(kw_only=True)
-class BlockAdjustmentOptions:
-    """What the block adjustment refines and how it weighs the tracks."""
-
-    refine_focal_length: bool = False  # see the module docstring
-    refine_principal_point: bool = True
-    refine_extra_params: bool = True
-    #: robust loss of the track residuals (Cauchy), pixels
-    loss_scale_px: float = 1.0
-    #: floor of a VP's sd, degrees (stage 1's formal sd can be tiny)
-    min_vertical_sd_deg: float = 0.02
-    max_num_iterations: int = 100
-
-
-@dataclass
-class BlockAdjustmentSummary:
-    """What one adjustment did."""
-
-    initial_cost: float
-    final_cost: float
-    iterations: int
-    num_control_rows: int
-    num_vertical_rows: int
-    termination: str
 
 
 class PointPrior(pyceres.CostFunction):
@@ -90,52 +55,62 @@ def _rotation(q: np.ndarray) -> np.ndarray:
 
 
 class VerticalObservation(pyceres.CostFunction):
-    """The world's down as the camera sees it, ``R (0, 0, -1)``, against the
-    observed direction d (unit, camera frame): its two components across d
-    (in radians for small angles) over the sd. On the 7-vector pose block
-    ``[qx qy qz qw tx ty tz]`` of pycolmap (rig = camera)."""
+    """The world's down as the camera sees it, ``d = R (0, 0, -1)``, against
+    the VP's direction ``m = +-normalise(K^-1 v)`` through the camera's
+    current pinhole part: ``T (m x d) / sd`` (2 rows; T a tangent basis at
+    the start's direction), as the project's
+    :class:`~obliq_colmap.bundle.priors.VanishingPointObservation` with an
+    isotropic covariance. On pycolmap's pose block ``[qx qy qz qw tx ty tz]``
+    (rig = camera) and the camera's parameter block."""
 
-    def __init__(self, direction: np.ndarray, sd_rad: float) -> None:
+    def __init__(self, row: VerticalRow, model: str, params: np.ndarray) -> None:
         super().__init__()
-        d = np.asarray(direction, float)
-        self.d = d / np.linalg.norm(d)
-        a = np.cross(self.d, [1.0, 0, 0] if abs(self.d[0]) < 0.9 else [0, 1.0, 0])
-        a /= np.linalg.norm(a)
-        self.basis = np.stack([a, np.cross(self.d, a)]) / sd_rad  # (2, 3)
+        self.v, self.model = row.vp, model
+        self.T = tangent_basis(self._direction(params)).T / row.sd_rad  # (2, 3)
         self.set_num_residuals(2)
-        self.set_parameter_block_sizes([7])
+        self.set_parameter_block_sizes([7, len(params)])
 
-    def _r(self, q: np.ndarray) -> np.ndarray:
-        return self.basis @ (_rotation(q) @ np.array([0.0, 0.0, -1.0]))
+    def _direction(self, params: np.ndarray) -> np.ndarray:
+        u = np.linalg.solve(calibration_matrix(self.model, params), self.v)
+        return u / np.linalg.norm(u)
+
+    def _r(self, q: np.ndarray, params: np.ndarray) -> np.ndarray:
+        d = _rotation(q) @ np.array([0.0, 0.0, -1.0])
+        m = self._direction(params)
+        return self.T @ np.cross(m if m @ d >= 0 else -m, d)
 
     def Evaluate(self, parameters, residuals, jacobians):  # noqa: N802 - Ceres' name
-        p = np.asarray(parameters[0], float)
-        residuals[:] = self._r(p[:4])
-        if jacobians is not None and jacobians[0] is not None:
+        q = np.asarray(parameters[0], float)[:4]
+        params = np.asarray(parameters[1], float)
+        residuals[:] = self._r(q, params)
+        if jacobians is None:
+            return True
+        # central differences: two rows per image, a few per solve
+        if jacobians[0] is not None:
             J = np.zeros((2, 7))
-            h = 1e-7
             for k in range(4):
                 e = np.zeros(4)
-                e[k] = h
-                J[:, k] = (self._r(p[:4] + e) - self._r(p[:4] - e)) / (2 * h)
+                e[k] = 1e-7
+                J[:, k] = (self._r(q + e, params) - self._r(q - e, params)) / 2e-7
             jacobians[0][:] = J.ravel()
+        if jacobians[1] is not None:
+            J = np.zeros((2, len(params)))
+            for k in range(len(params)):
+                h = 1e-6 * max(1.0, abs(params[k]))
+                e = np.zeros(len(params))
+                e[k] = h
+                J[:, k] = (self._r(q, params + e) - self._r(q, params - e)) / (2 * h)
+            jacobians[1][:] = J.ravel()
         return True
 
 
-def adjust_block(
+def adjust_block_ceres(
     rec: pycolmap.Reconstruction,
     control_point_ids: dict[int, tuple[np.ndarray, np.ndarray]],
-    verticals: dict[int, tuple[np.ndarray, float]],
-    options: BlockAdjustmentOptions | None = None,
+    verticals: dict[int, VerticalRow],
+    options: BlockAdjustmentOptions,
 ) -> BlockAdjustmentSummary:
-    """Adjust ``rec`` in place.
-
-    control_point_ids : point3D_id -> ((3,) given position in rec's frame,
-        (3,) sigmas in m, inf for a free axis).
-    verticals : image_id -> ((3,) observed down direction in the camera
-        frame, its sd in deg).
-    """
-    options = options or BlockAdjustmentOptions()
+    """:func:`~obliq_colmap.georegister.block.adjust_block` in Ceres."""
     ba = pycolmap.BundleAdjustmentOptions()
     ba.refine_focal_length = options.refine_focal_length
     ba.refine_principal_point = options.refine_principal_point
@@ -154,24 +129,25 @@ def adjust_block(
             problem.add_residual_block(PointPrior(given, sigma), None, [xyz])
             n_ctrl += 1
     n_vert = 0
-    floor = np.radians(options.min_vertical_sd_deg)
-    for image_id, (down, sd_deg) in verticals.items():
-        frame = rec.frame(rec.images[image_id].frame_id)
-        pose = frame.rig_from_world.params
+    for image_id, row in verticals.items():
+        image = rec.images[image_id]
+        pose = rec.frame(image.frame_id).rig_from_world.params
+        params = rec.cameras[image.camera_id].params
         if not problem.has_parameter_block(pose):
             continue
-        sd = max(np.radians(sd_deg), floor)
-        problem.add_residual_block(VerticalObservation(down, sd), None, [pose])
+        cost = VerticalObservation(row, image.camera.model.name, np.array(params))
+        problem.add_residual_block(cost, None, [pose, params])
         n_vert += 1
     solver = pyceres.SolverOptions()
     solver.linear_solver_type = pyceres.LinearSolverType.SPARSE_SCHUR
     solver.max_num_iterations = options.max_num_iterations
+    solver.function_tolerance = options.function_tolerance
     solver.num_threads = 1
     summary = pyceres.SolverSummary()
     pyceres.solve(solver, problem, summary)
     logger.info(
-        "block adjustment: cost %.4g -> %.4g in %d iterations (%d control "
-        "points, %d verticals)",
+        "block adjustment (ceres): cost %.6g -> %.6g in %d iterations (%d "
+        "control points, %d verticals)",
         summary.initial_cost, summary.final_cost, summary.num_successful_steps,
         n_ctrl, n_vert,
     )  # fmt: skip
@@ -183,4 +159,5 @@ def adjust_block(
         num_control_rows=n_ctrl,
         num_vertical_rows=n_vert,
         termination=str(summary.termination_type),
+        solver="ceres",
     )

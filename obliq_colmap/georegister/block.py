@@ -1,0 +1,139 @@
+"""The bundle block adjustment of the second workflow (MetropoGIS 3.5).
+
+After the similarity, the whole block is adjusted at once: the SfM tracks as
+reprojection residuals through the model's camera models (Cauchy loss on
+each observation's 2D error), the control points as observed 3D points (a
+prior on each coordinate weighted by its stated accuracy; a 2D point's
+height is free) AND through their image observations (they are tracks of
+the model), and each image's vertical vanishing point as an observation of
+its camera's vertical (two rows: the world's down as the camera sees it
+against the VP's direction through the camera's CURRENT pinhole part, so
+that the VP moves with a refined principal point, weighted by its sd). The
+principal point and the distortion are refined: an SfM model's lens is what
+limits the similarity alone (Herz-Jesu: the principal point 8-9 px off moved
+the cameras ~9 cm). The focal length is held by default: with two or three
+control points it trades against the cameras' distance (an SfM-like paper
+block: centres 0.33 m -> 2.1 m with it refined, 0.50 m without; Herz-Jesu
+0.031 -> 0.024 m).
+
+Two solvers of the same problem (``BlockAdjustmentOptions.solver``):
+"obliq", the project's bundle (:mod:`obliq_colmap.bundle`: the tracks as
+tie points eliminated by their 3x3 blocks, the control points' coordinates
+as rows on those blocks; :mod:`.block_bundle`), the default; "ceres",
+pycolmap's Ceres adjuster with pyceres cost functions for the priors and
+the VPs (:mod:`.block_ceres`), kept as the check.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass
+
+import numpy as np
+import pycolmap
+
+#: ``BlockAdjustmentOptions.solver`` (``--block_solver``).
+BLOCK_SOLVERS = ("obliq", "ceres")
+
+
+@dataclass(kw_only=True)
+class BlockAdjustmentOptions:
+    """What the block adjustment refines, how it weighs the tracks and which
+    solver runs it."""
+
+    refine_focal_length: bool = False  # see the module docstring
+    refine_principal_point: bool = True
+    refine_extra_params: bool = True
+    #: robust loss of the track residuals (Cauchy), pixels
+    loss_scale_px: float = 1.0
+    #: floor of a VP's sd, degrees (stage 1's formal sd can be tiny)
+    min_vertical_sd_deg: float = 0.02
+    max_num_iterations: int = 100
+    #: stop when an accepted step lowers the cost by less than this fraction
+    #: (Ceres' default; both solvers)
+    function_tolerance: float = 1e-6
+    #: "obliq" (the project's bundle) or "ceres" (pycolmap + pyceres)
+    solver: str = "obliq"
+
+    def __post_init__(self) -> None:
+        if self.solver not in BLOCK_SOLVERS:
+            raise ValueError(
+                f"solver={self.solver!r}; allowed: {', '.join(BLOCK_SOLVERS)}"
+            )
+
+
+@dataclass
+class BlockAdjustmentSummary:
+    """What one adjustment did (costs are ``1/2 sum rho``, the same in both
+    solvers for the same state)."""
+
+    initial_cost: float
+    final_cost: float
+    iterations: int
+    num_control_rows: int
+    num_vertical_rows: int
+    termination: str
+    solver: str = "obliq"
+    #: wall time of the whole adjustment (problem built, solved, written back), s
+    time_s: float = math.nan
+
+
+@dataclass
+class VerticalRow:
+    """One image's vertical VP as the adjustment observes it.
+
+    vp : (3,) unit homogeneous VP in the camera's undistorted pixels (its
+        pinhole part at the start).
+    sd_rad : its sd as an angle (floored).
+    """
+
+    vp: np.ndarray
+    sd_rad: float
+
+
+def vertical_rows(
+    rec: pycolmap.Reconstruction,
+    verticals: dict[int, tuple[np.ndarray, float]],
+    min_sd_deg: float,
+) -> dict[int, VerticalRow]:
+    """Each image's observed down direction (camera frame, through its
+    camera's pinhole at the start) back to the VP pixel it was measured as:
+    ``v = K d``, the observation both solvers take through the current K."""
+    from obliq_colmap.geometry import calibration_matrix
+
+    rows = {}
+    for image_id, (down, sd_deg) in verticals.items():
+        if image_id not in rec.images or not rec.images[image_id].has_pose:
+            continue
+        cam = rec.images[image_id].camera
+        K = calibration_matrix(cam.model.name, np.asarray(cam.params, float))
+        v = K @ (np.asarray(down, float) / np.linalg.norm(down))
+        sd = math.radians(max(float(sd_deg), min_sd_deg))
+        rows[image_id] = VerticalRow(v / np.linalg.norm(v), sd)
+    return rows
+
+
+def adjust_block(
+    rec: pycolmap.Reconstruction,
+    control_point_ids: dict[int, tuple[np.ndarray, np.ndarray]],
+    verticals: dict[int, tuple[np.ndarray, float]],
+    options: BlockAdjustmentOptions | None = None,
+) -> BlockAdjustmentSummary:
+    """Adjust ``rec`` in place (every registered image, camera and point).
+
+    control_point_ids : point3D_id -> ((3,) given position in rec's frame,
+        (3,) sigmas in m, inf for a free axis).
+    verticals : image_id -> ((3,) observed down direction in the camera
+        frame, through the camera's pinhole at the start, its sd in deg).
+    """
+    options = options or BlockAdjustmentOptions()
+    t0 = time.perf_counter()
+    rows = vertical_rows(rec, verticals, options.min_vertical_sd_deg)
+    if options.solver == "ceres":
+        from .block_ceres import adjust_block_ceres as run
+    else:
+        from .block_bundle import adjust_block_bundle as run
+    summary = run(rec, control_point_ids, rows, options)
+    summary.time_s = time.perf_counter() - t0
+    return summary
