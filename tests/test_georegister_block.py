@@ -143,3 +143,35 @@ def test_the_project_solver_and_ceres_reach_the_same_optimum():
 def test_an_unknown_solver_is_refused():
     with pytest.raises(ValueError, match="solver"):
         BlockAdjustmentOptions(solver="lm")
+
+
+@pytest.mark.parametrize("flag, solver", [([], "obliq"), (["ceres"], "ceres")])
+def test_the_solver_flag_reaches_the_options(tmp_path, monkeypatch, flag, solver):
+    """``--block_adjustment_solver``: obliq by default, ceres when asked."""
+    import argparse
+
+    from obliq_colmap.cli import georegister as cli
+
+    seen = {}
+
+    def fake(input_path, image_path, options):
+        seen["options"] = options
+        raise SystemExit(0)  # stop before anything is read or written
+
+    monkeypatch.setattr(cli, "georegister", fake)
+    parser = argparse.ArgumentParser()
+    cli.add_arguments(parser)
+    argv = [
+        "--input_path",
+        str(tmp_path),
+        "--image_path",
+        str(tmp_path),
+        "--control_points_path",
+        "x.txt",
+        "--output_path",
+        str(tmp_path / "o"),
+    ]
+    argv += ["--block_adjustment_solver", *flag] if flag else []  # fmt: skip
+    with pytest.raises(SystemExit):
+        cli.run(parser.parse_args(argv))
+    assert seen["options"].block.solver == solver
