@@ -20,7 +20,9 @@ camera model):
   projected vertical;
 * tie points (optional, ``BundleProblem.tie_*``): features matched across
   the images, each a free 3D point, two reprojection rows per observation;
-  the points are eliminated by their 3x3 blocks (:mod:`.ties`).
+  the points are eliminated by their 3x3 blocks (:mod:`.ties`); a tie
+  point's coordinates may be observed too (``tie_prior_xyz``: control
+  points, rows on its own block).
 * facade lines (``BundleOptions.facade_lines``, off by default): each level
   facade track a horizontal 3D line (height, offset, direction) observed at
   both ends of every segment, eliminated by its 3x3 block

@@ -319,6 +319,8 @@ class VanishingPointObservation(PosePrior):
     def cost(self, st: State) -> float:
         z = self.errors(st)
         s = np.sum(z * z, axis=1)
+        if not np.isfinite(self.c2):  # no robust loss (inf * log1p(0) is NaN)
+            return 0.5 * float(np.sum(s))
         return 0.5 * float(np.sum(self.c2 * np.log1p(s / self.c2)))
 
     def jacobians(self, st: State):

@@ -114,6 +114,7 @@ class BundleOptions:
     vp_sigma_scale: float = 1.0
     #: Cauchy scale of the VP rows, in (scaled) standard deviations of the
     #: whitened 2-vector: a VP on a wrong pencil (degrees off) loses its pull.
+    #: ``math.inf``: no robust loss (plain least squares).
     vp_loss_scale: float = 3.0
     #: With ``vp_observations``: the VP rows enter the fit. False: they are
     #: only evaluated against the fit without them (``BundleResult.vp_loo``,
@@ -248,6 +249,12 @@ class BundleProblem:
         Image (index into ``image_ids``) and tie point of each observation.
     tie_xy : (O, 2) array, optional
         Observed pixel of each, RAW (distorted) pixels, COLMAP convention.
+    tie_prior_xyz, tie_prior_sigma : (T, 3) arrays, optional
+        Observed coordinates of tie points (control points of a survey) and
+        their standard deviations, metres: one row ``(X - X_given) /
+        sigma`` per finite sigma (inf: that axis free, e.g. a 2D control
+        point's height; its given value is then ignored and may be NaN).
+        None: no tie point observed.
     horizontal_ends : (H, 2, 2) array, optional
         The observed segment of each horizontal constraint, its two ends in
         RAW pixels (``BundleOptions.facade_lines``).
@@ -291,6 +298,8 @@ class BundleProblem:
     tie_image: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
     tie_point: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
     tie_xy: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))
+    tie_prior_xyz: np.ndarray | None = None
+    tie_prior_sigma: np.ndarray | None = None
     horizontal_ends: np.ndarray | None = None
     facade_direction: np.ndarray | None = None
     facade_offsets: np.ndarray | None = None
@@ -361,6 +370,7 @@ class BundleProblem:
         self.tie_image = _as(self.tie_image, (), "tie_image", np.int64)
         self.tie_point = _as(self.tie_point, (), "tie_point", np.int64)
         self.tie_xy = _as(self.tie_xy, (2,), "tie_xy")
+        self._check_tie_priors()
         nc, ni, nj = len(self.corner_xy), len(self.image_ids), len(self.facade_heights)
         checks = [
             ("corner_heights", len(self.corner_heights) == nc),
@@ -405,6 +415,22 @@ class BundleProblem:
         ):
             if len(lines) and np.any(np.linalg.norm(lines[:, :2], axis=1) == 0):
                 raise ValueError(f"{name} has lines with a = b = 0")
+
+    def _check_tie_priors(self) -> None:
+        if (self.tie_prior_xyz is None) != (self.tie_prior_sigma is None):
+            raise ValueError("tie_prior_xyz and tie_prior_sigma go together")
+        if self.tie_prior_xyz is None:
+            return
+        self.tie_prior_xyz = _as(self.tie_prior_xyz, (3,), "tie_prior_xyz")
+        self.tie_prior_sigma = _as(self.tie_prior_sigma, (3,), "tie_prior_sigma")
+        T = len(self.tie_xyz)
+        if len(self.tie_prior_xyz) != T or len(self.tie_prior_sigma) != T:
+            raise ValueError(f"tie_prior_xyz and tie_prior_sigma need {T} rows")
+        if not np.all(self.tie_prior_sigma > 0):
+            raise ValueError("tie_prior_sigma must be > 0 (inf: no row)")
+        rows = np.isfinite(self.tie_prior_sigma)
+        if not np.all(np.isfinite(self.tie_prior_xyz[rows])):
+            raise ValueError("tie_prior_xyz must be finite where its sigma is")
 
     def _check_facade_lines(self) -> None:
         J, H = len(self.facade_heights), len(self.horizontal_image)
@@ -452,6 +478,8 @@ class BundleProblem:
             tie_image=np.zeros(0, np.int64),
             tie_point=np.zeros(0, np.int64),
             tie_xy=np.zeros((0, 2)),
+            tie_prior_xyz=None,
+            tie_prior_sigma=None,
         )
 
 

@@ -7,6 +7,11 @@ observation's squared 2D error. The tie points tie the images to each other
 in 3D, where the map's rows tie each image to the map alone; across heads
 they are what holds each head's tilt, focal and height to the others'. The
 points are eliminated by their 3x3 blocks (:mod:`.blocks`).
+
+Tie points may be observed themselves (``BundleProblem.tie_prior_xyz``:
+control points of a survey, each axis at its stated sigma): those rows touch
+the point alone, so they join its 3x3 block (:func:`coordinate_prior`) and
+cost nothing in the reduced camera system.
 """
 
 from __future__ import annotations
@@ -18,7 +23,31 @@ from .blocks import EliminatedBlocks, write_intrinsics
 from .problem import BundleOptions, BundleProblem
 from .setup import Setup, State
 
-__all__ = ["TieRows"]
+__all__ = ["TieRows", "coordinate_prior"]
+
+
+def coordinate_prior(
+    xyz: np.ndarray, given: np.ndarray, weight: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, float]:
+    """Rows ``sqrt(w) (X - X_given)`` per axis on T points.
+
+    Parameters
+    ----------
+    xyz : (T, 3) current points, metres.
+    given : (T, 3) observed points (any finite value where the weight is 0).
+    weight : (T, 3) ``1 / sigma^2`` per axis, 0 for a free axis.
+
+    Returns
+    -------
+    H : (T, 3, 3) the rows' normal blocks ``J^T W J`` (diagonal: J = I).
+    g : (T, 3) their gradient ``J^T W r``.
+    cost : float, ``1/2 sum w (X - X_given)^2``.
+    """
+    d = xyz - given
+    g = weight * d
+    H = np.zeros((len(xyz), 3, 3))
+    H[:, [0, 1, 2], [0, 1, 2]] = weight
+    return H, g, 0.5 * float(np.sum(g * d))
 
 
 class TieRows(EliminatedBlocks):
@@ -38,6 +67,22 @@ class TieRows(EliminatedBlocks):
             opts.tie_loss_scale_px,
         )
         self.xy = np.ascontiguousarray(P.tie_xy[self.order].T)  # (2, O)
+        # the observed coordinates (weight 0 on a free axis or a free point)
+        self.prior_w = self.prior_xyz = None
+        if P.tie_prior_xyz is not None:
+            finite = np.isfinite(P.tie_prior_sigma)
+            self.prior_w = np.where(finite, 1.0 / P.tie_prior_sigma**2, 0.0)
+            self.prior_xyz = np.where(finite, P.tie_prior_xyz, 0.0)
+
+    def prior(self, st: State) -> tuple[np.ndarray, np.ndarray, float] | None:
+        """The observed coordinates' rows (:func:`coordinate_prior`)."""
+        if self.prior_w is None:
+            return None
+        return coordinate_prior(st.points, self.prior_xyz, self.prior_w)
+
+    @property
+    def n_prior_rows(self) -> int:
+        return 0 if self.prior_w is None else int(np.count_nonzero(self.prior_w))
 
     def evaluate(self, S: Setup, st: State, jac: bool):
         """(O, 2) residuals (px) and, if jac, the (O, 2, L) camera and (O, 2, 3)

@@ -22,6 +22,7 @@ from pathlib import Path
 from obliq_colmap.colmap_io import GEOREF_FILE
 from obliq_colmap.errors import InputError
 from obliq_colmap.files import AtomicFolder
+from obliq_colmap.georegister.block import BLOCK_SOLVERS, BlockAdjustmentOptions
 from obliq_colmap.georegister.options import (
     CAMERA_KINDS,
     GeoregisterOptions,
@@ -65,6 +66,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "refined (default 1)",
     )  # fmt: skip
     parser.add_argument(
+        "--block_adjustment_solver", choices=BLOCK_SOLVERS, default="obliq",
+        help="solver of the block adjustment: obliq (the project's bundle, "
+        "default) or ceres (pycolmap's Ceres adjuster, the check; same problem)",
+    )  # fmt: skip
+    parser.add_argument(
         "--add_missing_images", type=int, choices=(0, 1), default=0,
         help="images in --image_path that the model lacks: their rotation from "
         "vanishing points against a registered neighbour, their position from "
@@ -84,6 +90,7 @@ def run(args: argparse.Namespace) -> int:
         check_points=tuple(n for n in args.check_points.split(",") if n),
         crs=args.crs,
         block_adjustment=bool(args.block_adjustment),
+        block=BlockAdjustmentOptions(solver=args.block_adjustment_solver),
         add_missing_images=bool(args.add_missing_images),
         cadastre_path=_path(args.cadastre_path),
         control_points_path=_path(args.control_points_path),

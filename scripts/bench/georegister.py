@@ -31,7 +31,8 @@ for paper, on 2 shared cores)::
 
     python scripts/bench/georegister.py --work_path W [--scene paper street]
         [--mode gcp2 gcp3 auto reference3 oracle] [--sfm sfm_like pycolmap]
-        [--camera_kind scene|auto] [--block_adjustment 0|1] [--seed 1]
+        [--camera_kind scene|auto] [--block_adjustment 0|1]
+        [--block_adjustment_solver obliq|ceres] [--seed 1]
         [--paper_width 1002]
         [--output_path bench_georegister.json]
 
@@ -156,6 +157,7 @@ def run_mode(
     control: ControlPoints,
     camera_kind: str = "auto",
     block_adjustment: int | None = None,
+    block_solver: str | None = None,
 ) -> dict:
     """Run one mode; returns the score or the reason it did not run."""
     out = work / f"out_{mode}"
@@ -185,6 +187,8 @@ def run_mode(
     ]
     if block_adjustment is not None:
         cmd += ["--block_adjustment", str(block_adjustment)]
+    if block_solver is not None:
+        cmd += ["--block_adjustment_solver", block_solver]
     if camera_kind != "auto":
         cmd += ["--camera_kind", camera_kind]
     if mode == "auto":
@@ -198,9 +202,12 @@ def run_mode(
     proc = subprocess.run(cmd, capture_output=True, text=True)
     if proc.returncode != 0:
         return {"status": f"exit {proc.returncode}", "stderr": proc.stderr[-2000:]}
+    wall = time.perf_counter() - t0
     est, _ = read_absolute_block(out)
     score = score_block(est, load_scene(scene_path))
-    return {"status": "ok", "time_s": time.perf_counter() - t0, **score}
+    report = json.loads((out / "report.json").read_text())
+    block = report.get("block_adjustment")
+    return {"status": "ok", "time_s": wall, "block_adjustment": block, **score}
 
 
 def print_result(mode: str, res: dict) -> None:
@@ -216,6 +223,13 @@ def print_result(mode: str, res: dict) -> None:
         f"{res['deviation_median_px']:.2f} px, below 2 px "
         f"{100 * res['below_2px']:.0f} % of {res['num_images']}"
     )
+    block = res.get("block_adjustment")
+    if block:
+        print(
+            f"  {'':11s} block adjustment ({block['solver']}): cost "
+            f"{block['initial_cost']:.6g} -> {block['final_cost']:.6g}, "
+            f"{block['iterations']} iterations, {block['time_s']:.2f} s"
+        )
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -243,6 +257,12 @@ def main(argv: list[str] | None = None) -> int:
         choices=(0, 1),
         default=None,
         help="georegister --block_adjustment (default: the command's)",
+    )
+    ap.add_argument(
+        "--block_adjustment_solver",
+        choices=("obliq", "ceres"),
+        default=None,
+        help="georegister --block_adjustment_solver (default: the command's)",
     )
     ap.add_argument("--seed", type=int, default=1)
     ap.add_argument("--paper_width", type=int, default=1002)
@@ -289,6 +309,7 @@ def main(argv: list[str] | None = None) -> int:
                     control,
                     kind_arg,
                     args.block_adjustment,
+                    args.block_adjustment_solver,
                 )
                 res["camera_kind"] = kind_arg
                 res["num_images_in_model"] = n_reg

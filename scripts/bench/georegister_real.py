@@ -17,7 +17,11 @@ it has no points and no map, so:
 4. ``obliq-colmap georegister`` with 2 and with 3 control points; every
    camera's tilt error (angle between its true and estimated vertical),
    heading error (the rest, about the vertical) and centre error against
-   the re-levelled truth; check point residuals from the report.
+   the re-levelled truth; check point residuals from the report; the
+   block adjustment with each solver (``--block_adjustment_solver obliq``,
+   the project's bundle, and ``ceres``), and both on the same captured
+   block in this process (``georegister_solvers.compare_solvers``): their
+   times as a ratio and how far apart their optima are.
 
 Also COLMAP's own ``model_orientation_aligner`` (MANHATTAN-WORLD) on the same
 SfM model, where the ``colmap`` command is installed: its vertical against
@@ -49,8 +53,11 @@ import numpy as np
 import pycolmap
 
 from obliq_colmap.geometry import rotation_aligning
-from obliq_colmap.georegister.options import VerticalOptions
+from obliq_colmap.georegister.options import GeoregisterOptions, VerticalOptions
 from obliq_colmap.georegister.vertical import model_vertical
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from georegister_solvers import compare_solvers  # noqa: E402 - beside this script
 
 REPO = Path(__file__).resolve().parents[2]
 DATA = REPO.parent / "shared" / "data"
@@ -267,21 +274,36 @@ def herzjesu(work: Path) -> dict:
         "sfm_points": sfm_rec.num_points3D(),
         "truth_relevelled_by_deg": levelled_by,
     }
-    for n_ctrl, block in ((2, 0), (3, 0), (2, 1), (3, 1)):
+    runs = [(2, 0, ""), (3, 0, "")]
+    runs += [(n, 1, s) for s in ("obliq", "ceres") for n in (2, 3)]
+    for n_ctrl, block, solver in runs:
         gcp = work / f"gcp_{n_ctrl}.txt"
         write_gcp_list(gcp, points, "EPSG:32632")
         checks = checks_of(points, n_ctrl)
-        label = f"{n_ctrl}_control_points" + ("_block_adjustment" if block else "")
+        label = f"{n_ctrl}_control_points" + (f"_block_adjustment_{solver}" * block)
         result = work / f"georegistered_{label}"
         extra = ("--block_adjustment", str(block))
+        if block:
+            extra += ("--block_adjustment_solver", solver)
         r = run_georegister(sfm_path, images, gcp, result, checks, extra)
         out[label] = {
             "cameras": camera_errors(result, truth),
             "check_points": r["report"]["check_points"],
             "control_points": r["report"]["control_points"],
             "vertical_sd_deg": r["report"]["vertical"].get("sd_deg"),
+            "block_adjustment": r["report"]["block_adjustment"],
             "wall_s": r["wall_s"],
         }
+    # both solvers on the same block in this process: times as a ratio
+    for n_ctrl in (2, 3):
+        options = GeoregisterOptions(
+            control_points_path=work / f"gcp_{n_ctrl}.txt",
+            check_points=tuple(checks_of(points, n_ctrl)),
+            progress=False,
+        )
+        out[f"{n_ctrl}_control_points_solvers"] = compare_solvers(
+            sfm_path, images, options
+        )
     out["colmap_model_orientation_aligner"] = colmap_aligner_tilt(
         sfm_path, images, work, truth
     )

@@ -1,0 +1,164 @@
+"""The block adjustment in the project's bundle (``BlockAdjustmentOptions.
+solver="obliq"``, the default): the SfM model as a
+:class:`~obliq_colmap.bundle.BundleProblem` and back.
+
+- cameras: the model's, intrinsics refined as the options say (the focal
+  held by default; fx and fy refined independently when refined, as
+  COLMAP's adjuster does);
+- images: every registered image's ``cam_from_world``;
+- the SfM tracks: tie points (3D unknowns eliminated by their 3x3 blocks),
+  two reprojection rows per observation, Cauchy loss on the observation's
+  2D error at ``loss_scale_px`` (Ceres' loss on pycolmap's 2-row cost);
+- control points: tie points whose coordinates are observed
+  (``BundleProblem.tie_prior_xyz`` at their stated sigmas, a 2D point's
+  height free);
+- VPs: each image's vertical VP (``BundleProblem.vertical_vps``) with an
+  isotropic covariance of its angular sd, no robust loss (the vertical's
+  robust mean already dropped the images that disagree).
+
+No map rows and no height unknowns; no gauge rows either: the control
+points hold the datum, as in the Ceres problem.
+"""
+
+from __future__ import annotations
+
+import logging
+
+import numpy as np
+import pycolmap
+
+from obliq_colmap.bundle import BundleOptions, BundleProblem, solve_bundle
+from obliq_colmap.geometry import Camera, Pose, calibration_matrix
+
+from .block import BlockAdjustmentOptions, BlockAdjustmentSummary, VerticalRow
+
+logger = logging.getLogger(__name__)
+
+
+def bundle_options(options: BlockAdjustmentOptions) -> BundleOptions:
+    """The bundle's options for the block's problem (the same cost as the
+    Ceres problem's: unit weights, Cauchy on the tracks, plain VP rows)."""
+    return BundleOptions(
+        loss="cauchy",
+        loss_scale_px=options.loss_scale_px,
+        tie_sigma_px=1.0,
+        tie_loss_scale_px=options.loss_scale_px,
+        refine_focal_length=options.refine_focal_length,
+        refine_aspect_ratio=True,  # as COLMAP's adjuster
+        refine_principal_point=options.refine_principal_point,
+        refine_extra_params=options.refine_extra_params,
+        gauge="none",
+        height_initialisation_steps=0,
+        vp_observations=True,
+        vp_loss_scale=np.inf,
+        max_iterations=options.max_num_iterations,
+        function_tolerance=options.function_tolerance,
+        compute_precision=False,
+    )
+
+
+def vp_covariance(row: VerticalRow, K: np.ndarray) -> np.ndarray:
+    """(3, 3) covariance of the unit homogeneous VP ``v`` whose direction
+    ``K^-1 v`` has the isotropic angular sd ``row.sd_rad``:
+    ``sd^2 |K^-1 v|^2 K K^T`` (through the bundle's propagation it gives
+    ``sd^2`` on both tangent axes)."""
+    nu = np.linalg.norm(np.linalg.solve(K, row.vp))
+    return row.sd_rad**2 * nu**2 * (K @ K.T)
+
+
+def block_problem(
+    rec: pycolmap.Reconstruction,
+    control_point_ids: dict[int, tuple[np.ndarray, np.ndarray]],
+    verticals: dict[int, VerticalRow],
+) -> tuple[BundleProblem, np.ndarray]:
+    """The model as a bundle problem, and the (T,) point3D ids of its tie
+    points in order."""
+    image_ids = sorted(rec.reg_image_ids())
+    index = {iid: k for k, iid in enumerate(image_ids)}
+    cameras = {
+        cid: Camera(c.model.name, c.width, c.height, np.array(c.params), cid)
+        for cid, c in rec.cameras.items()
+    }
+    poses = {i: Pose.from_rigid3d(rec.images[i].cam_from_world()) for i in image_ids}
+    point_ids = np.array(sorted(rec.point3D_ids()), np.int64)
+    slot = {int(p): t for t, p in enumerate(point_ids)}
+    img, pt, xy = [], [], []
+    for i in image_ids:
+        for p2 in rec.images[i].get_observation_points2D():
+            img.append(index[i])
+            pt.append(slot[p2.point3D_id])
+            xy.append(p2.xy)
+    tie_xyz = np.array([rec.points3D[int(p)].xyz for p in point_ids]).reshape(-1, 3)
+    prior_xyz = np.zeros_like(tie_xyz)
+    prior_sigma = np.full_like(tie_xyz, np.inf)
+    for pid, (given, sigma) in control_point_ids.items():
+        if pid in slot:
+            sig = np.where(np.isfinite(given), sigma, np.inf)
+            prior_sigma[slot[pid]] = sig
+            prior_xyz[slot[pid]] = np.where(np.isfinite(sig), given, 0.0)
+    vps, covs = {}, {}
+    for i, row in verticals.items():
+        if i in index:
+            cam = cameras[rec.images[i].camera_id]
+            vps[i] = row.vp
+            covs[i] = vp_covariance(row, calibration_matrix(cam.model, cam.params))
+    problem = BundleProblem(
+        cameras=cameras,
+        poses=poses,
+        image_camera={i: rec.images[i].camera_id for i in image_ids},
+        image_ids=tuple(image_ids),
+        corner_xy=np.zeros((0, 2)),
+        corner_heights=np.zeros(0),
+        vertical_image=np.zeros(0, np.int64),
+        vertical_corner=np.zeros(0, np.int64),
+        vertical_line=np.zeros((0, 3)),
+        facade_heights=np.zeros(0),
+        horizontal_image=np.zeros(0, np.int64),
+        horizontal_height=np.zeros(0, np.int64),
+        horizontal_anchor_xy=np.zeros((0, 2)),
+        horizontal_line=np.zeros((0, 3)),
+        vertical_vps=vps or None,
+        vertical_vp_covariances=covs or None,
+        tie_xyz=tie_xyz,
+        tie_image=np.array(img, np.int64),
+        tie_point=np.array(pt, np.int64),
+        tie_xy=np.array(xy, float).reshape(-1, 2),
+        tie_prior_xyz=prior_xyz,
+        tie_prior_sigma=prior_sigma,
+    )
+    return problem, point_ids
+
+
+def adjust_block_bundle(
+    rec: pycolmap.Reconstruction,
+    control_point_ids: dict[int, tuple[np.ndarray, np.ndarray]],
+    verticals: dict[int, VerticalRow],
+    options: BlockAdjustmentOptions,
+) -> BlockAdjustmentSummary:
+    """:func:`~obliq_colmap.georegister.block.adjust_block` in the project's
+    bundle; the solved cameras, poses and points written back into ``rec``."""
+    problem, point_ids = block_problem(rec, control_point_ids, verticals)
+    result = solve_bundle(problem, bundle_options(options))
+    for cid, cam in result.cameras.items():
+        rec.cameras[cid].params = cam.params
+    for iid, pose in result.poses.items():
+        rec.frame(rec.images[iid].frame_id).rig_from_world = pose.to_rigid3d()
+    for t, pid in enumerate(point_ids):
+        rec.points3D[int(pid)].xyz = result.tie_xyz[t]
+    s = result.summary
+    n_ctrl = int(np.sum(np.any(np.isfinite(problem.tie_prior_sigma), axis=1)))
+    logger.info(
+        "block adjustment (obliq): cost %.6g -> %.6g in %d iterations (%d "
+        "control points, %d verticals), %s",
+        s.initial_cost, s.final_cost, s.num_iterations, n_ctrl,
+        len(result.vp_angle_deg), s.termination,
+    )  # fmt: skip
+    return BlockAdjustmentSummary(
+        initial_cost=float(s.initial_cost),
+        final_cost=float(s.final_cost),
+        iterations=int(s.num_iterations),
+        num_control_rows=n_ctrl,
+        num_vertical_rows=len(result.vp_angle_deg),
+        termination=s.termination,
+        solver="obliq",
+    )
