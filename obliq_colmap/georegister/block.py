@@ -33,7 +33,7 @@ from dataclasses import dataclass
 import numpy as np
 import pycolmap
 
-#: ``BlockAdjustmentOptions.solver`` (``--block_solver``).
+#: ``BlockAdjustmentOptions.solver`` (``--block_adjustment_solver``).
 BLOCK_SOLVERS = ("obliq", "ceres")
 
 

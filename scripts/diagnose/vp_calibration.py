@@ -167,6 +167,14 @@ def main():
             d = np.linalg.solve(K, res.vp)
             d /= np.linalg.norm(d)
             row["err"] = float(np.degrees(np.arccos(min(1, abs(d @ dt)))))
+            # Signed: the small rotation taking the true vertical to the found
+            # one, about the camera's x axis (tilt: the pitch that trades with
+            # focal and camera height) and about the axis across it (roll).
+            d = d if d @ dt > 0 else -d
+            w = np.cross(dt, d)
+            across = np.cross(dt, [1.0, 0, 0])
+            row["tilt"] = float(np.degrees(w[0]))
+            row["roll"] = float(np.degrees(w @ across / np.linalg.norm(across)))
             row["maha"] = mahalanobis(res.vp, res.covariance, K, dt)
         row["ratio"] = row["err"] / row["sd"] if row["sd"] > 0 else np.nan
         rows.append(row)
