@@ -294,3 +294,23 @@ def test_facade_options_are_checked():
         FacadeOptions(height_range_m=(5.0, -5.0))
     with pytest.raises(ValueError):
         MatchingOptions(confidence=1.0)
+
+
+def test_a_nadir_view_is_told_from_an_oblique_one():
+    """``near_nadir``: the vertical VP inside the image (a nadir camera, or
+    one tilted less than half its vertical field of view) against outside
+    (the 45 deg obliques); such an image gives the bundle neither a VP row
+    nor facade rows."""
+    import numpy as np
+
+    from obliq_colmap.adjustment.problem import near_nadir
+    from obliq_colmap.geometry import Camera, Pose
+    from obliq_colmap.synthetic.cameras import rotation_from_angles
+
+    cam = Camera("PINHOLE", 2004, 1336, [2420.0, 2420.0, 1002.0, 668.0])
+    half_fov_v = np.degrees(np.arctan(668.0 / 2420.0))  # 15.4 deg
+    for heading in (0.0, 90.0, 215.0):
+        for tilt, expected in ((0.0, True), (half_fov_v - 1, True), (45.0, False)):
+            R = rotation_from_angles(heading, tilt, 0.5)
+            pose = Pose.from_center(R, np.array([10.0, -5.0, 600.0]))
+            assert near_nadir(cam, pose) is expected, (heading, tilt)

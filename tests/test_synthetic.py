@@ -580,3 +580,46 @@ def test_render_refuses_absolute_poses(small_scene, small_options):
             im.cam_from_world,
             small_options,
         )
+
+
+def test_a_nadir_head_looks_down_and_leaves_the_oblique_flight_as_it_was():
+    """``nadir_head``: a fifth camera (id 5) with grid_rows x grid_cols images
+    D_rc.jpg whose optical axes are within the tilt jitter of the nadir, at
+    the obliques' flying height; the four oblique heads' true cameras and
+    poses are those of the flight without it."""
+    import dataclasses
+
+    import numpy as np
+
+    from obliq_colmap.synthetic import preset
+    from obliq_colmap.synthetic.cameras import (
+        flight_geometry,
+        rotation_from_angles,
+        true_block,
+    )
+
+    base = preset("small", image_width_px=600)
+    with_nadir = dataclasses.replace(base, nadir_head=True)
+    a, b = true_block(base, 3), true_block(with_nadir, 3)
+    assert set(b.cameras) == set(a.cameras) | {5}
+    for i, rec in a.images.items():
+        assert b.images[i].name == rec.name
+        np.testing.assert_array_equal(
+            b.images[i].cam_from_world.rotation, rec.cam_from_world.rotation
+        )
+    nadir = [r for r in b.images.values() if r.name.startswith("D_")]
+    assert len(nadir) == base.grid_rows * base.grid_cols
+    assert all(r.camera_id == 5 for r in nadir)
+    jitter = 4 * np.hypot(base.jitter_tilt_deg, base.jitter_roll_deg)
+    altitude = flight_geometry(base).altitude_m
+    for r in nadir:
+        axis = r.cam_from_world.rotation[2]  # the optical axis in the world
+        assert np.degrees(np.arccos(-axis[2])) < jitter
+        assert abs(r.cam_from_world.center[2] - altitude) < 5 * base.jitter_altitude_m
+    # the rotation at and through the nadir is a rotation, and the image's x
+    # axis stays to the right of the heading (no flip at negative tilt)
+    for tilt in (0.0, -2.0, 2.0, 45.0):
+        R = rotation_from_angles(30.0, tilt, 1.0)
+        np.testing.assert_allclose(R @ R.T, np.eye(3), atol=1e-12)
+        assert np.linalg.det(R) > 0
+        assert R[0] @ [np.cos(np.radians(30.0)), -np.sin(np.radians(30.0)), 0] > 0.99

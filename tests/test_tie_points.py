@@ -285,3 +285,73 @@ def test_keypoints_scaled_back_per_axis():
         scale,
     )
     assert (cam.width, cam.height) == (1000, 667)
+
+
+def test_a_nadir_image_gets_nadir_partners_among_larger_oblique_footprints():
+    """A nadir footprint lies inside the oblique ones (overlap share 1), which
+    would take all its places although SIFT matches across 45 deg poorly:
+    half of its partners are its best ones of a similar view."""
+    from shapely.geometry import box
+
+    from obliq_colmap.adjustment.ties import TiePointOptions, select_pairs
+    from obliq_colmap.synthetic.cameras import rotation_from_angles
+
+    def rig(heading: float, tilt: float) -> pycolmap.Rigid3d:
+        R = rotation_from_angles(heading, tilt, 0.0)
+        return pycolmap.Rigid3d(pycolmap.Rotation3d(R), np.zeros(3))
+
+    # three nadir images in a row (40 % overlap), ten obliques over all
+    nadir = [box(60.0 * k, 0.0, 60.0 * k + 100.0, 60.0) for k in range(3)]
+    oblique = [box(-100.0 - k, -100.0, 300.0 + k, 200.0) for k in range(10)]
+    polys = nadir + oblique
+    poses = [rig(0.0, 0.0)] * 3 + [rig(90.0 * (k % 4), 45.0) for k in range(10)]
+    pairs = select_pairs(polys, poses, TiePointOptions(max_pairs_per_image=8))
+    assert (0, 1) in pairs and (1, 2) in pairs
+    assert sum(1 for p in pairs if p[0] == 1 and p[1] >= 3) >= 4  # obliques too
+
+
+def test_images_of_a_new_head_place_each_other_in_rounds():
+    """An image whose tracks the block sees once only (the rest of its views
+    are in another unplaced image of the same new head) is placed once that
+    image is: only when the two are chained."""
+    from obliq_colmap.adjustment.ties import TiePoints
+    from obliq_colmap.pipeline.resection import MIN_INLIERS, tie_resections
+    from obliq_colmap.state import BlockState
+    from obliq_colmap.synthetic.bundle_problem import make_synthetic_problem
+
+    syn = make_synthetic_problem(seed=2, tie_points=3000, noise_px=0.3)
+    P = syn.problem
+    ids = list(P.image_ids)
+    a, b = 4, 5  # indices into ids, neighbours
+    img, pt = P.tie_image, P.tie_point
+    both = np.intersect1d(pt[img == a], pt[img == b])
+    keep = np.ones(len(img), bool)
+    for t in both:  # one block view only, besides a and b
+        block_obs = np.flatnonzero((pt == t) & (img != a) & (img != b))
+        keep[block_obs[1:]] = False
+    keep &= ~((img == b) & ~np.isin(pt, both))  # b sees nothing else
+    has_block = np.array(
+        [np.any((pt == t) & keep & (img != a) & (img != b)) for t in both]
+    )
+    assert has_block.sum() > MIN_INLIERS * 1.5
+    ties = TiePoints(
+        syn.tie_xyz,
+        pt[keep],
+        img[keep],
+        P.tie_xy[keep],
+        np.zeros(int(keep.sum()), np.int64),
+        image_ids=tuple(ids),
+    )
+    cams = {i: syn.cameras[P.image_camera[i]] for i in ids}
+    out = {ids[a], ids[b]}
+    state = BlockState(
+        poses={i: syn.poses[i] for i in ids if i not in out},
+        cameras={i: cams[i] for i in ids if i not in out},
+        planes={i: np.zeros(3) for i in ids if i not in out},
+    )
+    todo = {i: cams[i] for i in out}
+    assert set(tie_resections(state, ties, todo)) == {ids[a]}
+    placed = tie_resections(state, ties, todo, frozenset(out))
+    assert set(placed) == out
+    truth = syn.poses[ids[b]]
+    assert np.linalg.norm(placed[ids[b]].center - truth.center) < 0.5

@@ -93,10 +93,13 @@ def select_pairs(
 ) -> list[tuple[int, int]]:
     """Pairs (i < j) whose footprints overlap enough and whose views differ by
     at most ``max_view_angle_deg``, each image's best ``max_pairs_per_image``
-    partners (a pair is kept if either end chose it)."""
+    partners (a pair is kept if either end chose it), half of them the best
+    of a similar view (``similar_view_deg``) where it has such partners."""
     n = len(polys)
     axes = np.stack([p.rotation.matrix()[2] for p in poses]).reshape(-1, 3)
-    similar = axes @ axes.T >= np.cos(np.radians(options.max_view_angle_deg))
+    cosine = axes @ axes.T
+    similar = cosine >= np.cos(np.radians(options.max_view_angle_deg))
+    close = cosine >= np.cos(np.radians(options.similar_view_deg))
     share = np.zeros((n, n))
     for i in range(n):
         for j in range(i + 1, n):
@@ -105,12 +108,15 @@ def select_pairs(
                 share[i, j] = share[j, i] = inter / max(
                     min(polys[i].area, polys[j].area), 1e-9
                 )
+    share[share < options.min_overlap] = 0.0
+    k = options.max_pairs_per_image
     chosen = set()
     for i in range(n):
-        order = np.argsort(-share[i])[: options.max_pairs_per_image]
-        chosen.update(
-            (min(i, j), max(i, j)) for j in order if share[i, j] >= options.min_overlap
-        )
+        order = np.argsort(-share[i], kind="stable")
+        order = order[share[i, order] > 0]
+        near = order[close[i, order]][: k // 2]
+        rest = order[~np.isin(order, near)][: k - len(near)]
+        chosen.update((min(i, j), max(i, j)) for j in np.concatenate([near, rest]))
     return sorted(chosen)
 
 

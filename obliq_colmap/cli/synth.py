@@ -12,6 +12,14 @@ from obliq_colmap.synthetic.options import DISTORTION_MODELS, PRESETS, preset
 
 logger = logging.getLogger(__name__)
 
+
+def _zero_one(text: str) -> bool:
+    """A 0 / 1 flag, as COLMAP writes booleans on its command line."""
+    if text not in ("0", "1"):
+        raise argparse.ArgumentTypeError(f"expected 0 or 1, got {text!r}")
+    return text == "1"
+
+
 #: command-line option -> SceneOptions field (all optional overrides).
 _OVERRIDES: dict[str, tuple[str, type, str]] = {
     "image_width": (
@@ -45,6 +53,11 @@ _OVERRIDES: dict[str, tuple[str, type, str]] = {
     ),
     "slope_deg": ("slope_deg", float, "terrain slope (deg)"),
     "tilt_deg": ("tilt_deg", float, "camera tilt from nadir (deg)"),
+    "nadir_head": (
+        "nadir_head",
+        _zero_one,
+        "1: a fifth, nadir camera (a five-camera oblique system), images D_rc.jpg",
+    ),
     "horizontal_fov_deg": (
         "horizontal_fov_deg",
         float,
@@ -108,7 +121,7 @@ def run(args: argparse.Namespace) -> int:
         options.image_height_px,
         options.street_num_images
         if options.scene_kind == "street"
-        else 4 * options.grid_rows * options.grid_cols,
+        else (5 if options.nadir_head else 4) * options.grid_rows * options.grid_cols,
         {k: v for k, v in dataclasses.asdict(options).items() if k in overrides}
         or "none",
     )

@@ -296,16 +296,26 @@ def reregister_failed(
 
     confident = [i for i in state.poses if by_id[i].registered and not weak(by_id[i])]
     head_camera = {head_of[i]: state.cameras[i] for i in state.poses}
+    task_of = {t.image_id: t for t in tasks}
+    # A head with no image in the block (the nadir camera of a five-camera
+    # system: stage 2 cannot register a nadir view to the map's corners) is
+    # placed by its tie points alone, from its priors' camera.
+    camera_of = {
+        o.image_id: head_camera.get(
+            head_of[o.image_id],
+            task_of[o.image_id].start or task_of[o.image_id].camera,
+        )
+        for o in outcomes
+    }
     starts = {}
     if ties is not None:
         candidates = {
-            o.image_id: head_camera[head_of[o.image_id]]
+            o.image_id: camera_of[o.image_id]
             for o in outcomes
-            if o.registration is not None
-            and weak(o)
-            and head_of[o.image_id] in head_camera
+            if o.registration is not None and weak(o)
         }
-        starts = tie_resections(state, ties, candidates)
+        new_head = frozenset(i for i in candidates if head_of[i] not in head_camera)
+        starts = tie_resections(state, ties, candidates, new_head)
     todo = [
         k
         for k, o in enumerate(outcomes)
@@ -319,7 +329,6 @@ def reregister_failed(
     ]
     if not todo:
         return state, []
-    task_of = {t.image_id: t for t in tasks}
     heads: dict[int, list[ImageTask]] = {}
     for i in confident:
         heads.setdefault(head_of[i], []).append(task_of[i])
@@ -331,7 +340,10 @@ def reregister_failed(
         vertical = outcomes[k].vertical_direction
         if tasks[k].image_id in starts:
             task = _tie_task(
-                tasks[k], head_camera[cid], starts[tasks[k].image_id], options
+                tasks[k],
+                camera_of[tasks[k].image_id],
+                starts[tasks[k].image_id],
+                options,
             )
             vertical = None  # the start's, far better than a missed VP's
         else:

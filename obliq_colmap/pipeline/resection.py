@@ -83,16 +83,46 @@ def block_tie_points(
 
 
 def tie_resections(
-    state: BlockState, ties: TiePoints, todo: dict[int, Camera]
+    state: BlockState,
+    ties: TiePoints,
+    todo: dict[int, Camera],
+    chained: frozenset[int] = frozenset(),
 ) -> dict[int, Pose]:
-    """Per image of ``todo`` (image id -> its head's solved camera) its
+    """Per image of ``todo`` (image id -> its head's camera) its
     ``cam_from_world`` from its tie observations of the tracks the solved
     block ``state`` triangulates (at least two of its images, within
     :data:`MAX_TRACK_ERROR_PX` in each), where the absolute pose has at least
-    :data:`MIN_INLIERS` inliers and :data:`MIN_INLIER_RATIO` of the pairs."""
+    :data:`MIN_INLIERS` inliers and :data:`MIN_INLIER_RATIO` of the pairs.
+
+    ``chained``: images of ``todo`` that join the block once placed, so that
+    their tracks place the rest in another round (a head that has no image in
+    the block, the nadir camera of a five-camera system: its images overlap
+    each other more than the oblique ones).
+    """
+    poses, cameras = dict(state.poses), dict(state.cameras)
+    out: dict[int, Pose] = {}
+    while True:
+        placed = _resect_once(
+            poses, cameras, ties, {i: c for i, c in todo.items() if i not in out}
+        )
+        out.update(placed)
+        grown = {i: p for i, p in placed.items() if i in chained}
+        if not grown:
+            return out
+        poses.update(grown)
+        cameras.update({i: todo[i] for i in grown})
+
+
+def _resect_once(
+    poses: dict[int, Pose],
+    cameras: dict[int, Camera],
+    ties: TiePoints,
+    todo: dict[int, Camera],
+) -> dict[int, Pose]:
+    """One round of :func:`tie_resections` against the block ``poses``."""
     ids = np.asarray(ties.image_ids)
     obs_id = ids[ties.obs_image] if len(ids) else np.zeros(0, np.int64)
-    block = np.isin(obs_id, list(state.poses))
+    block = np.isin(obs_id, list(poses))
     if not todo or block.sum() < 2:
         return {}
     # the block's images, in a local order
@@ -106,10 +136,10 @@ def tie_resections(
     if len(track) == 0:
         return {}
     used, t_local = np.unique(track, return_inverse=True)
-    cams = [state.cameras[i].to_pycolmap() for i in local]
-    poses = [state.poses[i].to_rigid3d() for i in local]
-    xyz = triangulate_tie_tracks(cams, poses, t_local, img, xy)
-    err = reprojection_errors(cams, poses, xyz, t_local, img, xy)
+    cams = [cameras[i].to_pycolmap() for i in local]
+    rigs = [poses[i].to_rigid3d() for i in local]
+    xyz = triangulate_tie_tracks(cams, rigs, t_local, img, xy)
+    err = reprojection_errors(cams, rigs, xyz, t_local, img, xy)
     worst = np.zeros(len(used))
     np.maximum.at(worst, t_local, np.where(np.isfinite(err), err, np.inf))
     good = worst <= MAX_TRACK_ERROR_PX

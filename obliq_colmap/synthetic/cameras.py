@@ -27,6 +27,18 @@ DIRECTIONS: dict[str, tuple[int, float]] = {
     "S": (3, 180.0),
     "W": (4, 270.0),
 }
+#: The nadir head of a five-camera system (``SceneOptions.nadir_head``):
+#: name, camera_id; its images' tops face north.
+NADIR = ("D", 5)
+
+
+def heads(options: SceneOptions) -> dict[str, tuple[int, float, float]]:
+    """The flight's heads: name -> (camera_id, heading deg, nominal tilt deg)."""
+    out = {d: (cid, h, options.tilt_deg) for d, (cid, h) in DIRECTIONS.items()}
+    if options.nadir_head:
+        out[NADIR[0]] = (NADIR[1], 0.0, 0.0)
+    return out
+
 
 # Independent random streams derived from the scene seed.
 STREAM_CITY = 1
@@ -92,8 +104,9 @@ def rotation_from_angles(
     """
     h, t = np.radians(heading_deg), np.radians(tilt_deg)
     z_cam = np.array([np.sin(t) * np.sin(h), np.sin(t) * np.cos(h), -np.cos(t)])
-    x_cam = np.cross(z_cam, [0.0, 0.0, 1.0])
-    x_cam /= np.linalg.norm(x_cam)
+    # Right of the heading: the same as z x up for any tilt > 0, and defined
+    # at the nadir (tilt 0) and through it (a jittered nadir camera).
+    x_cam = np.array([np.cos(h), -np.sin(h), 0.0])
     y_cam = np.cross(z_cam, x_cam)
     R0 = np.stack([x_cam, y_cam, z_cam])
     r = np.radians(roll_deg)
@@ -113,25 +126,36 @@ class NominalImage:
     col: int
     heading_deg: float
     center: np.ndarray  # (3,) metres
+    tilt_deg: float = 45.0
 
 
 def flight_plan(options: SceneOptions) -> list[NominalImage]:
-    """The nominal images: four directions x rows x cols, ordered by direction."""
+    """The nominal images: each head x rows x cols, ordered by head (the four
+    oblique directions, then the nadir head where there is one)."""
     geo = flight_geometry(options)
-    tilt = np.radians(options.tilt_deg)
+    # The nadir footprint at the same height: square pixels of altitude / f.
+    nadir_step = (1.0 - options.overlap) * REFERENCE_WIDTH_PX * geo.altitude_m
+    nadir_step /= geo.focal_ref_px
     plan = []
-    for d, (_, heading) in DIRECTIONS.items():
-        h = np.radians(heading)
+    for d, (_, heading, tilt_deg) in heads(options).items():
+        h, tilt = np.radians(heading), np.radians(tilt_deg)
         fwd = np.array([np.sin(h), np.cos(h)])
         right = np.array([np.cos(h), -np.sin(h)])
         view = np.array([np.sin(tilt) * fwd[0], np.sin(tilt) * fwd[1], -np.cos(tilt)])
+        along_m, across_m = geo.spacing_along_m, geo.spacing_across_m
+        distance = geo.distance_m
+        if tilt_deg == 0.0:  # the image's height lies along the heading
+            along_m, across_m = nadir_step / options.image_aspect, nadir_step
+            distance = geo.altitude_m
         for r in range(options.grid_rows):
             for c in range(options.grid_cols):
-                along = (r - (options.grid_rows - 1) / 2.0) * geo.spacing_along_m
-                across = (c - (options.grid_cols - 1) / 2.0) * geo.spacing_across_m
+                along = (r - (options.grid_rows - 1) / 2.0) * along_m
+                across = (c - (options.grid_cols - 1) / 2.0) * across_m
                 aim = np.array([*(along * fwd + across * right), 0.0])
-                center = aim - geo.distance_m * view
-                plan.append(NominalImage(f"{d}_{r}{c}.jpg", d, r, c, heading, center))
+                center = aim - distance * view
+                plan.append(
+                    NominalImage(f"{d}_{r}{c}.jpg", d, r, c, heading, center, tilt_deg)
+                )
     return plan
 
 
@@ -156,7 +180,7 @@ def city_extent(options: SceneOptions) -> tuple[float, float, float, float]:
     drop = np.tan(np.radians(options.slope_deg)) * 600.0 + options.undulation_m + 5.0
     pts = []
     for im in flight_plan(options):
-        R = rotation_from_angles(im.heading_deg, options.tilt_deg, 0.0)
+        R = rotation_from_angles(im.heading_deg, im.tilt_deg, 0.0)
         rays = rays_cam @ R  # (4, 3) world directions (R^T applied)
         s = (-drop - im.center[2]) / rays[:, 2]
         pts.append(im.center[:2] + s[:, None] * rays[:, :2])
@@ -167,13 +191,13 @@ def city_extent(options: SceneOptions) -> tuple[float, float, float, float]:
 
 
 def true_cameras(options: SceneOptions, seed: int) -> dict[int, Camera]:
-    """The four true cameras (one per direction), COLMAP model of the options."""
+    """The true cameras (one per head), COLMAP model of the options."""
     rng = stream(seed, STREAM_FLIGHT, 1)
     W, H = options.image_width_px, options.image_height_px
     scale = W / REFERENCE_WIDTH_PX
     f_nom = (W / 2.0) / np.tan(np.radians(options.horizontal_fov_deg) / 2.0)
     cameras = {}
-    for _, (camera_id, _) in DIRECTIONS.items():
+    for camera_id, _, _ in heads(options).values():
         f = f_nom * (1.0 + rng.uniform(-options.focal_spread, options.focal_spread))
         dx, dy = rng.uniform(-1.0, 1.0, 2) * options.principal_point_offset_px * scale
         cx, cy = W / 2.0 + dx, H / 2.0 + dy
@@ -198,7 +222,7 @@ def true_block(options: SceneOptions, seed: int) -> Block:
     block = Block(cameras=true_cameras(options, seed))
     for image_id, im in enumerate(flight_plan(options), start=1):
         heading = im.heading_deg + rng.normal(0.0, options.jitter_heading_deg)
-        tilt = options.tilt_deg + rng.normal(0.0, options.jitter_tilt_deg)
+        tilt = im.tilt_deg + rng.normal(0.0, options.jitter_tilt_deg)
         roll = rng.normal(0.0, options.jitter_roll_deg)
         center = im.center + np.array(
             [
@@ -208,7 +232,7 @@ def true_block(options: SceneOptions, seed: int) -> Block:
             ]
         )
         R = rotation_from_angles(heading, tilt, roll)
-        camera_id = DIRECTIONS[im.direction][0]
+        camera_id = heads(options)[im.direction][0]
         block.images[image_id] = ImageRecord(
             image_id, im.name, camera_id, Pose.from_center(R, center)
         )

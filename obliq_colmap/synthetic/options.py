@@ -55,6 +55,10 @@ class SceneOptions:
     overlap: float = 0.35
     #: nominal angle between the optical axis and the nadir, degrees.
     tilt_deg: float = 45.0
+    #: a fifth, nadir camera (a five-camera oblique system): ``grid_rows x
+    #: grid_cols`` images ``D_rc.jpg`` of camera 5, at the obliques' flying
+    #: height over the block's centre, with the same overlap.
+    nadir_head: bool = False
     #: horizontal field of view, degrees; kept when the image width changes.
     horizontal_fov_deg: float = 45.0
     #: ground sampling distance at the image centre (across the view, i.e.

@@ -66,7 +66,8 @@ from obliq_colmap.evaluate import (
 
 REPO = Path(__file__).resolve().parents[2]
 DEFAULT_DATA = REPO.parent / "shared" / "data" / "external_oblique"
-HEADS = ("N", "E", "S", "W")
+#: the oblique heads and, where a scene has one, the nadir head (D).
+HEADS = ("N", "E", "S", "W", "D")
 RUNS = ("bundle", "initial")  # register's --stop_after
 GIB = 1024.0**3
 POLL_S = 0.1
@@ -262,6 +263,8 @@ def evaluate_run(scene: Path, out: Path, stop_after: str) -> dict:
     rows = {}
     for head in ("all", *HEADS):
         sel = [v for v in images.values() if head == "all" or v["head"] == head]
+        if not sel:
+            continue  # no nadir head
         median, p95 = _stats([v["mean_px"] for v in sel])
         rows[head] = {
             "images": len(sel),
@@ -330,6 +333,8 @@ def print_scene(scene: str, results: dict) -> None:
     print("\n| " + " | ".join(cols) + " |\n" + "|---" * len(cols) + "|")
     for run, r in results.items():
         for head in HEADS if "eval" in r else ():
+            if head not in r["eval"]["heads"]:
+                continue
             h = r["eval"]["heads"][head]
             n = h["images"]
             cells = (
