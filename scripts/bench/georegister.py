@@ -32,7 +32,8 @@ for paper, on 2 shared cores)::
     python scripts/bench/georegister.py --work_path W [--scene paper street]
         [--mode gcp2 gcp3 auto reference3 oracle] [--sfm sfm_like pycolmap]
         [--camera_kind scene|auto] [--block_adjustment 0|1]
-        [--block_adjustment_solver obliq|ceres] [--seed 1]
+        [--block_adjustment_solver obliq|ceres] [--block_adjustment_map_rows 0|1]
+        [--seed 1]
         [--paper_width 1002]
         [--output_path bench_georegister.json]
 
@@ -158,6 +159,7 @@ def run_mode(
     camera_kind: str = "auto",
     block_adjustment: int | None = None,
     block_solver: str | None = None,
+    map_rows: int | None = None,
 ) -> dict:
     """Run one mode; returns the score or the reason it did not run."""
     out = work / f"out_{mode}"
@@ -189,6 +191,8 @@ def run_mode(
         cmd += ["--block_adjustment", str(block_adjustment)]
     if block_solver is not None:
         cmd += ["--block_adjustment_solver", block_solver]
+    if map_rows is not None:
+        cmd += ["--block_adjustment_map_rows", str(map_rows)]
     if camera_kind != "auto":
         cmd += ["--camera_kind", camera_kind]
     if mode == "auto":
@@ -228,7 +232,8 @@ def print_result(mode: str, res: dict) -> None:
         print(
             f"  {'':11s} block adjustment ({block['solver']}): cost "
             f"{block['initial_cost']:.6g} -> {block['final_cost']:.6g}, "
-            f"{block['iterations']} iterations, {block['time_s']:.2f} s"
+            f"{block['iterations']} iterations, {block['time_s']:.2f} s, "
+            f"{block.get('num_map_rows', 0)} map rows"
         )
 
 
@@ -263,6 +268,13 @@ def main(argv: list[str] | None = None) -> int:
         choices=("obliq", "ceres"),
         default=None,
         help="georegister --block_adjustment_solver (default: the command's)",
+    )
+    ap.add_argument(
+        "--block_adjustment_map_rows",
+        type=int,
+        choices=(0, 1),
+        default=None,
+        help="georegister --block_adjustment_map_rows (default: the command's)",
     )
     ap.add_argument("--seed", type=int, default=1)
     ap.add_argument("--paper_width", type=int, default=1002)
@@ -310,6 +322,7 @@ def main(argv: list[str] | None = None) -> int:
                     kind_arg,
                     args.block_adjustment,
                     args.block_adjustment_solver,
+                    args.block_adjustment_map_rows,
                 )
                 res["camera_kind"] = kind_arg
                 res["num_images_in_model"] = n_reg
