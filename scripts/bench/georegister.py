@@ -33,7 +33,7 @@ for paper, on 2 shared cores)::
         [--mode gcp2 gcp3 auto reference3 oracle] [--sfm sfm_like pycolmap]
         [--camera_kind scene|auto] [--block_adjustment 0|1]
         [--block_adjustment_solver obliq|ceres] [--block_adjustment_map_rows 0|1]
-        [--seed 1]
+        [--sfm_lens_error PP_PX FOCAL] [--seed 1]
         [--paper_width 1002]
         [--output_path bench_georegister.json]
 
@@ -276,12 +276,23 @@ def main(argv: list[str] | None = None) -> int:
         default=None,
         help="georegister --block_adjustment_map_rows (default: the command's)",
     )
+    ap.add_argument(
+        "--sfm_lens_error",
+        nargs=2,
+        type=float,
+        default=(0.0, 0.0),
+        metavar=("PP_PX", "FOCAL"),
+        help="sfm_like: the model's lens made wrong (principal point moved PP_PX "
+        "px, focal scaled by 1 +- FOCAL) and its poses and points re-fitted "
+        "with it held, as a real SfM's (SfmLikeOptions); default 0 0",
+    )
     ap.add_argument("--seed", type=int, default=1)
     ap.add_argument("--paper_width", type=int, default=1002)
     ap.add_argument("--output_path", type=Path, default=None)
     args = ap.parse_args(argv)
     args.work_path.mkdir(parents=True, exist_ok=True)
-    options = SfmLikeOptions()
+    pp_err, f_err = args.sfm_lens_error
+    options = SfmLikeOptions(principal_point_error_px=pp_err, focal_error=f_err)
     results = {}
     for kind in args.scene:
         scene_path = ensure_scene(args.work_path, kind, args.seed, args.paper_width)
@@ -289,6 +300,8 @@ def main(argv: list[str] | None = None) -> int:
         work_root = args.work_path / f"{kind}_seed{args.seed}_runs"
         for sfm in args.sfm:
             work = work_root / sfm
+            if sfm == "sfm_like" and (pp_err or f_err):
+                work = work_root / f"{sfm}_lens_pp{pp_err:g}_f{f_err:g}"
             work.mkdir(parents=True, exist_ok=True)
             model = work / "model"
             t0 = time.perf_counter()
