@@ -77,6 +77,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "priors' camera heights hold the block's datum (default 1)",
     )  # fmt: skip
     parser.add_argument(
+        "--block_adjustment_map_directions", choices=("vp", "measured"),
+        default="vp",
+        help="the map rows' segment lines: through the image's VP as stage 2 "
+        "matched them (vp, default) or each segment's own fit (measured)",
+    )  # fmt: skip
+    parser.add_argument(
         "--add_missing_images", type=int, choices=(0, 1), default=0,
         help="images in --image_path that the model lacks: their rotation from "
         "vanishing points against a registered neighbour, their position from "
@@ -99,6 +105,7 @@ def run(args: argparse.Namespace) -> int:
         block=BlockAdjustmentOptions(
             solver=args.block_adjustment_solver,
             map_rows=bool(args.block_adjustment_map_rows),
+            map_measured_directions=args.block_adjustment_map_directions == "measured",
         ),
         add_missing_images=bool(args.add_missing_images),
         cadastre_path=_path(args.cadastre_path),

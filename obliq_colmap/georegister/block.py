@@ -67,6 +67,9 @@ class BlockAdjustmentOptions:
     #: a priori sd of a map row (px; register's ``vertical_sigma_px``: the
     #: map's vertex noise) and its robust loss's scale is ``loss_scale_px``
     map_sigma_px: float = 1.0
+    #: each map row's line the segment's own fit (not the line through its
+    #: image's VP that stage 2 matched; :func:`.map_rows.image_pairs`)
+    map_measured_directions: bool = False
     #: rows farther than this from their lines before the adjustment are
     #: left out (px)
     map_gate_px: float = 5.0

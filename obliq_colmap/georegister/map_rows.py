@@ -22,6 +22,7 @@ import pycolmap
 
 from obliq_colmap.adjustment.problem import heights_on_vertical
 from obliq_colmap.geometry import Camera, Pose, lines_through
+from obliq_colmap.registration import RegistrationOptions, register_image
 
 logger = logging.getLogger(__name__)
 
@@ -128,3 +129,48 @@ def gate_map_rows(
         float(np.median(np.abs(r))) if len(r) else float("nan"),
     )  # fmt: skip
     return rows.select(keep), r
+
+
+def image_pairs(im, result, measured_directions: bool) -> ImagePairs:
+    """One image's stage-2 inliers (``im``: its
+    :class:`~.vertical.ImageVertical`, ``result``: its RegistrationResult).
+    With ``measured_directions`` each segment's own fit on its edge points
+    (as ``register``'s ``measured_vertical_directions``) instead of the
+    line through the image's VP that stage 2 matched: through the VP, all
+    of an image's rows repeat its VP's direction (and its error, ~0.4 deg
+    on the paper block) at many times the VP row's weight."""
+    corner = result.inlier_pairs[:, 0].copy()
+    if measured_directions and im.segments_free is not None:
+        return ImagePairs(corner, im.segments_free[result.inlier_pairs[:, 1]].copy())
+    return ImagePairs(corner, result.inlier_segments_px.copy())
+
+
+def pairs_on_map(
+    rec: pycolmap.Reconstruction,
+    vertical,
+    cad,
+    options: RegistrationOptions,
+    measured_directions: bool = False,
+) -> dict[int, ImagePairs]:
+    """Stage 2 on every image with a VP and 3 or more vertical segments
+    (``vertical``: :class:`~.vertical.ModelVertical`), its pose in ``rec``
+    (already in ``cad``'s frame, e.g. placed by control points) as the
+    prior; each registered image's inlier pairs."""
+    out = {}
+    for im in vertical.images:
+        if im.segments is None or len(im.segments) < 3 or im.down_camera is None:
+            continue
+        if im.image_id not in rec.images or not rec.images[im.image_id].has_pose:
+            continue
+        prior = Pose.from_rigid3d(rec.images[im.image_id].cam_from_world())
+        result = register_image(
+            im.segments, im.down_camera, _camera(rec, im.image_id), prior, cad,
+            options, segments_undistorted=True,
+        )  # fmt: skip
+        if result.success and len(result.inlier_pairs):
+            out[im.image_id] = image_pairs(im, result, measured_directions)
+    logger.info(
+        "map rows: stage 2 registered %d of %d images from their placed poses",
+        len(out), len(vertical.images),
+    )  # fmt: skip
+    return out

@@ -30,6 +30,7 @@ from .common import (
     vertical_report,
 )
 from .map_rows import ImagePairs, gate_map_rows, map_rows
+from .map_rows import image_pairs as pairs_of_image
 from .options import GeoregisterOptions
 from .similarity import similarity_upright
 from .vertical import model_vertical
@@ -218,8 +219,8 @@ def _stage2_placement(rec, vertical, cad, start, options):
             bearings.append(b)
             ray_image.append(np.full(k, len(model_c) - 1))
             pairs.append(np.c_[n_rays + np.arange(k), result.inlier_pairs[:, 0]])
-            image_pairs[im.image_id] = ImagePairs(
-                result.inlier_pairs[:, 0].copy(), result.inlier_segments_px.copy()
+            image_pairs[im.image_id] = pairs_of_image(
+                im, result, options.block.map_measured_directions
             )
             n_rays += k
     if len(model_c) < 3:

@@ -33,7 +33,8 @@ for paper, on 2 shared cores)::
         [--mode gcp2 gcp3 auto reference3 oracle] [--sfm sfm_like pycolmap]
         [--camera_kind scene|auto] [--block_adjustment 0|1]
         [--block_adjustment_solver obliq|ceres] [--block_adjustment_map_rows 0|1]
-        [--sfm_lens_error PP_PX FOCAL] [--seed 1]
+        [--sfm_lens_error PP_PX FOCAL] [--gcp_with_map 0|1]
+        [--georegister_arg=ARG ...] [--seed 1]
         [--paper_width 1002]
         [--output_path bench_georegister.json]
 
@@ -160,6 +161,8 @@ def run_mode(
     block_adjustment: int | None = None,
     block_solver: str | None = None,
     map_rows: int | None = None,
+    gcp_with_map: bool = False,
+    extra: list[str] | None = None,
 ) -> dict:
     """Run one mode; returns the score or the reason it did not run."""
     out = work / f"out_{mode}"
@@ -193,6 +196,7 @@ def run_mode(
         cmd += ["--block_adjustment_solver", block_solver]
     if map_rows is not None:
         cmd += ["--block_adjustment_map_rows", str(map_rows)]
+    cmd += extra or []
     if camera_kind != "auto":
         cmd += ["--camera_kind", camera_kind]
     if mode == "auto":
@@ -202,6 +206,8 @@ def run_mode(
         gcp = work / f"{mode}.txt"
         write_gcp_list(gcp, farthest_subset(control, int(mode[-1])))
         cmd += ["--control_points_path", str(gcp)]
+        if gcp_with_map:
+            cmd += ["--cadastre_path", str(scene_path / "cadastre.geojson")]
     t0 = time.perf_counter()
     proc = subprocess.run(cmd, capture_output=True, text=True)
     if proc.returncode != 0:
@@ -286,6 +292,21 @@ def main(argv: list[str] | None = None) -> int:
         "px, focal scaled by 1 +- FOCAL) and its poses and points re-fitted "
         "with it held, as a real SfM's (SfmLikeOptions); default 0 0",
     )
+    ap.add_argument(
+        "--gcp_with_map",
+        type=int,
+        choices=(0, 1),
+        default=0,
+        help="gcp2, gcp3: pass the scene's cadastre too (its corner lines "
+        "then enter the block adjustment); default 0",
+    )
+    ap.add_argument(
+        "--georegister_arg",
+        action="append",
+        default=[],
+        help="one more argument for every georegister command (repeat; "
+        "use --georegister_arg=--flag for a leading dash)",
+    )
     ap.add_argument("--seed", type=int, default=1)
     ap.add_argument("--paper_width", type=int, default=1002)
     ap.add_argument("--output_path", type=Path, default=None)
@@ -336,6 +357,8 @@ def main(argv: list[str] | None = None) -> int:
                     args.block_adjustment,
                     args.block_adjustment_solver,
                     args.block_adjustment_map_rows,
+                    bool(args.gcp_with_map),
+                    args.georegister_arg,
                 )
                 res["camera_kind"] = kind_arg
                 res["num_images_in_model"] = n_reg
