@@ -160,9 +160,17 @@ def test_without_map_rows_the_block_stays_where_it_was_put():
     assert np.abs(err[:, :2]).max() > 0.3
 
 
-@pytest.mark.parametrize("flag, want", [([], True), (["0"], False)])
-def test_the_map_rows_flag_reaches_the_options(tmp_path, monkeypatch, flag, want):
-    """``--block_adjustment_map_rows``: on by default, off when asked."""
+@pytest.mark.parametrize(
+    "flag, want",
+    [
+        ([], (True, True)),
+        (["--block_adjustment_map_rows", "0"], (False, True)),
+        (["--block_adjustment_map_directions", "vp"], (True, False)),
+    ],
+)
+def test_the_map_rows_flags_reach_the_options(tmp_path, monkeypatch, flag, want):
+    """``--block_adjustment_map_rows`` (on by default) and
+    ``--block_adjustment_map_directions`` (measured by default)."""
     import argparse
 
     from obliq_colmap.cli import georegister as cli
@@ -179,7 +187,29 @@ def test_the_map_rows_flag_reaches_the_options(tmp_path, monkeypatch, flag, want
     argv = ["--input_path", str(tmp_path), "--image_path", str(tmp_path),
             "--cadastre_path", "m.geojson",
             "--output_path", str(tmp_path / "o")]  # fmt: skip
-    argv += ["--block_adjustment_map_rows", *flag] if flag else []
     with pytest.raises(SystemExit):
-        cli.run(parser.parse_args(argv))
-    assert seen["options"].block.map_rows is want
+        cli.run(parser.parse_args(argv + flag))
+    block = seen["options"].block
+    assert (block.map_rows, block.map_measured_directions) == want
+
+
+def test_measured_directions_take_each_segments_own_fit():
+    """``map_measured_directions``: a pair's segment is the free fit of the
+    segment stage 2 matched (by its index), not the line through the VP."""
+    from types import SimpleNamespace
+
+    from obliq_colmap.georegister.map_rows import image_pairs
+
+    through = np.arange(5 * 4, dtype=float).reshape(5, 2, 2)
+    free = through + 100.0
+    im = SimpleNamespace(segments=through, segments_free=free)
+    result = SimpleNamespace(
+        inlier_pairs=np.array([[7, 3], [9, 1]]), inlier_segments_px=through[[3, 1]]
+    )
+    vp = image_pairs(im, result, measured_directions=False)
+    own = image_pairs(im, result, measured_directions=True)
+    assert np.array_equal(vp.corner, [7, 9]) and np.array_equal(own.corner, [7, 9])
+    assert np.array_equal(vp.segments, through[[3, 1]])
+    assert np.array_equal(own.segments, free[[3, 1]])
+    im.segments_free = None  # no free fits: the VP's lines
+    assert np.array_equal(image_pairs(im, result, True).segments, through[[3, 1]])

@@ -78,9 +78,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )  # fmt: skip
     parser.add_argument(
         "--block_adjustment_map_directions", choices=("vp", "measured"),
-        default="vp",
-        help="the map rows' segment lines: through the image's VP as stage 2 "
-        "matched them (vp, default) or each segment's own fit (measured)",
+        default="measured",
+        help="the map rows' segment lines: each segment's own fit (measured, "
+        "default) or through the image's VP as stage 2 matched them (vp)",
     )  # fmt: skip
     parser.add_argument(
         "--add_missing_images", type=int, choices=(0, 1), default=0,
