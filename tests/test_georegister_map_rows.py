@@ -95,19 +95,22 @@ def _centres(rec) -> np.ndarray:
 
 
 def _perturbed(seed: int = 3):
-    """The scene, the block moved by a similarity (1 m and 0.6 m across, 0.4
-    m up, 0.3 deg about the vertical, a 0.1 deg tilt, scale 1.005) as the
-    automatic mode's placement would leave it, and the map rows built on it."""
+    """The scene, the block moved by a similarity (1 m and 0.6 m across, 0.3
+    deg about the vertical, a 0.1 deg tilt, scale 1.005) as the automatic
+    mode's placement would leave it (its mean camera height the priors'),
+    and the map rows built on it."""
     rng = np.random.default_rng(seed)
     rec, corner_xy, poses, pairs = _scene(rng)
     truth = _centres(rec)
-    tilt = pycolmap.Rotation3d(np.radians([0.1, 0.0, 0.3]))
-    rec.transform(pycolmap.Sim3d(1.005, tilt, [1.0, -0.6, 0.4]))
-    rows = map_rows(rec, corner_xy, pairs)
     priors = {
         i: truth[k] + rng.normal(0, PRIOR_SD_M, 3)
         for k, i in enumerate(sorted(rec.images))
     }
+    tilt = pycolmap.Rotation3d(np.radians([0.1, 0.0, 0.3]))
+    rec.transform(pycolmap.Sim3d(1.005, tilt, [1.0, -0.6, 0.0]))
+    dz = np.mean([p[2] for p in priors.values()]) - _centres(rec)[:, 2].mean()
+    rec.transform(pycolmap.Sim3d(1.0, pycolmap.Rotation3d(), [0.0, 0.0, dz]))
+    rows = map_rows(rec, corner_xy, pairs)
     return rec, truth, poses, rows, priors
 
 
@@ -126,18 +129,19 @@ def test_map_rows_sit_on_their_lines_in_the_true_block():
     assert len(kept) < 0.3 * len(bad)
 
 
-def test_map_rows_hold_a_block_without_control_points():
+@pytest.mark.parametrize("prior_sd", [None, PRIOR_SD_M])
+def test_map_rows_hold_a_block_without_control_points(prior_sd):
     """From the moved start (metres off) back to the truth: horizontally to
-    what 0.3 px on ~1,500 rows and ~1,800 track observations leaves (0.3 px
+    what 0.3 px on ~500 rows and ~2,700 track observations leaves (0.3 px
     is 4 cm at 130 m: 5 cm is one row's noise, far above the mean of
-    hundreds), in height to the mean of the 8 priors' heights (4 sd of it)."""
+    hundreds), in height to the mean of the 8 priors' heights (4 sd of it):
+    held where the start put it (None), or the priors observed at their sd
+    (the rows' fixed heights, set on the start block, pull the datum weakly
+    too: the segments' noise turns their lines off the verticals' images)."""
     rec, truth, poses, rows, priors = _perturbed()
     start = _centres(rec) - truth
     assert np.abs(start[:, :2]).max() > 0.5  # the start is far off
-    # the priors at their own sd: the rows' fixed heights (set on the start
-    # block, 0.4 m up) pull the datum weakly too (the segments' noise turns
-    # their lines off the verticals' images), more than 5 m priors would
-    options = BlockAdjustmentOptions(prior_center_sigma_m=PRIOR_SD_M)
+    options = BlockAdjustmentOptions(prior_center_sigma_m=prior_sd)
     summary = adjust_block(rec, {}, _verticals(poses), options, rows, priors)
     assert summary.num_map_rows == len(rows)
     assert summary.final_cost < 0.5 * summary.initial_cost
@@ -146,6 +150,8 @@ def test_map_rows_hold_a_block_without_control_points():
     tol_h = 4 * PRIOR_SD_M / np.sqrt(len(truth))
     assert abs(err[:, 2].mean()) < tol_h, err
     assert np.abs(err[:, 2] - err[:, 2].mean()).max() < 0.05, err
+    if prior_sd is None:  # the mean camera height held exactly
+        assert err[:, 2].mean() == pytest.approx(start[:, 2].mean(), abs=1e-6)
 
 
 def test_without_map_rows_the_block_stays_where_it_was_put():
@@ -153,7 +159,7 @@ def test_without_map_rows_the_block_stays_where_it_was_put():
     horizontally but its start (the priors' offset is free), so it stays
     metres off: the rows are what moved it above."""
     rec, truth, poses, rows, priors = _perturbed()
-    options = BlockAdjustmentOptions(map_rows=False, prior_center_sigma_m=PRIOR_SD_M)
+    options = BlockAdjustmentOptions(map_rows=False)
     summary = adjust_block(rec, {}, _verticals(poses), options, rows, priors)
     assert summary.num_map_rows == 0
     err = _centres(rec) - truth

@@ -21,13 +21,16 @@ solver="obliq"``, the default): the SfM model as a
   at fixed heights on the corners' verticals as in ``register``'s stage 3
   (``corner_heights="fixed"``), at ``map_sigma_px`` with the Cauchy loss at
   ``loss_scale_px``;
-- the priors' camera centres (the automatic mode): observed at
-  ``prior_center_sigma_m`` with one horizontal offset estimated
-  (``BundleOptions.position_prior_sigma_m``, ``estimate_prior_offset``),
-  so that their heights hold the vertical datum and the map the rest.
+- the vertical datum without control points (the automatic mode): the
+  block's mean camera height held where the placement put it (the
+  priors' heights; the bundle's gauge row, ``component_mean_camera_height``:
+  the tracks link the block into one component), or, with
+  ``prior_center_sigma_m``, the priors' centres observed at that sd with
+  one horizontal offset estimated (``BundleOptions.position_prior_sigma_m``,
+  ``estimate_prior_offset``).
 
-No height unknowns and no gauge rows: the control points, or the map and
-the priors' heights, hold the datum.
+No height unknowns; with control points no gauge rows (they hold the
+datum), as in the Ceres problem.
 """
 
 from __future__ import annotations
@@ -47,11 +50,14 @@ logger = logging.getLogger(__name__)
 
 
 def bundle_options(
-    options: BlockAdjustmentOptions, prior_centers: bool = False
+    options: BlockAdjustmentOptions,
+    prior_centers: bool = False,
+    hold_mean_height: bool = False,
 ) -> BundleOptions:
     """The bundle's options for the block's problem (the same cost as the
     Ceres problem's: unit weights, Cauchy on the tracks, plain VP rows; the
-    map rows and the priors' centres where given)."""
+    map rows where given; the priors' centres or the mean camera height as
+    the vertical datum where asked)."""
     return BundleOptions(
         loss="cauchy",
         loss_scale_px=options.loss_scale_px,
@@ -61,10 +67,12 @@ def bundle_options(
         refine_aspect_ratio=True,  # as COLMAP's adjuster
         refine_principal_point=options.refine_principal_point,
         refine_extra_params=options.refine_extra_params,
-        gauge="none",
+        gauge="component_mean_camera_height" if hold_mean_height else "none",
         corner_heights="fixed",
         vertical_sigma_px=options.map_sigma_px,
-        position_prior_sigma_m=options.prior_center_sigma_m if prior_centers else None,
+        position_prior_sigma_m=(
+            options.prior_center_sigma_m if prior_centers else None
+        ),
         estimate_prior_offset=True,
         height_initialisation_steps=0,
         vp_observations=True,
@@ -126,7 +134,7 @@ def block_problem(
     rows = map_rows if map_rows is not None else empty_map_rows()
     rows = rows.select(np.isin(rows.image_id, image_ids))
     centers = None
-    if prior_centers:
+    if prior_centers:  # every image observed (the bundle wants all or none)
         centers = {
             i: np.asarray(prior_centers.get(i, poses[i].center), float)
             for i in image_ids
@@ -169,10 +177,18 @@ def adjust_block_bundle(
 ) -> BlockAdjustmentSummary:
     """:func:`~obliq_colmap.georegister.block.adjust_block` in the project's
     bundle; the solved cameras, poses and points written back into ``rec``."""
+    use_priors = bool(prior_centers) and options.prior_center_sigma_m is not None
     problem, point_ids = block_problem(
-        rec, control_point_ids, verticals, map_rows, prior_centers
+        rec,
+        control_point_ids,
+        verticals,
+        map_rows,
+        prior_centers if use_priors else None,
     )
-    result = solve_bundle(problem, bundle_options(options, bool(prior_centers)))
+    # without control points (the automatic mode) nothing else holds the
+    # height: the mean camera height stays where the placement put it
+    hold = not control_point_ids and not use_priors
+    result = solve_bundle(problem, bundle_options(options, use_priors, hold))
     for cid, cam in result.cameras.items():
         rec.cameras[cid].params = cam.params
     for iid, pose in result.poses.items():
