@@ -37,7 +37,7 @@ from .common import (
     upright,
     vertical_report,
 )
-from .map_rows import MapRows
+from .map_rows import MapRows, gate_map_rows, map_rows, pairs_on_map
 from .options import GeoregisterOptions
 from .similarity import Similarity, similarity_7dof, similarity_upright
 from .vertical import model_vertical
@@ -162,8 +162,8 @@ def georegister(
         # the similarity's inliers only: a point it rejected would pull the block
         inlier = np.zeros(len(use), bool)
         inlier[np.flatnonzero(use)] = sim.inliers
-        rows = _map_rows(rec, vertical, control, options, origin)
-        block = _adjust(rec, control, added, inlier, vertical, options, origin, rows)
+        on_map = _map_rows(rec, vertical, control, options, origin)
+        block = _adjust(rec, control, added, inlier, vertical, options, origin, on_map)
         tri = triangulate_control_points(rec, control)
         tri_local = tri.xyz
     rows = point_residuals(rec, control, tri, given_local, tri_local, roles)
@@ -211,8 +211,6 @@ def _map_rows(
     ):
         return None
     from obliq_colmap.cadastre import CadastreOptions, build_cadastre, read_footprints
-
-    from .map_rows import gate_map_rows, map_rows, pairs_on_map
 
     fp = read_footprints(options.cadastre_path, CadastreOptions(crs=control.crs))
     centres = np.array([rec.images[i].projection_center() for i in rec.reg_image_ids()])
