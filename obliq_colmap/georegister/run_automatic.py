@@ -163,6 +163,15 @@ def _adjust_on_map(
             "only the obliq solver has; not run"
         )
         return None
+    if rec.num_points3D() == 0:
+        # no tracks: nothing holds the block together, each image would be
+        # refitted alone on its own rows (the sample's true cameras as a
+        # model: 0.5-2.0 px -> up to 4.3 px)
+        logger.warning(
+            "automatic mode: the model has no 3D points (tracks); the block "
+            "adjustment is not run"
+        )
+        return None
     rows = map_rows(rec, cad.corner_xy, image_pairs)
     rows, _ = gate_map_rows(rec, rows, options.block.map_gate_px)
     if len(rows) == 0:
