@@ -87,10 +87,12 @@ def test_automatic_mode_needs_priors(tmp_path, capsys):
 
 
 @pytest.mark.slow
-def test_control_point_mode_on_the_sample(tmp_path):
+@pytest.mark.parametrize("with_map", [False, True])
+def test_control_point_mode_on_the_sample(tmp_path, with_map):
     """An SfM-like model of the sample (true cameras, 0.5 px corner tracks, a
     random similarity frame) and its noisy control points: every image within
-    2 px of the truth, with the block adjustment (the default)."""
+    2 px of the truth, with the block adjustment (the default); with the
+    map too, its corner lines are rows of the adjustment."""
     from obliq_colmap.synthetic import load_scene
     from obliq_colmap.synthetic.sfm_like import write_sfm_like
 
@@ -100,9 +102,11 @@ def test_control_point_mode_on_the_sample(tmp_path):
         ["georegister", "--input_path", str(sfm), "--image_path",
          str(SAMPLE / "images"), "--control_points_path", str(sfm / "gcp_list.txt"),
          "--output_path", str(out), "--no_progress"]
+        + (["--cadastre_path", str(SAMPLE / "cadastre.geojson")] if with_map else [])
     )  # fmt: skip
     assert rc == 0
     report = json.loads((out / "report.json").read_text())
+    assert (report["block_adjustment"]["num_map_rows"] > 100) is with_map
     assert (
         report["block_adjustment"]["final_cost"]
         <= report["block_adjustment"]["initial_cost"]

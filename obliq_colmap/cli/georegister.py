@@ -71,6 +71,18 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "default) or ceres (pycolmap's Ceres adjuster, the check; same problem)",
     )  # fmt: skip
     parser.add_argument(
+        "--block_adjustment_map_rows", type=int, choices=(0, 1), default=1,
+        help="where a map is given, stage 2's corner-to-segment pairs as rows of "
+        "the block adjustment (obliq solver); in the automatic mode they and the "
+        "priors' camera heights hold the block's datum (default 1)",
+    )  # fmt: skip
+    parser.add_argument(
+        "--block_adjustment_map_directions", choices=("vp", "measured"),
+        default="measured",
+        help="the map rows' segment lines: each segment's own fit (measured, "
+        "default) or through the image's VP as stage 2 matched them (vp)",
+    )  # fmt: skip
+    parser.add_argument(
         "--add_missing_images", type=int, choices=(0, 1), default=0,
         help="images in --image_path that the model lacks: their rotation from "
         "vanishing points against a registered neighbour, their position from "
@@ -90,7 +102,11 @@ def run(args: argparse.Namespace) -> int:
         check_points=tuple(n for n in args.check_points.split(",") if n),
         crs=args.crs,
         block_adjustment=bool(args.block_adjustment),
-        block=BlockAdjustmentOptions(solver=args.block_adjustment_solver),
+        block=BlockAdjustmentOptions(
+            solver=args.block_adjustment_solver,
+            map_rows=bool(args.block_adjustment_map_rows),
+            map_measured_directions=args.block_adjustment_map_directions == "measured",
+        ),
         add_missing_images=bool(args.add_missing_images),
         cadastre_path=_path(args.cadastre_path),
         control_points_path=_path(args.control_points_path),

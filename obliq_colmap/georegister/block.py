@@ -26,12 +26,17 @@ the VPs (:mod:`.block_ceres`), kept as the check.
 
 from __future__ import annotations
 
+import logging
 import math
 import time
 from dataclasses import dataclass
 
 import numpy as np
 import pycolmap
+
+from .map_rows import MapRows
+
+logger = logging.getLogger(__name__)
 
 #: ``BlockAdjustmentOptions.solver`` (``--block_adjustment_solver``).
 BLOCK_SOLVERS = ("obliq", "ceres")
@@ -55,8 +60,35 @@ class BlockAdjustmentOptions:
     function_tolerance: float = 1e-6
     #: "obliq" (the project's bundle) or "ceres" (pycolmap + pyceres)
     solver: str = "obliq"
+    #: the map's corner lines as rows where a map is given (stage 2's inlier
+    #: pairs, :mod:`.map_rows`; the obliq solver only): in the automatic
+    #: mode they hold the block's datum horizontally (no control points)
+    map_rows: bool = True
+    #: a priori sd of a map row (px; register's ``vertical_sigma_px``: the
+    #: map's vertex noise) and its robust loss's scale is ``loss_scale_px``
+    map_sigma_px: float = 1.0
+    #: each map row's line the segment's own fit (not the line through its
+    #: image's VP that stage 2 matched; :func:`.map_rows.image_pairs`):
+    #: through the VP the 3-point paper block's tilt went 0.017 -> 0.029 deg
+    #: with the rows, with their own fits to 0.008 deg (journal, 2026-12-06)
+    map_measured_directions: bool = True
+    #: rows farther than this from their lines before the adjustment are
+    #: left out (px)
+    map_gate_px: float = 5.0
+    #: the vertical datum where no control point holds it (the automatic
+    #: mode): None, the block's mean camera height held where the automatic
+    #: mode put it (from the priors' heights; the bundle's gauge row); a
+    #: number, each camera centre observed at the priors' with this sd (m)
+    #: and one horizontal offset estimated. The priors' 5 m height noise
+    #: then tilts the block (paper seed 2: 0.021 deg with 50 m, 0.034 deg
+    #: with 5 m, 0.19 deg with 1 m; journal, 2026-12-06)
+    prior_center_sigma_m: float | None = None
 
     def __post_init__(self) -> None:
+        if not (self.map_sigma_px > 0 and self.map_gate_px > 0):
+            raise ValueError("map_sigma_px and map_gate_px must be > 0")
+        if self.prior_center_sigma_m is not None and not self.prior_center_sigma_m > 0:
+            raise ValueError("prior_center_sigma_m must be > 0 or None")
         if self.solver not in BLOCK_SOLVERS:
             raise ValueError(
                 f"solver={self.solver!r}; allowed: {', '.join(BLOCK_SOLVERS)}"
@@ -74,6 +106,8 @@ class BlockAdjustmentSummary:
     num_control_rows: int
     num_vertical_rows: int
     termination: str
+    #: corner-to-line rows of the map (two per stage-2 inlier pair)
+    num_map_rows: int = 0
     solver: str = "obliq"
     #: wall time of the whole adjustment (problem built, solved, written back), s
     time_s: float = math.nan
@@ -119,6 +153,8 @@ def adjust_block(
     control_point_ids: dict[int, tuple[np.ndarray, np.ndarray]],
     verticals: dict[int, tuple[np.ndarray, float]],
     options: BlockAdjustmentOptions | None = None,
+    map_rows: MapRows | None = None,
+    prior_centers: dict[int, np.ndarray] | None = None,
 ) -> BlockAdjustmentSummary:
     """Adjust ``rec`` in place (every registered image, camera and point).
 
@@ -126,14 +162,33 @@ def adjust_block(
         (3,) sigmas in m, inf for a free axis).
     verticals : image_id -> ((3,) observed down direction in the camera
         frame, through the camera's pinhole at the start, its sd in deg).
+    map_rows : the map's corner-to-line rows (:mod:`.map_rows`), used where
+        ``options.map_rows`` (obliq solver only).
+    prior_centers : image_id -> (3,) a camera centre from the priors (rec's
+        frame), each observed at ``options.prior_center_sigma_m`` (where
+        not None) with one horizontal offset estimated. Without control
+        points and without them, the block's mean camera height is held
+        (obliq solver only).
     """
     options = options or BlockAdjustmentOptions()
     t0 = time.perf_counter()
     rows = vertical_rows(rec, verticals, options.min_vertical_sd_deg)
     if options.solver == "ceres":
-        from .block_ceres import adjust_block_ceres as run
+        if (map_rows is not None and len(map_rows)) or prior_centers:
+            logger.warning(
+                "block adjustment (ceres): the map rows and the priors' centres "
+                "are the obliq solver's only; left out"
+            )
+        from .block_ceres import adjust_block_ceres
+
+        summary = adjust_block_ceres(rec, control_point_ids, rows, options)
     else:
-        from .block_bundle import adjust_block_bundle as run
-    summary = run(rec, control_point_ids, rows, options)
+        from .block_bundle import adjust_block_bundle
+
+        if not options.map_rows:
+            map_rows = None
+        summary = adjust_block_bundle(
+            rec, control_point_ids, rows, options, map_rows, prior_centers
+        )
     summary.time_s = time.perf_counter() - t0
     return summary

@@ -16,8 +16,21 @@ solver="obliq"``, the default): the SfM model as a
   isotropic covariance of its angular sd, no robust loss (the vertical's
   robust mean already dropped the images that disagree).
 
-No map rows and no height unknowns; no gauge rows either: the control
-points hold the datum, as in the Ceres problem.
+- the map (where given and ``BlockAdjustmentOptions.map_rows``): the
+  corner-to-line rows of stage 2's inlier pairs (:mod:`.map_rows`), points
+  at fixed heights on the corners' verticals as in ``register``'s stage 3
+  (``corner_heights="fixed"``), at ``map_sigma_px`` with the Cauchy loss at
+  ``loss_scale_px``;
+- the vertical datum without control points (the automatic mode): the
+  block's mean camera height held where the placement put it (the
+  priors' heights; the bundle's gauge row, ``component_mean_camera_height``:
+  the tracks link the block into one component), or, with
+  ``prior_center_sigma_m``, the priors' centres observed at that sd with
+  one horizontal offset estimated (``BundleOptions.position_prior_sigma_m``,
+  ``estimate_prior_offset``).
+
+No height unknowns; with control points no gauge rows (they hold the
+datum), as in the Ceres problem.
 """
 
 from __future__ import annotations
@@ -31,13 +44,20 @@ from obliq_colmap.bundle import BundleOptions, BundleProblem, solve_bundle
 from obliq_colmap.geometry import Camera, Pose, calibration_matrix
 
 from .block import BlockAdjustmentOptions, BlockAdjustmentSummary, VerticalRow
+from .map_rows import MapRows, empty_map_rows
 
 logger = logging.getLogger(__name__)
 
 
-def bundle_options(options: BlockAdjustmentOptions) -> BundleOptions:
+def bundle_options(
+    options: BlockAdjustmentOptions,
+    prior_centers: bool = False,
+    hold_mean_height: bool = False,
+) -> BundleOptions:
     """The bundle's options for the block's problem (the same cost as the
-    Ceres problem's: unit weights, Cauchy on the tracks, plain VP rows)."""
+    Ceres problem's: unit weights, Cauchy on the tracks, plain VP rows; the
+    map rows where given; the priors' centres or the mean camera height as
+    the vertical datum where asked)."""
     return BundleOptions(
         loss="cauchy",
         loss_scale_px=options.loss_scale_px,
@@ -47,7 +67,13 @@ def bundle_options(options: BlockAdjustmentOptions) -> BundleOptions:
         refine_aspect_ratio=True,  # as COLMAP's adjuster
         refine_principal_point=options.refine_principal_point,
         refine_extra_params=options.refine_extra_params,
-        gauge="none",
+        gauge="component_mean_camera_height" if hold_mean_height else "none",
+        corner_heights="fixed",
+        vertical_sigma_px=options.map_sigma_px,
+        position_prior_sigma_m=(
+            options.prior_center_sigma_m if prior_centers else None
+        ),
+        estimate_prior_offset=True,
         height_initialisation_steps=0,
         vp_observations=True,
         vp_loss_scale=np.inf,
@@ -70,9 +96,12 @@ def block_problem(
     rec: pycolmap.Reconstruction,
     control_point_ids: dict[int, tuple[np.ndarray, np.ndarray]],
     verticals: dict[int, VerticalRow],
+    map_rows: MapRows | None = None,
+    prior_centers: dict[int, np.ndarray] | None = None,
 ) -> tuple[BundleProblem, np.ndarray]:
     """The model as a bundle problem, and the (T,) point3D ids of its tie
-    points in order."""
+    points in order. An image without a prior centre is observed where it
+    stands (the priors leave it out; its tracks place it)."""
     image_ids = sorted(rec.reg_image_ids())
     index = {iid: k for k, iid in enumerate(image_ids)}
     cameras = {
@@ -102,21 +131,30 @@ def block_problem(
             cam = cameras[rec.images[i].camera_id]
             vps[i] = row.vp
             covs[i] = vp_covariance(row, calibration_matrix(cam.model, cam.params))
+    rows = map_rows if map_rows is not None else empty_map_rows()
+    rows = rows.select(np.isin(rows.image_id, image_ids))
+    centers = None
+    if prior_centers:  # every image observed (the bundle wants all or none)
+        centers = {
+            i: np.asarray(prior_centers.get(i, poses[i].center), float)
+            for i in image_ids
+        }
     problem = BundleProblem(
         cameras=cameras,
         poses=poses,
         image_camera={i: rec.images[i].camera_id for i in image_ids},
         image_ids=tuple(image_ids),
-        corner_xy=np.zeros((0, 2)),
-        corner_heights=np.zeros(0),
-        vertical_image=np.zeros(0, np.int64),
-        vertical_corner=np.zeros(0, np.int64),
-        vertical_line=np.zeros((0, 3)),
+        corner_xy=rows.xy,
+        corner_heights=rows.height,
+        vertical_image=np.array([index[int(i)] for i in rows.image_id], np.int64),
+        vertical_corner=np.arange(len(rows)),
+        vertical_line=rows.line,
         facade_heights=np.zeros(0),
         horizontal_image=np.zeros(0, np.int64),
         horizontal_height=np.zeros(0, np.int64),
         horizontal_anchor_xy=np.zeros((0, 2)),
         horizontal_line=np.zeros((0, 3)),
+        prior_centers=centers,
         vertical_vps=vps or None,
         vertical_vp_covariances=covs or None,
         tie_xyz=tie_xyz,
@@ -134,11 +172,23 @@ def adjust_block_bundle(
     control_point_ids: dict[int, tuple[np.ndarray, np.ndarray]],
     verticals: dict[int, VerticalRow],
     options: BlockAdjustmentOptions,
+    map_rows: MapRows | None = None,
+    prior_centers: dict[int, np.ndarray] | None = None,
 ) -> BlockAdjustmentSummary:
     """:func:`~obliq_colmap.georegister.block.adjust_block` in the project's
     bundle; the solved cameras, poses and points written back into ``rec``."""
-    problem, point_ids = block_problem(rec, control_point_ids, verticals)
-    result = solve_bundle(problem, bundle_options(options))
+    use_priors = bool(prior_centers) and options.prior_center_sigma_m is not None
+    problem, point_ids = block_problem(
+        rec,
+        control_point_ids,
+        verticals,
+        map_rows,
+        prior_centers if use_priors else None,
+    )
+    # without control points (the automatic mode) nothing else holds the
+    # height: the mean camera height stays where the placement put it
+    hold = not control_point_ids and not use_priors
+    result = solve_bundle(problem, bundle_options(options, use_priors, hold))
     for cid, cam in result.cameras.items():
         rec.cameras[cid].params = cam.params
     for iid, pose in result.poses.items():
@@ -149,9 +199,9 @@ def adjust_block_bundle(
     n_ctrl = int(np.sum(np.any(np.isfinite(problem.tie_prior_sigma), axis=1)))
     logger.info(
         "block adjustment (obliq): cost %.6g -> %.6g in %d iterations (%d "
-        "control points, %d verticals), %s",
+        "control points, %d verticals, %d map rows), %s",
         s.initial_cost, s.final_cost, s.num_iterations, n_ctrl,
-        len(result.vp_angle_deg), s.termination,
+        len(result.vp_angle_deg), len(problem.corner_xy), s.termination,
     )  # fmt: skip
     return BlockAdjustmentSummary(
         initial_cost=float(s.initial_cost),
@@ -161,4 +211,5 @@ def adjust_block_bundle(
         num_vertical_rows=len(result.vp_angle_deg),
         termination=s.termination,
         solver="obliq",
+        num_map_rows=len(problem.corner_xy),
     )

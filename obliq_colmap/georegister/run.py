@@ -37,6 +37,7 @@ from .common import (
     upright,
     vertical_report,
 )
+from .map_rows import MapRows, gate_map_rows, map_rows, pairs_on_map
 from .options import GeoregisterOptions
 from .similarity import Similarity, similarity_7dof, similarity_upright
 from .vertical import model_vertical
@@ -161,7 +162,8 @@ def georegister(
         # the similarity's inliers only: a point it rejected would pull the block
         inlier = np.zeros(len(use), bool)
         inlier[np.flatnonzero(use)] = sim.inliers
-        block = _adjust(rec, control, added, inlier, vertical, options, origin)
+        on_map = _map_rows(rec, vertical, control, options, origin)
+        block = _adjust(rec, control, added, inlier, vertical, options, origin, on_map)
         tri = triangulate_control_points(rec, control)
         tri_local = tri.xyz
     rows = point_residuals(rec, control, tri, given_local, tri_local, roles)
@@ -189,11 +191,50 @@ def georegister(
     return GeoregisterResult(rec, georef, report)
 
 
+def _map_rows(
+    rec: pycolmap.Reconstruction,
+    vertical,
+    control: ControlPoints,
+    options: GeoregisterOptions,
+    origin: np.ndarray,
+) -> MapRows | None:
+    """With a map (and ``options.block.map_rows``, the obliq solver): the
+    map's corner lines as rows of the block adjustment, from stage 2 on
+    every image started from its pose as the control points placed it
+    (the map read in their CRS and frame, kept around the cameras), gated
+    against that pose."""
+    if (
+        options.cadastre_path is None
+        or vertical is None
+        or not options.block.map_rows
+        or options.block.solver != "obliq"
+    ):
+        return None
+    from obliq_colmap.cadastre import CadastreOptions, build_cadastre, read_footprints
+
+    fp = read_footprints(options.cadastre_path, CadastreOptions(crs=control.crs))
+    centres = np.array([rec.images[i].projection_center() for i in rec.reg_image_ids()])
+    m = CadastreOptions().area_margin_m
+    lo = centres[:, :2].min(0) - m + origin[:2]
+    hi = centres[:, :2].max(0) + m + origin[:2]
+    cad = build_cadastre(
+        fp, CadastreOptions(crs=control.crs, area=(*lo, *hi)), origin=origin
+    )
+    pairs = pairs_on_map(
+        rec, vertical, cad, options.registration, options.block.map_measured_directions
+    )
+    rows, _ = gate_map_rows(
+        rec, map_rows(rec, cad.corner_xy, pairs), options.block.map_gate_px
+    )
+    return rows
+
+
 def _adjust(
-    rec, control, added, use, vertical, options, origin
+    rec, control, added, use, vertical, options, origin, rows=None
 ) -> BlockAdjustmentSummary:
-    """The block adjustment with the used control points' priors and every
-    image's VP that the vertical kept (weight > 0)."""
+    """The block adjustment with the used control points' priors, every
+    image's VP that the vertical kept (weight > 0) and the map's rows where
+    given."""
     priors = {}
     for k, point in enumerate(control.points):
         if use[k] and point.name in added:
@@ -206,7 +247,7 @@ def _adjust(
         for im in vertical.images:
             if im.weight > 0 and im.down_camera is not None:
                 verticals[im.image_id] = (im.down_camera, im.sd_deg)
-    return adjust_block(rec, priors, verticals, options.block)
+    return adjust_block(rec, priors, verticals, options.block, map_rows=rows)
 
 
 def _similarity_report(sim: Similarity, names: list[str], use: np.ndarray) -> dict:

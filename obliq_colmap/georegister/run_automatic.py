@@ -5,6 +5,7 @@ the images' rough positions (``--priors_path``); the geometry is in
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 from pathlib import Path
 
@@ -20,6 +21,7 @@ from obliq_colmap.priors import PriorsOptions, read_priors
 from obliq_colmap.registration import register_image
 
 from .automatic import Rays, fit_block, segment_rays
+from .block import BlockAdjustmentSummary, adjust_block
 from .common import (
     GeoregisterResult,
     add_missing,
@@ -27,6 +29,8 @@ from .common import (
     upright,
     vertical_report,
 )
+from .map_rows import ImagePairs, gate_map_rows, map_rows
+from .map_rows import image_pairs as pairs_of_image
 from .options import GeoregisterOptions
 from .similarity import similarity_upright
 from .vertical import model_vertical
@@ -82,7 +86,7 @@ def georegister_automatic(
     start = similarity_upright(
         model_c, prior_c, np.full(len(ids), 5.0), np.full(len(ids), 5.0)
     )
-    coarse, registered, rays, pairs = _stage2_placement(
+    coarse, registered, rays, pairs, image_pairs = _stage2_placement(
         rec, vertical, cad, start, options
     )
     theta0 = np.arctan2(coarse.rotation[1, 0], coarse.rotation[0, 0])
@@ -97,6 +101,10 @@ def georegister_automatic(
     # the model is upright and on the map (a turn about z keeps down at -z),
     # in the priors' frame: their rotations choose among the VP candidates
     rotations = {n: im.cam_from_world.rotation for n, im in by_name.items()}
+    block = None
+    if options.block_adjustment and options.block.map_rows:
+        prior_centers = {i: c for i, c in zip(ids, prior_c, strict=True)}
+        block = _adjust_on_map(rec, vertical, cad, image_pairs, prior_centers, options)
     missing = add_missing(rec, image_path, vertical, options, rotations)
     georef = Georef(
         origin=origin,
@@ -131,11 +139,52 @@ def georegister_automatic(
                 "heading_deg": coarse.heading_deg,
             },
         },
-        "block_adjustment": None,
+        "block_adjustment": None if block is None else dataclasses.asdict(block),
     }
     if missing is not None:
         report["missing_images"] = missing
     return GeoregisterResult(rec, georef, report)
+
+
+def _adjust_on_map(
+    rec: pycolmap.Reconstruction,
+    vertical,
+    cad,
+    image_pairs: dict[int, ImagePairs],
+    prior_centers: dict[int, np.ndarray],
+    options: GeoregisterOptions,
+) -> BlockAdjustmentSummary | None:
+    """The block adjustment held by the map (stage 2's pairs as corner-to-line
+    rows, gated against the placed block), the VPs (the tilt) and the
+    priors' camera heights (the vertical datum, a weak prior)."""
+    if options.block.solver != "obliq":
+        logger.warning(
+            "automatic mode: the block adjustment needs the map rows, which "
+            "only the obliq solver has; not run"
+        )
+        return None
+    if rec.num_points3D() == 0:
+        # no tracks: nothing holds the block together, each image would be
+        # refitted alone on its own rows (the sample's true cameras as a
+        # model: 0.5-2.0 px -> up to 4.3 px)
+        logger.warning(
+            "automatic mode: the model has no 3D points (tracks); the block "
+            "adjustment is not run"
+        )
+        return None
+    rows = map_rows(rec, cad.corner_xy, image_pairs)
+    rows, _ = gate_map_rows(rec, rows, options.block.map_gate_px)
+    if len(rows) == 0:
+        logger.warning("automatic mode: no map rows near the block; not adjusted")
+        return None
+    verticals = {
+        im.image_id: (im.down_camera, im.sd_deg)
+        for im in vertical.images
+        if im.weight > 0 and im.down_camera is not None
+    }
+    return adjust_block(
+        rec, {}, verticals, options.block, map_rows=rows, prior_centers=prior_centers
+    )
 
 
 def _stage2_placement(rec, vertical, cad, start, options):
@@ -148,6 +197,7 @@ def _stage2_placement(rec, vertical, cad, start, options):
     corners (``pairs``: (P, 2) ray, corner) for the joint fit."""
     model_c, reg_c, reg_ids = [], [], []
     origins, bearings, ray_image, pairs = [], [], [], []
+    image_pairs: dict[int, ImagePairs] = {}
     n_rays = 0
     Rz = start.rotation
     for im in vertical.images:
@@ -178,6 +228,9 @@ def _stage2_placement(rec, vertical, cad, start, options):
             bearings.append(b)
             ray_image.append(np.full(k, len(model_c) - 1))
             pairs.append(np.c_[n_rays + np.arange(k), result.inlier_pairs[:, 0]])
+            image_pairs[im.image_id] = pairs_of_image(
+                im, result, options.block.map_measured_directions
+            )
             n_rays += k
     if len(model_c) < 3:
         raise InputError(
@@ -196,4 +249,4 @@ def _stage2_placement(rec, vertical, cad, start, options):
     rays = Rays(
         np.concatenate(origins), np.concatenate(bearings), np.concatenate(ray_image)
     )
-    return sim, reg_ids, rays, np.concatenate(pairs)
+    return sim, reg_ids, rays, np.concatenate(pairs), image_pairs

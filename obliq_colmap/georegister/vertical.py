@@ -44,6 +44,10 @@ class ImageVertical:
     #: (3, 3) pinhole matrix they are in
     segments: np.ndarray | None = None
     K: np.ndarray | None = None
+    #: (N, 2, 2) the same segments each fitted on its own edge points (not
+    #: through the VP; the map rows' lines with
+    #: ``BlockAdjustmentOptions.map_measured_directions``)
+    segments_free: np.ndarray | None = None
 
 
 @dataclass
@@ -94,6 +98,7 @@ def image_vertical(
     R = image.cam_from_world().rotation.matrix()
     d = np.asarray(res.vertical_direction, float)
     segs = None if res.vertical_segments is None else res.vertical_segments.endpoints
+    free = res.vertical_segments_free
     return ImageVertical(
         image_id,
         image.name,
@@ -103,6 +108,7 @@ def image_vertical(
         float(res.direction_std_deg),
         segments=segs,
         K=camera.K,
+        segments_free=None if free is None else free.endpoints,
     )
 
 

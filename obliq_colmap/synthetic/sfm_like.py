@@ -47,6 +47,13 @@ class SfmLikeOptions:
     gcp_pixel_noise_px : noise of the written control-point observations.
     gcp_sigma_m : noise of the written control-point positions (per axis),
         the points' stated accuracy.
+    principal_point_error_px, focal_error : the SfM's own lens error: each
+        camera's principal point moved this far (px, a seeded random
+        direction) and its focal length scaled by ``1 +- focal_error`` (a
+        seeded sign), then poses and points re-fitted to the tracks with
+        that lens held (pycolmap's bundle adjustment), as an SfM that
+        converged on a wrong lens (Herz-Jesu-P8's: the principal point 8-9
+        px off). Zero: the true lens, exact relative geometry.
     """
 
     pixel_noise_px: float = 0.5
@@ -57,6 +64,8 @@ class SfmLikeOptions:
     num_control_points: int = 6
     gcp_pixel_noise_px: float = 0.5
     gcp_sigma_m: float = 0.05
+    principal_point_error_px: float = 0.0
+    focal_error: float = 0.0
 
 
 @dataclass(frozen=True)
@@ -259,6 +268,33 @@ def sfm_like_model(
     return block, moved, sim
 
 
+def with_lens_error(rec, options: SfmLikeOptions, seed: int) -> None:
+    """``rec`` (a pycolmap.Reconstruction) with its cameras' lens made wrong
+    as ``options`` say and its poses and points re-fitted to its tracks with
+    that lens held; in place. Each camera gets its own error."""
+    import pycolmap
+
+    rng = stream(seed, STREAM_SFM_LIKE, 2)
+    for cid in sorted(rec.cameras):
+        cam = rec.cameras[cid]
+        params = np.array(cam.params, float)
+        phi = rng.uniform(0.0, 2.0 * np.pi)
+        sign = rng.choice([-1.0, 1.0])
+        for k in cam.focal_length_idxs():
+            params[k] *= 1.0 + sign * options.focal_error
+        pp = list(cam.principal_point_idxs())
+        params[pp] += options.principal_point_error_px * np.array(
+            [np.cos(phi), np.sin(phi)]
+        )
+        cam.params = params
+    ba = pycolmap.BundleAdjustmentOptions()
+    ba.refine_focal_length = False
+    ba.refine_principal_point = False
+    ba.refine_extra_params = False
+    ba.ceres.solver_options.max_num_iterations = 200
+    pycolmap.bundle_adjustment(rec, ba)
+
+
 def write_sfm_like(
     output_path: str | Path,
     scene: SyntheticScene,
@@ -276,8 +312,11 @@ def write_sfm_like(
     options = options or SfmLikeOptions()
     block, points, sim = sfm_like_model(scene, options, seed)
     control = scene_control_points(scene, options)
+    rec = to_reconstruction(block, points)
+    if options.principal_point_error_px or options.focal_error:
+        with_lens_error(rec, options, seed)
     with AtomicFolder(Path(output_path)) as tmp:
-        to_reconstruction(block, points).write_binary(str(tmp))
+        rec.write_binary(str(tmp))
         write_gcp_list(
             tmp / "gcp_list.txt", noisy_control_points(control, options, seed)
         )

@@ -32,7 +32,9 @@ for paper, on 2 shared cores)::
     python scripts/bench/georegister.py --work_path W [--scene paper street]
         [--mode gcp2 gcp3 auto reference3 oracle] [--sfm sfm_like pycolmap]
         [--camera_kind scene|auto] [--block_adjustment 0|1]
-        [--block_adjustment_solver obliq|ceres] [--seed 1]
+        [--block_adjustment_solver obliq|ceres] [--block_adjustment_map_rows 0|1]
+        [--sfm_lens_error PP_PX FOCAL] [--gcp_with_map 0|1]
+        [--georegister_arg=ARG ...] [--seed 1]
         [--paper_width 1002]
         [--output_path bench_georegister.json]
 
@@ -158,6 +160,9 @@ def run_mode(
     camera_kind: str = "auto",
     block_adjustment: int | None = None,
     block_solver: str | None = None,
+    map_rows: int | None = None,
+    gcp_with_map: bool = False,
+    extra: list[str] | None = None,
 ) -> dict:
     """Run one mode; returns the score or the reason it did not run."""
     out = work / f"out_{mode}"
@@ -189,6 +194,9 @@ def run_mode(
         cmd += ["--block_adjustment", str(block_adjustment)]
     if block_solver is not None:
         cmd += ["--block_adjustment_solver", block_solver]
+    if map_rows is not None:
+        cmd += ["--block_adjustment_map_rows", str(map_rows)]
+    cmd += extra or []
     if camera_kind != "auto":
         cmd += ["--camera_kind", camera_kind]
     if mode == "auto":
@@ -198,6 +206,8 @@ def run_mode(
         gcp = work / f"{mode}.txt"
         write_gcp_list(gcp, farthest_subset(control, int(mode[-1])))
         cmd += ["--control_points_path", str(gcp)]
+        if gcp_with_map:
+            cmd += ["--cadastre_path", str(scene_path / "cadastre.geojson")]
     t0 = time.perf_counter()
     proc = subprocess.run(cmd, capture_output=True, text=True)
     if proc.returncode != 0:
@@ -228,7 +238,8 @@ def print_result(mode: str, res: dict) -> None:
         print(
             f"  {'':11s} block adjustment ({block['solver']}): cost "
             f"{block['initial_cost']:.6g} -> {block['final_cost']:.6g}, "
-            f"{block['iterations']} iterations, {block['time_s']:.2f} s"
+            f"{block['iterations']} iterations, {block['time_s']:.2f} s, "
+            f"{block.get('num_map_rows', 0)} map rows"
         )
 
 
@@ -264,12 +275,45 @@ def main(argv: list[str] | None = None) -> int:
         default=None,
         help="georegister --block_adjustment_solver (default: the command's)",
     )
+    ap.add_argument(
+        "--block_adjustment_map_rows",
+        type=int,
+        choices=(0, 1),
+        default=None,
+        help="georegister --block_adjustment_map_rows (default: the command's)",
+    )
+    ap.add_argument(
+        "--sfm_lens_error",
+        nargs=2,
+        type=float,
+        default=(0.0, 0.0),
+        metavar=("PP_PX", "FOCAL"),
+        help="sfm_like: the model's lens made wrong (principal point moved PP_PX "
+        "px, focal scaled by 1 +- FOCAL) and its poses and points re-fitted "
+        "with it held, as a real SfM's (SfmLikeOptions); default 0 0",
+    )
+    ap.add_argument(
+        "--gcp_with_map",
+        type=int,
+        choices=(0, 1),
+        default=0,
+        help="gcp2, gcp3: pass the scene's cadastre too (its corner lines "
+        "then enter the block adjustment); default 0",
+    )
+    ap.add_argument(
+        "--georegister_arg",
+        action="append",
+        default=[],
+        help="one more argument for every georegister command (repeat; "
+        "use --georegister_arg=--flag for a leading dash)",
+    )
     ap.add_argument("--seed", type=int, default=1)
     ap.add_argument("--paper_width", type=int, default=1002)
     ap.add_argument("--output_path", type=Path, default=None)
     args = ap.parse_args(argv)
     args.work_path.mkdir(parents=True, exist_ok=True)
-    options = SfmLikeOptions()
+    pp_err, f_err = args.sfm_lens_error
+    options = SfmLikeOptions(principal_point_error_px=pp_err, focal_error=f_err)
     results = {}
     for kind in args.scene:
         scene_path = ensure_scene(args.work_path, kind, args.seed, args.paper_width)
@@ -277,6 +321,8 @@ def main(argv: list[str] | None = None) -> int:
         work_root = args.work_path / f"{kind}_seed{args.seed}_runs"
         for sfm in args.sfm:
             work = work_root / sfm
+            if sfm == "sfm_like" and (pp_err or f_err):
+                work = work_root / f"{sfm}_lens_pp{pp_err:g}_f{f_err:g}"
             work.mkdir(parents=True, exist_ok=True)
             model = work / "model"
             t0 = time.perf_counter()
@@ -310,6 +356,9 @@ def main(argv: list[str] | None = None) -> int:
                     kind_arg,
                     args.block_adjustment,
                     args.block_adjustment_solver,
+                    args.block_adjustment_map_rows,
+                    bool(args.gcp_with_map),
+                    args.georegister_arg,
                 )
                 res["camera_kind"] = kind_arg
                 res["num_images_in_model"] = n_reg
