@@ -344,6 +344,7 @@ def reregister_failed(
                 camera_of[tasks[k].image_id],
                 starts[tasks[k].image_id],
                 options,
+                solved_camera=cid in head_camera,
             )
             vertical = None  # the start's, far better than a missed VP's
         else:
@@ -438,19 +439,29 @@ TIE_START_SIGMAS = (1.0, 0.3)
 
 
 def _tie_task(
-    task: ImageTask, camera: Camera, start: Pose, options: PipelineOptions
+    task: ImageTask,
+    camera: Camera,
+    start: Pose,
+    options: PipelineOptions,
+    solved_camera: bool = True,
 ) -> ImageTask:
-    """The task of an image placed by its tie points: its head's solved
-    camera, held, and the resected pose as a tight prior."""
+    """The task of an image placed by its tie points: the resected pose as a
+    tight prior, and its head's solved camera, held (``solved_camera``), or
+    the priors' camera of a head with no image in the block, refined as
+    stage 2 refines any image's."""
     sigma_m, sigma_deg = TIE_START_SIGMAS
     registration = dataclasses.replace(
         options.registration,
-        refine_focal=False,
-        refine_distortion=False,
-        prior_focal_sigma=0.0,
         prior_position_sigma_m=sigma_m,
         prior_rotation_sigma_deg=sigma_deg,
     )
+    if solved_camera:
+        registration = dataclasses.replace(
+            registration,
+            refine_focal=False,
+            refine_distortion=False,
+            prior_focal_sigma=0.0,
+        )
     return dataclasses.replace(
         task, start=camera, prior=start, registration=registration
     )
