@@ -514,6 +514,18 @@ class Camera:
         )
 
 
+def vertical_vp_in_frame(camera: Camera, down_cam: np.ndarray) -> np.ndarray | None:
+    """The (2,) pixel of the vertical vanishing point of the world's down
+    direction ``down_cam`` (3,) in the camera frame, when it lies inside the
+    image (pinhole part): a nadir view. None otherwise."""
+    v = camera.K @ np.asarray(down_cam, float)
+    if v[2] <= 0:  # the nadir is behind the camera
+        return None
+    x, y = v[:2] / v[2]
+    inside = 0.0 <= x <= camera.width and 0.0 <= y <= camera.height
+    return np.array([x, y]) if inside else None
+
+
 def project(
     camera: Camera, pose: Pose, points_world: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray]:

@@ -31,7 +31,7 @@ from obliq_colmap.adjustment.ties import TiePoints, tie_rows
 from obliq_colmap.adjustment.tracks import FacadeTracks
 from obliq_colmap.bundle import BundleProblem
 from obliq_colmap.bundle import residuals as res
-from obliq_colmap.geometry import Camera, Pose, lines_through
+from obliq_colmap.geometry import Camera, Pose, lines_through, vertical_vp_in_frame
 from obliq_colmap.state import BlockState, ImageOutcome, Inputs, json_float
 
 __all__ = [
@@ -163,13 +163,10 @@ def facade_stage(
 
 
 def near_nadir(camera: Camera, pose: Pose) -> bool:
-    """Whether the vertical vanishing point lies inside the image (pinhole
-    part): a nadir view, which stage 2 does not register to the map."""
-    v = camera.K @ (pose.rotation @ np.array([0.0, 0.0, -1.0]))
-    if v[2] <= 0:
-        return False
-    x, y = v[:2] / v[2]
-    return bool(0.0 <= x <= camera.width and 0.0 <= y <= camera.height)
+    """Whether the image at ``pose`` is a nadir view (its vertical VP inside
+    the frame), which stage 2 does not register to the map."""
+    down = pose.rotation @ np.array([0.0, 0.0, -1.0])
+    return vertical_vp_in_frame(camera, down) is not None
 
 
 def _in_camera(prior: Camera, camera: Camera, segments: np.ndarray) -> np.ndarray:

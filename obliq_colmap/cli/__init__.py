@@ -38,6 +38,13 @@ SUBCOMMANDS: dict[str, tuple[str, str]] = {
 logger = logging.getLogger("obliq_colmap")
 
 
+def bool01(text: str) -> bool:
+    """An argparse type: a 0 / 1 flag, as COLMAP writes booleans."""
+    if text not in ("0", "1"):
+        raise argparse.ArgumentTypeError(f"expected 0 or 1, got {text!r}")
+    return text == "1"
+
+
 def _available_subcommands() -> dict[str, object]:
     modules = {}
     for name, (module, _) in SUBCOMMANDS.items():

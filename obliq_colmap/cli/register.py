@@ -20,6 +20,7 @@ import sys
 from pathlib import Path
 
 from obliq_colmap.cadastre import CadastreOptions
+from obliq_colmap.cli import bool01
 from obliq_colmap.files import check_output_path
 from obliq_colmap.geometry import SUPPORTED_MODELS
 from obliq_colmap.parallel import available_cores
@@ -37,12 +38,6 @@ from obliq_colmap.pipeline import (
 from obliq_colmap.priors import PriorsOptions
 
 logger = logging.getLogger(__name__)
-
-
-def _bool01(text: str) -> bool:
-    if text not in ("0", "1"):
-        raise argparse.ArgumentTypeError("expected 0 or 1")
-    return text == "1"
 
 
 #: The options dataclasses' fields as the command line names them, so that a
@@ -192,7 +187,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     vanishing = parser.add_argument_group("Vanishing point")
     vanishing.add_argument(
         "--vp_line_weights",
-        type=_bool01,
+        type=bool01,
         default=int(PipelineOptions().vanishing.line_weights),
         metavar="{0,1}",
         help="stage 1's RANSAC gives the pieces of one image line (a dashed "
@@ -210,7 +205,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     bundle.add_argument(
         "--refine_focal_length",
-        type=_bool01,
+        type=bool01,
         default=bdefaults.refine_focal_length,
         metavar="{0,1}",
         help="refine focal lengths, per image in stage 2 and per camera in the "
@@ -218,14 +213,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     bundle.add_argument(
         "--refine_principal_point",
-        type=_bool01,
+        type=bool01,
         default=bdefaults.refine_principal_point,
         metavar="{0,1}",
         help="refine principal points (default 1)",
     )
     bundle.add_argument(
         "--refine_extra_params",
-        type=_bool01,
+        type=bool01,
         default=bdefaults.refine_extra_params,
         metavar="{0,1}",
         help="refine the distortion of a camera model that has distortion terms "
@@ -236,7 +231,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     bundle.add_argument(
         "--refine_facade_segments",
-        type=_bool01,
+        type=bool01,
         default=0,
         metavar="{0,1}",
         help="refit the facade segments to sub-pixel edges on the full-resolution "
@@ -268,7 +263,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     bundle.add_argument(
         "--bundle_position_offset",
-        type=_bool01,
+        type=bool01,
         default=int(bdefaults.estimate_prior_offset),
         metavar="{0,1}",
         help="with --bundle_position_sigma: estimate one horizontal offset of the "
@@ -288,7 +283,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     bundle.add_argument(
         "--bundle_vp_observations",
-        type=_bool01,
+        type=bool01,
         default=int(bdefaults.vp_observations),
         metavar="{0,1}",
         help="observe each image's vertical vanishing point in the bundle (stage "
@@ -299,7 +294,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     bundle.add_argument(
         "--bundle_measured_verticals",
-        type=_bool01,
+        type=bool01,
         default=int(AdjustmentOptions().measured_vertical_directions),
         metavar="{0,1}",
         help="each vertical segment in the bundle on its own fitted line (its "
@@ -309,7 +304,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     bundle.add_argument(
         "--bundle_facade_lines",
-        type=_bool01,
+        type=bool01,
         default=int(AdjustmentOptions().bundle.facade_lines),
         metavar="{0,1}",
         help="each facade track in the bundle a horizontal 3D line (height, offset "
@@ -319,7 +314,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     bundle.add_argument(
         "--tie_points",
-        type=_bool01,
+        type=bool01,
         default=int(AdjustmentOptions().tie_points),
         metavar="{0,1}",
         help="match SIFT tie points across the registered block (pairs from the "

@@ -7,17 +7,11 @@ import dataclasses
 import logging
 import os
 
+from obliq_colmap.cli import bool01
 from obliq_colmap.errors import InputError
 from obliq_colmap.synthetic.options import DISTORTION_MODELS, PRESETS, preset
 
 logger = logging.getLogger(__name__)
-
-
-def _zero_one(text: str) -> bool:
-    """A 0 / 1 flag, as COLMAP writes booleans on its command line."""
-    if text not in ("0", "1"):
-        raise argparse.ArgumentTypeError(f"expected 0 or 1, got {text!r}")
-    return text == "1"
 
 
 #: command-line option -> SceneOptions field (all optional overrides).
@@ -55,7 +49,7 @@ _OVERRIDES: dict[str, tuple[str, type, str]] = {
     "tilt_deg": ("tilt_deg", float, "camera tilt from nadir (deg)"),
     "nadir_head": (
         "nadir_head",
-        _zero_one,
+        bool01,
         "1: a fifth, nadir camera (a five-camera oblique system), images D_rc.jpg",
     ),
     "horizontal_fov_deg": (

@@ -12,7 +12,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from obliq_colmap.geometry import Camera, Pose
+from obliq_colmap.geometry import Camera, Pose, vertical_vp_in_frame
 from obliq_colmap.registration.hough import HoughGrid, HoughPeak, hough
 from obliq_colmap.registration.options import (
     RegistrationOptions,
@@ -45,17 +45,6 @@ def _check_inputs(
             )
         n = n / np.linalg.norm(n)
     return seg, n
-
-
-def _vp_in_frame(camera: Camera, n: np.ndarray) -> np.ndarray | None:
-    """The (2,) pixel of the vertical VP of direction ``n`` (camera frame,
-    down the world) when it lies inside the image (pinhole part), else None."""
-    v = camera.K @ n
-    if v[2] <= 0:  # the nadir is behind the camera
-        return None
-    x, y = v[:2] / v[2]
-    inside = 0.0 <= x <= camera.width and 0.0 <= y <= camera.height
-    return np.array([x, y]) if inside else None
 
 
 def _oriented_vertical(n: np.ndarray | None, prior: Pose) -> tuple[np.ndarray, str]:
@@ -145,7 +134,10 @@ def search(
             **kw,
         )
 
-    if not options.allow_vp_in_frame and (vp := _vp_in_frame(camera, n)) is not None:
+    if (
+        not options.allow_vp_in_frame
+        and (vp := vertical_vp_in_frame(camera, n)) is not None
+    ):
         return fail(
             f"near-nadir view: the vertical vanishing point ({vp[0]:.0f}, "
             f"{vp[1]:.0f}) px lies inside the {camera.width} x {camera.height} "
