@@ -16,7 +16,11 @@ import numpy as np
 import pyceres
 import pycolmap
 
-from obliq_colmap.geometry import calibration_matrix, tangent_basis
+from obliq_colmap.geometry import (
+    calibration_matrix,
+    rotation_from_quat_xyzw,
+    tangent_basis,
+)
 
 from .block import BlockAdjustmentOptions, BlockAdjustmentSummary, VerticalRow
 
@@ -42,18 +46,6 @@ class PointPrior(pyceres.CostFunction):
         return True
 
 
-def _rotation(q: np.ndarray) -> np.ndarray:
-    """(3, 3) rotation of a quaternion (x, y, z, w), normalised."""
-    x, y, z, w = q / np.linalg.norm(q)
-    return np.array(
-        [
-            [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
-            [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
-            [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
-        ]
-    )
-
-
 class VerticalObservation(pyceres.CostFunction):
     """The world's down as the camera sees it, ``d = R (0, 0, -1)``, against
     the VP's direction ``m = +-normalise(K^-1 v)`` through the camera's
@@ -75,7 +67,7 @@ class VerticalObservation(pyceres.CostFunction):
         return u / np.linalg.norm(u)
 
     def _r(self, q: np.ndarray, params: np.ndarray) -> np.ndarray:
-        d = _rotation(q) @ np.array([0.0, 0.0, -1.0])
+        d = rotation_from_quat_xyzw(q) @ np.array([0.0, 0.0, -1.0])
         m = self._direction(params)
         return self.T @ np.cross(m if m @ d >= 0 else -m, d)
 
