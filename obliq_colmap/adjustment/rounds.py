@@ -112,6 +112,13 @@ def bundle_stage(
             options.bundle,
             corner_heights="fixed",
             horizontal_offset_sigma_m=options.track_offset_sigma_m,
+            # On each segment's own line the two ends' rows also say its
+            # direction, with less noise than the map's: weighted apart.
+            vertical_direction_sigma_px=(
+                options.bundle.vertical_sigma_px
+                if options.measured_vertical_directions
+                else None
+            ),
         )
         try:
             # A wide loss first: after stage 2 and the datum corrections some
@@ -472,22 +479,34 @@ def with_variance_components(
     u = unknowns_per_track
     with np.errstate(divide="ignore", invalid="ignore"):
         scaled = rh * np.sqrt(np.where(n > u, n / (n - u), 1.0))
+    vertical_sigma = _robust_sigma(
+        result.vertical_residuals_px, options.vertical_sigma_px
+    )
+    direction_sigma = options.vertical_direction_sigma_px
+    pairs = result.vertical_pair_residuals_px
+    if direction_sigma is not None and len(pairs):
+        # each segment's ends: the sum carries the map's noise, the
+        # difference only the segment's direction
+        vertical_sigma = _robust_sigma(pairs[:, 0], options.vertical_sigma_px)
+        direction_sigma = _robust_sigma(pairs[:, 1], direction_sigma)
     vp_scale, rejected = options.vp_sigma_scale, []
     if result.vp_chi2:
         vp_scale, rejected = vp_components(result, options.vp_sigma_scale, test_vps)
     options = dataclasses.replace(
         options,
-        vertical_sigma_px=_robust_sigma(
-            result.vertical_residuals_px, options.vertical_sigma_px
-        ),
+        vertical_sigma_px=vertical_sigma,
+        vertical_direction_sigma_px=direction_sigma,
         horizontal_sigma_px=_robust_sigma(scaled[n > u], options.horizontal_sigma_px),
         vp_sigma_scale=vp_scale,
         tie_sigma_px=_tie_sigma(result, options.tie_sigma_px),
     )
     logger.info(
-        "bundle: sigma px: map corners %.3f, facade lines %.3f, tie points %.3f;"
+        "bundle: sigma px: map corners %.3f%s, facade lines %.3f, tie points %.3f;"
         " VP sd x %.2f",
         options.vertical_sigma_px,
+        ""
+        if direction_sigma is None
+        else f" (segment directions {direction_sigma:.3f})",
         options.horizontal_sigma_px,
         options.tie_sigma_px,
         options.vp_sigma_scale,

@@ -36,6 +36,15 @@ class BundleOptions:
     #: the map's vertex noise (~1 px), facade edges only the image noise (~0.3 px).
     vertical_sigma_px: float = 1.0
     horizontal_sigma_px: float = 1.0
+    #: The two vertical rows of one segment (:func:`vertical_row_pairs`) as
+    #: their sum and their difference, each over sqrt 2: the sum weighted by
+    #: ``vertical_sigma_px`` (the map's vertex noise moves both ends alike),
+    #: the difference by this sd (px; only the segment's own direction
+    #: noise). None: each row by ``vertical_sigma_px`` (equal sds: the same
+    #: model). Meant for rows on each segment's own line; on lines through
+    #: one vanishing point the difference is that VP again, not a new
+    #: observation.
+    vertical_direction_sigma_px: float | None = None
     #: Maximum number of Levenberg-Marquardt iterations (accepted or not).
     max_iterations: int = 100
     #: Stop when an accepted step lowers the cost by less than this fraction.
@@ -148,6 +157,11 @@ class BundleOptions:
             raise ValueError(f"loss_scale_px must be > 0, got {self.loss_scale_px}")
         if self.vertical_sigma_px <= 0 or self.horizontal_sigma_px <= 0:
             raise ValueError("vertical_sigma_px and horizontal_sigma_px must be > 0")
+        if (
+            self.vertical_direction_sigma_px is not None
+            and not self.vertical_direction_sigma_px > 0
+        ):
+            raise ValueError("vertical_direction_sigma_px must be > 0 or None")
         if self.corner_height_prior_m is not None and self.corner_height_prior_m <= 0:
             raise ValueError("corner_height_prior_m must be > 0 or None")
         if (
@@ -530,6 +544,10 @@ class BundleResult:
     facade_heights : (J,) array, metres.
     corner_heights : (C,) array, metres (the input values when fixed).
     vertical_residuals_px : (M,) final residuals in the problem's order.
+    vertical_pair_residuals_px : (Q, 2) array
+        With ``BundleOptions.vertical_direction_sigma_px``: each segment's
+        two rows as their sum and difference over sqrt 2 (px), the rows the
+        solve weighted; empty otherwise.
     horizontal_residuals_px : (H,) final residuals in the problem's order
         (with ``BundleOptions.facade_lines`` per observation the RMS of its
         two ends' residuals, with the sign of their sum).
@@ -587,6 +605,9 @@ class BundleResult:
     vertical_residuals_px: np.ndarray
     horizontal_residuals_px: np.ndarray
     summary: BundleSummary = field(repr=False)
+    vertical_pair_residuals_px: np.ndarray = field(
+        default_factory=lambda: np.zeros((0, 2))
+    )
     image_precision_px: dict[int, float] = field(default_factory=dict)
     pose_covariance: dict[int, np.ndarray] = field(default_factory=dict)
     variance_factor: float = float("nan")
@@ -637,3 +658,33 @@ def image_components(
     order = np.argsort(np.argsort(first))
     labels = order[inv]
     return int(labels.max()) + 1 if num_images else 0, labels
+
+
+def vertical_row_pairs(problem: BundleProblem) -> tuple[np.ndarray, np.ndarray]:
+    """The vertical rows that are the two ends of one segment.
+
+    A segment observed at a map corner gives two rows, its corner's vertical
+    at the heights of its two ends, on one image line: consecutive rows of
+    the same image, line and corner position (their height unknowns may
+    differ). Rows left alone (the other end dropped as an outlier) are in
+    no pair.
+
+    Returns
+    -------
+    (Q,) and (Q,) int arrays: the first and the second row of each pair, in
+    the problem's order.
+    """
+    img, xy, line = problem.vertical_image, problem.corner_xy, problem.vertical_line
+    pos = xy[problem.vertical_corner]
+    same = (
+        (img[1:] == img[:-1])
+        & np.all(line[1:] == line[:-1], axis=1)
+        & np.all(pos[1:] == pos[:-1], axis=1)
+    )
+    # Within a run of identical rows, pairs from the run's start: (0, 1),
+    # (2, 3), ...
+    k = np.flatnonzero(same)
+    run_start = np.flatnonzero(np.diff(np.r_[-2, k]) != 1)
+    start_of = k[run_start][np.cumsum(np.diff(np.r_[-2, k]) != 1) - 1]
+    a = k[(k - start_of) % 2 == 0].astype(np.int64)
+    return a, a + 1

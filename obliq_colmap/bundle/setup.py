@@ -16,7 +16,7 @@ import numpy as np
 from . import residuals as res
 from .coupling import Coupling, runs
 from .linear import SPARSE_MIN_UNKNOWNS
-from .problem import BundleOptions, BundleProblem, image_components
+from .problem import BundleOptions, BundleProblem, image_components, vertical_row_pairs
 
 
 def _intrinsics_basis(model: str, params: np.ndarray, opts: BundleOptions):
@@ -114,6 +114,29 @@ class Setup:
         # Cost weight of each residual: 1 / sigma^2 of its kind.
         sigma = np.array([opts.vertical_sigma_px, opts.horizontal_sigma_px])
         self.weight = 1.0 / sigma[self.kind] ** 2
+        #: Positions (in the residual order) of the two rows of each segment
+        #: that :func:`evaluate` turns into their sum and difference
+        #: (``BundleOptions.vertical_direction_sigma_px``); the difference
+        #: rows carry that sd.
+        self.pair_a = self.pair_b = np.zeros(0, np.int64)
+        #: Scale (px) of each row's robust loss: ``BundleOptions.loss_scale_px``,
+        #: on the difference rows in proportion to their sd (a direction
+        #: several of its sds off is an outlier long before it is 2 px off).
+        self.loss_scale = np.full(len(order), opts.loss_scale_px)
+        if opts.vertical_direction_sigma_px is not None:
+            a, b = vertical_row_pairs(P)
+            position = np.empty(len(order), np.int64)
+            position[order] = np.arange(len(order))
+            a, b = position[a], position[b]
+            # Mixing two rows must not mix two height unknowns (each row
+            # touches one in the Schur complement): with free corner heights
+            # a pair shares its corner's or is left as two rows.
+            same = self.hidx[a] == self.hidx[b]
+            self.pair_a, self.pair_b = a[same], b[same]
+            self.weight[self.pair_b] = 1.0 / opts.vertical_direction_sigma_px**2
+            self.loss_scale[self.pair_b] *= (
+                opts.vertical_direction_sigma_px / opts.vertical_sigma_px
+            )
 
         # Active images and cameras; parameter columns of the camera block.
         # an image is active with map rows or tie observations
@@ -344,4 +367,21 @@ def evaluate(setup: Setup, st: State, jac: bool):
             Jh[g.start : g.end] = d_height
     if jac:
         Jh[~setup.has_h] = 0.0
+    if len(setup.pair_a):
+        a, b = setup.pair_a, setup.pair_b
+        sum_and_difference(r, a, b)
+        if jac:
+            sum_and_difference(JcT, a, b)
+            sum_and_difference(Jh, a, b)
     return r, (JcT.T if jac else None), Jh
+
+
+def sum_and_difference(x: np.ndarray, a: np.ndarray, b: np.ndarray) -> None:
+    """In place along the last axis: ``x[..., a], x[..., b]`` -> their sum
+    and difference over sqrt 2 (orthogonal: its own inverse)."""
+    xa, xb = x[..., a], x[..., b]
+    x[..., a] = (xa + xb) * _RSQRT2
+    x[..., b] = (xa - xb) * _RSQRT2
+
+
+_RSQRT2 = 1.0 / np.sqrt(2.0)

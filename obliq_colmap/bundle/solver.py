@@ -56,7 +56,7 @@ from .priors import (
 )
 from .problem import BundleOptions, BundleProblem, BundleResult, BundleSummary
 from .schur import Schur, damped_step, normal_equations
-from .setup import Setup, State, evaluate
+from .setup import Setup, State, evaluate, sum_and_difference
 from .ties import TieRows
 
 __all__ = ["solve_bundle"]
@@ -129,7 +129,7 @@ def _solve(problem: BundleProblem, opts: BundleOptions) -> BundleResult:
     ]
 
     def cost_of(r: np.ndarray, st: State) -> float:
-        rho, _ = robust_loss(opts.loss, opts.loss_scale_px, r * r)
+        rho, _ = robust_loss(opts.loss, S.loss_scale, r * r)
         c = 0.5 * float(np.sum(S.weight * rho))
         if prior_w:
             dh = (st.heights - heights0)[prior_mask]
@@ -169,7 +169,7 @@ def _solve(problem: BundleProblem, opts: BundleOptions) -> BundleResult:
     for _ in range(opts.height_initialisation_steps):
         if not S.n_heights:
             break
-        _, w = robust_loss(opts.loss, opts.loss_scale_px, r * r)
+        _, w = robust_loss(opts.loss, S.loss_scale, r * r)
         w = w * S.weight
         Hh = np.bincount(S.hidx[S.has_h], (w * Jh * Jh)[S.has_h], S.n_heights)
         gh = np.bincount(S.hidx[S.has_h], (w * Jh * r)[S.has_h], S.n_heights)
@@ -247,6 +247,10 @@ def _solve(problem: BundleProblem, opts: BundleOptions) -> BundleResult:
             vp_stats = vp_obs.statistics(st, cov)
     r_problem = np.empty_like(r)
     r_problem[S.order] = r
+    if len(S.pair_a):  # each row's own residual again (the transform's inverse)
+        r_rows = r.copy()
+        sum_and_difference(r_rows, S.pair_a, S.pair_b)
+        r_problem[S.order] = r_rows
     r_horizontal = r_problem[S.nv :]
     if lines is not None:
         r_horizontal = lines.observation_residuals(S, st)
@@ -355,6 +359,7 @@ def _solve(problem: BundleProblem, opts: BundleOptions) -> BundleResult:
         ),
         corner_heights=st.heights[nJ:].copy() if free else P.corner_heights.copy(),
         vertical_residuals_px=r_problem[: S.nv],
+        vertical_pair_residuals_px=np.column_stack([r[S.pair_a], r[S.pair_b]]),
         horizontal_residuals_px=r_horizontal,
         summary=summary,
         image_precision_px={
@@ -416,7 +421,7 @@ def _levenberg_marquardt(
     while it < opts.max_iterations:
         it += 1
         if need_build:
-            _, w = robust_loss(opts.loss, opts.loss_scale_px, r * r)
+            _, w = robust_loss(opts.loss, S.loss_scale, r * r)
             w = w * S.weight
             H_cc, g_c, H_hh, g_h, F = normal_equations(S, Jc, Jh, r, w)
             for p in pose_priors:
@@ -497,7 +502,7 @@ def _cofactor(
     cofactor matrix at ``st`` (:func:`covariance.camera_covariance`, the
     observed camera parameters' rows in, the tie points eliminated)."""
     r, Jc, Jh = evaluate(S, st, jac=True)
-    _, w = robust_loss(opts.loss, opts.loss_scale_px, r * r)
+    _, w = robust_loss(opts.loss, S.loss_scale, r * r)
     w = w * S.weight
     H_cc = normal_equations(S, Jc, Jh, r, w)[0]
     for p in pose_priors:

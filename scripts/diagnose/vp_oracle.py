@@ -19,7 +19,15 @@ measure) on the result.
 Run (from the repository root)::
 
     python scripts/diagnose/vp_oracle.py SCENE OUT [--sigma_deg 0.02]
+        [--noise_deg 0] [--tilt_bias_deg 0]
         [--register_args "--camera_model SIMPLE_RADIAL --bundle_vp_observations 1"]
+
+``--noise_deg`` / ``--tilt_bias_deg``: how good must stage 1 be? The true
+direction is turned by a random angle (isotropic, ``noise_deg`` per axis,
+seeded from the image's name) and by ``tilt_bias_deg`` about the camera's
+x axis (the VP moved along the image's vertical axis, as stage 1's
+systematic errors on low-rise districts move it), before it is projected;
+the stated covariance stays ``--sigma_deg``.
 """
 
 from __future__ import annotations
@@ -32,22 +40,30 @@ from pathlib import Path
 
 import numpy as np
 import pycolmap
+from scipy.spatial.transform import Rotation
 
 import obliq_colmap.pipeline.workers as workers
 from obliq_colmap.cli import main as cli_main
 from obliq_colmap.lines import gradients
+from obliq_colmap.parallel import image_seed
 from obliq_colmap.vanishing.pencil import canonical_sign, normaliser, vertical_direction
 from obliq_colmap.vanishing.second_pass import run_second_pass
 
 
-def true_vps(gt_path: Path) -> dict[str, np.ndarray]:
-    """image name -> (3,) unit homogeneous pixel of the true vertical VP."""
+def true_vps(
+    gt_path: Path, noise_deg: float = 0.0, tilt_bias_deg: float = 0.0
+) -> dict[str, np.ndarray]:
+    """image name -> (3,) unit homogeneous pixel of the true vertical VP,
+    optionally turned (module docstring)."""
     rec = pycolmap.Reconstruction(str(gt_path))
     out = {}
     for im in rec.images.values():
         cam = rec.cameras[im.camera_id]
         R = im.cam_from_world().rotation.matrix()
-        v = cam.calibration_matrix() @ R[:, 2]
+        rng = np.random.default_rng(image_seed(im.name, 0))
+        w = np.radians(np.r_[rng.normal(0.0, noise_deg, 2), 0.0])
+        w[0] += np.radians(tilt_bias_deg)
+        v = cam.calibration_matrix() @ Rotation.from_rotvec(w).as_matrix() @ R[:, 2]
         out[im.name] = canonical_sign(v / np.linalg.norm(v))
     return out
 
@@ -100,6 +116,8 @@ def main() -> None:
     ap.add_argument("scene", type=Path)
     ap.add_argument("output_path", type=Path)
     ap.add_argument("--sigma_deg", type=float, default=0.02)
+    ap.add_argument("--noise_deg", type=float, default=0.0)
+    ap.add_argument("--tilt_bias_deg", type=float, default=0.0)
     ap.add_argument("--register_args", default="")
     args = ap.parse_args()
     scene = args.scene
@@ -109,7 +127,11 @@ def main() -> None:
         im.name: im.cam_from_world().rotation.matrix() @ down
         for im in priors.images.values()
     }
-    install_oracle(true_vps(scene / "gt"), downs, args.sigma_deg)
+    install_oracle(
+        true_vps(scene / "gt", args.noise_deg, args.tilt_bias_deg),
+        downs,
+        args.sigma_deg,
+    )
     out = args.output_path
     shutil.rmtree(out, ignore_errors=True)
     argv = [
