@@ -67,11 +67,13 @@ class AdjustmentOptions:
     tie_pair_factor: float = 3.0
     tie_pair_floor_px: float = 3.0
     #: The vertical rows on each segment's own line (its edge points' fit),
-    #: not on the line through stage 1's VP (:func:`vertical_constraints`).
-    #: Off: not better on the external scenes (urban-101 33 / 36 at 0.51 px
-    #: against 0.50; with the principal point held, houses-102 18 against 26
-    #: of 36 below 2 px, urban-101 0.52 against 0.45 px).
-    measured_vertical_directions: bool = False
+    #: not on the line through stage 1's VP (:func:`vertical_constraints`);
+    #: the two rows of a segment then enter as their sum (the map's noise)
+    #: and difference (the segment's direction), each with its own estimated
+    #: sd (``BundleOptions.vertical_direction_sigma_px``). Where stage 1's VP
+    #: is degrees off (short walls of detached houses), every segment through
+    #: it is turned alike, and that is what tilted such blocks.
+    measured_vertical_directions: bool = True
     #: The map's vertex noise (m, 1 sigma): with the facade lines
     #: (``bundle.facade_lines``) it sets each line's prior angle about its
     #: map edge, ``sqrt(2)`` times it over the edge's length.

@@ -30,7 +30,13 @@ from obliq_colmap.adjustment.ties import (
 )
 from obliq_colmap.adjustment.tracks import triangulate_tracks
 from obliq_colmap.adjustment.verdicts import edge_end_offsets
-from obliq_colmap.bundle import BundleOptions, BundleProblem, BundleResult, solve_bundle
+from obliq_colmap.bundle import (
+    BundleOptions,
+    BundleProblem,
+    BundleResult,
+    solve_bundle,
+    vertical_row_pairs,
+)
 from obliq_colmap.state import BlockState, ImageOutcome, Inputs
 
 __all__ = [
@@ -642,6 +648,14 @@ def without_outliers(
     rh = result.horizontal_residuals_px
     scale = 1.0 if horizontal_pixel_scale is None else horizontal_pixel_scale
     kv = keep(result.vertical_residuals_px, floor_px)
+    pairs = result.vertical_pair_residuals_px
+    if len(pairs):
+        # A segment weighted as its sum and difference goes as a whole, when
+        # its position (the sum) is off: a wrong match. A direction off (a
+        # bent or cluttered edge) is left to the difference row's robust
+        # loss, which scales with its sd.
+        a, b = vertical_row_pairs(problem)
+        kv[a] = kv[b] = keep(pairs[:, 0], floor_px)
     kh = keep(rh, floor_px * np.broadcast_to(scale, rh.shape))
     p = problem
     reduced = BundleProblem(

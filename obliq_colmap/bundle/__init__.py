@@ -14,7 +14,10 @@ Residuals (all in pixels, with analytic Jacobians for every supported COLMAP
 camera model):
 
 * vertical: signed distance of the projected corner ``(x_i, y_i, h_i)`` to
-  the detected vertical image line;
+  the detected vertical image line; with
+  ``BundleOptions.vertical_direction_sigma_px`` the two rows of one segment
+  (its two ends, :func:`vertical_row_pairs`) enter as their sum and
+  difference, each with its own sd (the map's noise moves both ends alike);
 * horizontal: ``dist_z``, the distance of the projected facade point
   ``(x_j, y_j, h_j)`` to the detected horizontal line, measured along the
   projected vertical;
@@ -84,6 +87,7 @@ from .problem import (
     BundleResult,
     BundleSummary,
     image_components,
+    vertical_row_pairs,
 )
 from .solver import solve_bundle
 
@@ -94,4 +98,5 @@ __all__ = [
     "BundleSummary",
     "image_components",
     "solve_bundle",
+    "vertical_row_pairs",
 ]

@@ -298,9 +298,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         default=int(AdjustmentOptions().measured_vertical_directions),
         metavar="{0,1}",
         help="each vertical segment in the bundle on its own fitted line (its "
-        "measured direction), not on the line through stage 1's vanishing point, "
-        "whose error would tilt every segment of the image alike "
-        "(default %(default)s)",
+        "measured direction, weighted by the sd the rounds estimate for it), not "
+        "on the line through stage 1's vanishing point, whose error would tilt "
+        "every segment of the image alike (default %(default)s)",
     )
     bundle.add_argument(
         "--bundle_facade_lines",
