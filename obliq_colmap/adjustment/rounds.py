@@ -485,9 +485,6 @@ def with_variance_components(
     u = unknowns_per_track
     with np.errstate(divide="ignore", invalid="ignore"):
         scaled = rh * np.sqrt(np.where(n > u, n / (n - u), 1.0))
-    vertical_sigma = _robust_sigma(
-        result.vertical_residuals_px, options.vertical_sigma_px
-    )
     direction_sigma = options.vertical_direction_sigma_px
     pairs = result.vertical_pair_residuals_px
     if direction_sigma is not None and len(pairs):
@@ -495,6 +492,10 @@ def with_variance_components(
         # difference only the segment's direction
         vertical_sigma = _robust_sigma(pairs[:, 0], options.vertical_sigma_px)
         direction_sigma = _robust_sigma(pairs[:, 1], direction_sigma)
+    else:
+        vertical_sigma = _robust_sigma(
+            result.vertical_residuals_px, options.vertical_sigma_px
+        )
     vp_scale, rejected = options.vp_sigma_scale, []
     if result.vp_chi2:
         vp_scale, rejected = vp_components(result, options.vp_sigma_scale, test_vps)

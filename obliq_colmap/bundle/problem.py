@@ -684,7 +684,7 @@ def vertical_row_pairs(problem: BundleProblem) -> tuple[np.ndarray, np.ndarray]:
     # Within a run of identical rows, pairs from the run's start: (0, 1),
     # (2, 3), ...
     k = np.flatnonzero(same)
-    run_start = np.flatnonzero(np.diff(np.r_[-2, k]) != 1)
-    start_of = k[run_start][np.cumsum(np.diff(np.r_[-2, k]) != 1) - 1]
+    new_run = np.diff(np.r_[-2, k]) != 1
+    start_of = k[new_run][np.cumsum(new_run) - 1]
     a = k[(k - start_of) % 2 == 0].astype(np.int64)
     return a, a + 1

@@ -376,12 +376,12 @@ def evaluate(setup: Setup, st: State, jac: bool):
     return r, (JcT.T if jac else None), Jh
 
 
+_RSQRT2 = 1.0 / np.sqrt(2.0)
+
+
 def sum_and_difference(x: np.ndarray, a: np.ndarray, b: np.ndarray) -> None:
     """In place along the last axis: ``x[..., a], x[..., b]`` -> their sum
     and difference over sqrt 2 (orthogonal: its own inverse)."""
     xa, xb = x[..., a], x[..., b]
     x[..., a] = (xa + xb) * _RSQRT2
     x[..., b] = (xa - xb) * _RSQRT2
-
-
-_RSQRT2 = 1.0 / np.sqrt(2.0)

@@ -245,12 +245,12 @@ def _solve(problem: BundleProblem, opts: BundleOptions) -> BundleResult:
                 pose_cov = covariance.pose_covariances(S, variance_factor * cov)
         if vp_obs is not None:
             vp_stats = vp_obs.statistics(st, cov)
-    r_problem = np.empty_like(r)
-    r_problem[S.order] = r
+    r_rows = r
     if len(S.pair_a):  # each row's own residual again (the transform's inverse)
         r_rows = r.copy()
         sum_and_difference(r_rows, S.pair_a, S.pair_b)
-        r_problem[S.order] = r_rows
+    r_problem = np.empty_like(r)
+    r_problem[S.order] = r_rows
     r_horizontal = r_problem[S.nv :]
     if lines is not None:
         r_horizontal = lines.observation_residuals(S, st)
