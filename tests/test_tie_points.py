@@ -264,6 +264,27 @@ def test_mutual_ratio_matches_finds_the_planted_pairs_and_drops_ambiguous_ones()
     assert len(mutual_ratio_matches(a, -b, 0.8, max_angle=0.7)) == 0
 
 
+def test_ratio_best_is_the_ratio_test_on_the_two_largest_per_row_and_column():
+    """Against a full sort: the best partner per row and per column, and the
+    ratio test on the two largest; a tied best fails it (no unique nearest)."""
+    from obliq_colmap.adjustment.tie_matching import _ratio_best
+
+    rng = np.random.default_rng(5)
+    S = rng.uniform(0.2, 1.0, (60, 70)).astype(np.float32)
+    S[3, [10, 40]] = 0.99  # a tie for the best of row 3
+    kept = S.copy()
+    for axis in (1, 0):
+        got = _ratio_best(S, axis, 0.9, 0.7)
+        M = S if axis == 1 else S.T
+        order = np.argsort(-M, axis=1, kind="stable")
+        v = np.take_along_axis(M, order[:, :2], axis=1)
+        a1, a2 = np.arccos(v[:, 0]), np.arccos(v[:, 1])
+        want = np.where((a1 < 0.9 * a2) & (a1 <= 0.7), order[:, 0], -1)
+        np.testing.assert_array_equal(got, want)
+    assert _ratio_best(S, 1, 0.9, 0.7)[3] == -1
+    np.testing.assert_array_equal(S, kept)  # the masking is undone
+
+
 def test_keypoints_scaled_back_per_axis():
     # 2004 x 1336 down-sampled to 1000 x 667: x and y scale differ (0.499 and
     # 0.49925); one scale for both put the bottom rows 0.7 px off.
@@ -275,7 +296,7 @@ def test_keypoints_scaled_back_per_axis():
         (2004, 1336),
         interpolation=cv2.INTER_CUBIC,
     )
-    k, _, _, scale = _sift_arrays((img, 1000, 200, 1))
+    k, _, _, scale = _sift_arrays((img, 1000, 200, 0, 1))
     np.testing.assert_allclose(scale, [1000 / 2004, 667 / 1336])
     assert len(k) > 50 and k[:, 1].max() < 667
     cam = _scaled(
