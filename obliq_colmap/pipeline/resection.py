@@ -145,6 +145,12 @@ def _resect_once(
     good = worst <= MAX_TRACK_ERROR_PX
     point_of = np.full(len(seen), -1)
     point_of[used[good]] = np.flatnonzero(good)
+    # A seeded RANSAC: unseeded, pycolmap draws from its thread's generator,
+    # whose state is whatever the process ran before (houses-102, stage-2
+    # seed 1: an image written 169 px off or left out depending on the scene
+    # run before it in the same process).
+    estimation = pycolmap.AbsolutePoseEstimationOptions()
+    estimation.ransac.random_seed = 0
     out = {}
     for image_id, camera in todo.items():
         mine = (obs_id == image_id) & (point_of[ties.obs_point] >= 0)
@@ -153,7 +159,7 @@ def _resect_once(
             continue
         X = xyz[point_of[ties.obs_point[mine]]]
         found = pycolmap.estimate_and_refine_absolute_pose(
-            ties.obs_xy[mine], X, camera.to_pycolmap()
+            ties.obs_xy[mine], X, camera.to_pycolmap(), estimation
         )
         if found is None:
             continue
