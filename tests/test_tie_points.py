@@ -428,3 +428,53 @@ def test_a_tie_resection_does_not_depend_on_what_ran_before():
     again = tie_resections(state, ties, {out: cams[out]})[out]
     np.testing.assert_array_equal(first.rotation, again.rotation)
     np.testing.assert_array_equal(first.center, again.center)
+
+
+def test_an_image_placed_by_ties_that_the_bundle_no_longer_holds_is_left_out():
+    """A tie-placed image (no map corner of its own) whose tie observations
+    in the last bundle are of points that at most one other image sees is
+    held along epipolar lines only: left out, saying why; one with enough
+    points seen by two others stays, and so does an image with map corners."""
+    from types import SimpleNamespace
+
+    from obliq_colmap.geometry import Pose
+    from obliq_colmap.pipeline import leave_out_rejected, unsupported_placements
+    from obliq_colmap.state import BlockState
+
+    # tracks 0-39 seen by images 0, 1, 2; tracks 40-79 by images 0 and 3 only
+    img = np.r_[np.tile([0, 1, 2], 40), np.tile([0, 3], 40)]
+    pt = np.r_[np.repeat(np.arange(40), 3), np.repeat(np.arange(40, 80), 2)]
+    ids = (10, 11, 12, 13)
+    stage3 = SimpleNamespace(
+        bundle_problem=SimpleNamespace(tie_point=pt, tie_image=img, image_ids=ids),
+        bundle_precision={},
+    )
+
+    def outcome(name, by_ties, inliers):
+        return SimpleNamespace(
+            name=name,
+            placed_by_ties=by_ties,
+            registration=SimpleNamespace(num_inliers=inliers),
+            status="registered",
+            message="",
+        )
+
+    outcomes = {
+        10: outcome("A", False, 50),
+        11: outcome("B", True, 0),  # 40 observations of 3-view points
+        12: outcome("C", False, 20),
+        13: outcome("D", True, 0),  # 40 observations, all of 2-view points
+    }
+    pose = Pose(np.eye(3), np.zeros(3))
+    state = BlockState(
+        poses={i: pose for i in ids},
+        cameras={},
+        planes={i: np.zeros(3) for i in ids},
+    )
+    out = unsupported_placements(state, stage3, outcomes, 30)
+    assert out == [13]
+    assert unsupported_placements(state, stage3, outcomes, 41) == [11, 13]
+    state = leave_out_rejected(state, stage3, outcomes, [], unsupported=out)
+    assert set(state.poses) == {10, 11, 12}
+    assert outcomes[13].status == "failed"
+    assert "only 0 of its tie observations" in outcomes[13].message

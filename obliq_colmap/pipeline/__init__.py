@@ -79,6 +79,7 @@ from obliq_colmap.pipeline.run import run_register
 from obliq_colmap.pipeline.verdicts import (
     block_verdicts,
     leave_out_rejected,
+    unsupported_placements,
     warn_imprecise,
     warn_vp_disagreement,
 )
@@ -116,6 +117,7 @@ __all__ = [
     "initial_image",
     "initial_stage",
     "leave_out_rejected",
+    "unsupported_placements",
     "warn_imprecise",
     "warn_vp_disagreement",
     "load_inputs",

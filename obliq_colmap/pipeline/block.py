@@ -27,10 +27,15 @@ from obliq_colmap.geometry import (
 )
 from obliq_colmap.parallel import WorkerPool
 from obliq_colmap.pipeline.options import PipelineOptions
-from obliq_colmap.pipeline.resection import block_tie_points, tie_resections
+from obliq_colmap.pipeline.resection import (
+    MIN_INLIERS,
+    block_tie_points,
+    tie_resections,
+)
 from obliq_colmap.pipeline.verdicts import (
     block_verdicts,
     leave_out_rejected,
+    unsupported_placements,
     warn_imprecise,
     warn_vp_disagreement,
 )
@@ -175,7 +180,10 @@ def block_stage(
         for i in rejected
         if not (by_id[i].placed_by_ties and by_id[i].registration.num_inliers == 0)
     ]
-    state = leave_out_rejected(state, stage3, by_id, rejected, imprecise, misplaced)
+    unsupported = unsupported_placements(state, stage3, by_id, MIN_INLIERS)
+    state = leave_out_rejected(
+        state, stage3, by_id, rejected, imprecise, misplaced, unsupported
+    )
     warn_imprecise(state, stage3, by_id, options.warn_predicted_sd_px)
     warn_vp_disagreement(state, stage3, by_id)
     return state, bundle_result, stage3, reregistered

@@ -22,6 +22,7 @@ from obliq_colmap.state import BlockState, ImageOutcome
 __all__ = [
     "block_verdicts",
     "leave_out_rejected",
+    "unsupported_placements",
     "warn_imprecise",
     "warn_vp_disagreement",
 ]
@@ -42,6 +43,44 @@ def block_verdicts(stage3: Stage3, options: PipelineOptions) -> Verdicts:
     )
 
 
+def tie_support(stage3: Stage3) -> dict[int, int]:
+    """Per image id of the last bundle: its tie observations of points that
+    at least two other images observe too (what a tie resection stands on:
+    a point seen by one other image only is free along that image's ray)."""
+    P = stage3.bundle_problem
+    if P is None or len(P.tie_point) == 0:
+        return {}
+    length = np.bincount(P.tie_point)[P.tie_point]
+    n = np.bincount(P.tie_image[length >= 3], minlength=len(P.image_ids))
+    return {i: int(n[k]) for k, i in enumerate(P.image_ids)}
+
+
+def unsupported_placements(
+    state: BlockState,
+    stage3: Stage3 | None,
+    outcomes: dict[int, ImageOutcome],
+    min_observations: int,
+) -> list[int]:
+    """The written images placed by their tie points alone (no map corner
+    of their own) that the last bundle no longer holds so: fewer than
+    ``min_observations`` (the resection's own minimum) of their tie
+    observations on points two other images see (:func:`tie_support`; the
+    rounds dropped the rest as outliers, or they were never there). What is
+    left holds the pose along epipolar lines only (houses-102, stage-2 seed
+    1: E_01 written 165 px off on 1 such observation of 47)."""
+    if stage3 is None:
+        return []
+    support = tie_support(stage3)
+    return sorted(
+        i
+        for i in state.poses
+        if outcomes[i].placed_by_ties
+        and outcomes[i].registration is not None
+        and outcomes[i].registration.num_inliers == 0
+        and support.get(i, 0) < min_observations
+    )
+
+
 def leave_out_rejected(
     state: BlockState,
     stage3: Stage3 | None,
@@ -49,11 +88,20 @@ def leave_out_rejected(
     rejected: Sequence[int],
     imprecise: Sequence[int] = (),
     misplaced: Sequence[int] = (),
+    unsupported: Sequence[int] = (),
 ) -> BlockState:
     """The block without the images the (last) bundle disagrees with
-    (``rejected``), determines too poorly (``imprecise``) or left at a wrong
-    height (``misplaced``); their outcomes become failures that say why."""
-    out = sorted({i for i in [*rejected, *imprecise, *misplaced] if i in state.poses})
+    (``rejected``), determines too poorly (``imprecise``), left at a wrong
+    height (``misplaced``) or no longer holds where their tie points placed
+    them (``unsupported``, :func:`unsupported_placements`); their outcomes
+    become failures that say why."""
+    out = sorted(
+        {
+            i
+            for i in [*rejected, *imprecise, *misplaced, *unsupported]
+            if i in state.poses
+        }
+    )
     if not out or stage3 is None:
         return state
     sd = [v for v in stage3.bundle_precision.values() if math.isfinite(v)]
@@ -79,6 +127,13 @@ def leave_out_rejected(
                 " px (tops) along its verticals from where the other images'"
                 " end (it sits at a wrong height, e.g. facade edges matched a"
                 " floor off)".format(*stage3.end_offset_px[i])
+            )
+        if i in unsupported:
+            support = tie_support(stage3).get(i, 0)
+            reasons.append(
+                f"placed by its tie points, but only {support} of its tie"
+                " observations in the last bundle are of points two other"
+                " images see (too few to hold the placement)"
             )
         o = outcomes[i]
         o.status = "failed"
