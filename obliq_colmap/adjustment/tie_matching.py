@@ -134,8 +134,8 @@ def _ratio_best(
     partner, or -1 where the ratio test (angles) or ``max_angle`` fails.
 
     The two largest by two max passes, the first one masked in place and
-    put back: an argpartition per row cost 45 ms on 2000 x 2000, 9x these
-    reductions."""
+    put back: an argpartition per row cost 43 ms on ~2000 x 2000, these
+    reductions 2 ms along the rows and 9-11 ms down the columns."""
     top = np.argmax(S, axis=axis)
     k = np.arange(len(top))
     at = (k, top) if axis == 1 else (top, k)
