@@ -147,12 +147,10 @@ def test_register_observes_tie_points_in_the_bundle_and_writes_them(tmp_path):
     assert len(dev) == 16 and np.all(dev < 2.0), dev
 
 
-def test_a_failed_image_is_placed_by_its_tie_points():
-    """An image left out of the solved block is placed by its tie
-    observations of the tracks the block triangulates: at the truth's pose
-    within the noise (0.3 px), and not at all with too few observations."""
-    from obliq_colmap.adjustment.ties import TiePoints
-    from obliq_colmap.pipeline.resection import MIN_INLIERS, tie_resections
+def _block_without_one_image():
+    """A synthetic block with tie points (1500, 0.3 px) solved at the truth
+    but for its 6th image: (syn, image ids, that image's id, cameras by
+    image id, the block's state without it)."""
     from obliq_colmap.state import BlockState
     from obliq_colmap.synthetic.bundle_problem import make_synthetic_problem
 
@@ -166,6 +164,18 @@ def test_a_failed_image_is_placed_by_its_tie_points():
         cameras={i: cams[i] for i in ids if i != out},
         planes={i: np.zeros(3) for i in ids if i != out},
     )
+    return syn, ids, out, cams, state
+
+
+def test_a_failed_image_is_placed_by_its_tie_points():
+    """An image left out of the solved block is placed by its tie
+    observations of the tracks the block triangulates: at the truth's pose
+    within the noise (0.3 px), and not at all with too few observations."""
+    from obliq_colmap.adjustment.ties import TiePoints
+    from obliq_colmap.pipeline.resection import MIN_INLIERS, tie_resections
+
+    syn, ids, out, cams, state = _block_without_one_image()
+    P = syn.problem
     ties = TiePoints(
         syn.tie_xyz,
         P.tie_point,
@@ -386,19 +396,9 @@ def test_a_tie_resection_does_not_depend_on_what_ran_before():
 
     from obliq_colmap.adjustment.ties import TiePoints
     from obliq_colmap.pipeline.resection import tie_resections
-    from obliq_colmap.state import BlockState
-    from obliq_colmap.synthetic.bundle_problem import make_synthetic_problem
 
-    syn = make_synthetic_problem(seed=2, tie_points=1500, noise_px=0.3)
+    syn, ids, out, cams, state = _block_without_one_image()
     P = syn.problem
-    ids = list(P.image_ids)
-    out = ids[5]
-    cams = {i: syn.cameras[P.image_camera[i]] for i in ids}
-    state = BlockState(
-        poses={i: syn.poses[i] for i in ids if i != out},
-        cameras={i: cams[i] for i in ids if i != out},
-        planes={i: np.zeros(3) for i in ids if i != out},
-    )
     # 40 % of the image's observations wrong, many near the inlier threshold,
     # so that which ones a draw keeps decides the refined pose's last digits
     rng = np.random.default_rng(1)

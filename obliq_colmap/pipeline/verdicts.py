@@ -104,6 +104,7 @@ def leave_out_rejected(
     )
     if not out or stage3 is None:
         return state
+    support = tie_support(stage3) if unsupported else {}
     sd = [v for v in stage3.bundle_precision.values() if math.isfinite(v)]
     median_sd = float(np.median(sd)) if sd else math.nan
     for i in out:
@@ -129,9 +130,8 @@ def leave_out_rejected(
                 " floor off)".format(*stage3.end_offset_px[i])
             )
         if i in unsupported:
-            support = tie_support(stage3).get(i, 0)
             reasons.append(
-                f"placed by its tie points, but only {support} of its tie"
+                f"placed by its tie points, but only {support.get(i, 0)} of its tie"
                 " observations in the last bundle are of points two other"
                 " images see (too few to hold the placement)"
             )
