@@ -147,7 +147,7 @@ def make_products(
             "cell_size_m": grid.cell,
             "cells": int(grid.Z.size),
             "cells_with_height": int(np.isfinite(grid.Z).sum()),
-            "wall_foot_and_corner_samples": int(len(samples)),
+            "corner_samples": int(len(samples)),
         },
         "buildings": {
             "mapped": len(c.cadastre.polygons),
