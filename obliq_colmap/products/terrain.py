@@ -189,7 +189,7 @@ def estimate_terrain(
 
     # The eaves are measured against this ground: it must be in the tracks'
     # datum, which the feet give (measured: the corners sat 0.37 m above
-    # urban-101's feet, 0.03 m on houses-102).
+    # urban-101's feet, 0.03 m below them on houses-102).
     offset, n_feet = feet_datum(
         facade_xyz, shape, options.foot_window_m, options.min_feet
     )
