@@ -25,11 +25,12 @@ logger = logging.getLogger(__name__)
 @dataclass
 class Rays:
     """(R,) rays in the upright MODEL frame: camera xy (R, 2), unit bearing
-    (R, 2), image index (R,)."""
+    (R, 2), image index (R,); optionally (R,) the segments' lengths (px)."""
 
     origin: np.ndarray
     bearing: np.ndarray
     image: np.ndarray
+    length: np.ndarray | None = None
 
 
 @dataclass

@@ -10,11 +10,14 @@ from obliq_colmap.control.model import (
     DEFAULT_SIGMA_VERTICAL_M,
 )
 from obliq_colmap.georegister.block import BlockAdjustmentOptions
+from obliq_colmap.georegister.block_lines import BlockLinesOptions
 from obliq_colmap.georegister.relative_vp import RelativeVPOptions
 from obliq_colmap.registration import RegistrationOptions
 
 #: ``--camera_kind``: which prior stage 1 searches the vertical VP with.
 CAMERA_KINDS = ("terrestrial", "oblique", "auto")
+#: ``--automatic_method``: how the automatic mode places the block.
+AUTOMATIC_METHODS = ("auto", "per_image", "block")
 
 
 @dataclass(kw_only=True)
@@ -58,9 +61,22 @@ class GeoregisterOptions:
     #: few matches (``relative_vp``) and added to the model
     add_missing_images: bool = False
     relative_vp: RelativeVPOptions = field(default_factory=RelativeVPOptions)
-    #: the automatic mode: stage 2 per image (its pairs then fit jointly)
+    #: the automatic mode: "per_image", stage 2 on every image (oblique
+    #: cameras), then one similarity from all their pairs; "block", all
+    #: images' segments against the map at once (level cameras, whose
+    #: images stage 2 cannot register alone); "auto": "block" when the
+    #: vertical came from the terrestrial VP prior, else "per_image"
+    automatic_method: str = "auto"
     registration: RegistrationOptions = field(default_factory=RegistrationOptions)
+    block_lines: BlockLinesOptions = field(default_factory=BlockLinesOptions)
     cadastre_path: Path | None = None
     control_points_path: Path | None = None
     priors_path: Path | None = None
     progress: bool = True
+
+    def __post_init__(self) -> None:
+        if self.automatic_method not in AUTOMATIC_METHODS:
+            raise ValueError(
+                f"automatic_method={self.automatic_method!r}; allowed: "
+                f"{', '.join(AUTOMATIC_METHODS)}"
+            )

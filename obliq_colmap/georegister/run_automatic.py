@@ -29,6 +29,7 @@ from .common import (
     upright,
     vertical_report,
 )
+from .lines_placement import lines_placement
 from .map_rows import ImagePairs, gate_map_rows, map_rows
 from .map_rows import image_pairs as pairs_of_image
 from .options import GeoregisterOptions
@@ -86,12 +87,24 @@ def georegister_automatic(
     start = similarity_upright(
         model_c, prior_c, np.full(len(ids), 5.0), np.full(len(ids), 5.0)
     )
-    coarse, registered, rays, pairs, image_pairs = _stage2_placement(
-        rec, vertical, cad, start, options
-    )
+    method = _method(vertical, options)
+    if method == "block":
+        coarse, registered, rays, pairs, image_pairs = lines_placement(
+            rec, vertical, cad, start, model_c, prior_c, options
+        )
+        loss_deg = options.block_lines.fit_loss_deg
+    else:
+        coarse, registered, rays, pairs, image_pairs = _stage2_placement(
+            rec, vertical, cad, start, options
+        )
+        loss_deg = 0.05  # fit_block's default, as before
     theta0 = np.arctan2(coarse.rotation[1, 0], coarse.rotation[0, 0])
     placement = fit_block(
-        rays, cad.corner_xy, pairs, (coarse.scale, theta0, coarse.translation[:2])
+        rays,
+        cad.corner_xy,
+        pairs,
+        (coarse.scale, theta0, coarse.translation[:2]),
+        loss_deg,
     )
     Rz = np.eye(3)
     Rz[:2, :2] = placement.rotation()
@@ -133,8 +146,11 @@ def georegister_automatic(
                 "scale": start.scale,
                 "heading_deg": start.heading_deg,
             },
-            "stage2": {
-                "images_registered": len(registered),
+            "method": method,
+            "stage2" if method == "per_image" else "block_lines": {
+                "images_registered": len(registered)
+                if method == "per_image"
+                else int(np.count_nonzero(placement.pairs_per_image)),
                 "scale": coarse.scale,
                 "heading_deg": coarse.heading_deg,
             },
@@ -144,6 +160,15 @@ def georegister_automatic(
     if missing is not None:
         report["missing_images"] = missing
     return GeoregisterResult(rec, georef, report)
+
+
+def _method(vertical, options: GeoregisterOptions) -> str:
+    """``options.automatic_method``, "auto" resolved by the camera kind
+    the vertical came from: level cameras see too few corners per image for
+    stage 2, whose search also assumes a camera high above the ground."""
+    if options.automatic_method != "auto":
+        return options.automatic_method
+    return "block" if vertical.kind == "terrestrial" else "per_image"
 
 
 def _adjust_on_map(

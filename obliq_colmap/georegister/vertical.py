@@ -57,6 +57,8 @@ class ModelVertical:
     down: np.ndarray
     sd_deg: float
     images: list[ImageVertical]
+    #: the VP prior whose images agreed: "terrestrial" or "oblique"
+    kind: str = ""
 
     @property
     def num_used(self) -> int:
@@ -196,7 +198,7 @@ def model_vertical(
             "vertical (%s prior) from %d of %d images: sd %.3f deg, median "
             "residual %.3f deg", kind, used, len(images), got[1], got[2],
         )  # fmt: skip
-        found.append((used, got[2], ModelVertical(got[0], got[1], images)))
+        found.append((used, got[2], ModelVertical(got[0], got[1], images, kind)))
     if not found:
         return None
     # the images of the right kind agree (residuals of their VPs' sd); a
