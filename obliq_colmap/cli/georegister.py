@@ -83,6 +83,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "default) or through the image's VP as stage 2 matched them (vp)",
     )  # fmt: skip
     parser.add_argument(
+        "--block_adjustment_map_sigma_px", type=float, default=None,
+        help="a priori sd of a map row, px (default: 1 px, the map's vertex "
+        "noise on an oblique image; level cameras: that noise at the median "
+        "range of their pairs, at least 1 px)",
+    )  # fmt: skip
+    parser.add_argument(
         "--add_missing_images", type=int, choices=(0, 1), default=0,
         help="images in --image_path that the model lacks: their rotation from "
         "vanishing points against a registered neighbour, their position from "
@@ -106,6 +112,7 @@ def run(args: argparse.Namespace) -> int:
             solver=args.block_adjustment_solver,
             map_rows=bool(args.block_adjustment_map_rows),
             map_measured_directions=args.block_adjustment_map_directions == "measured",
+            map_sigma_px=args.block_adjustment_map_sigma_px,
         ),
         add_missing_images=bool(args.add_missing_images),
         cadastre_path=_path(args.cadastre_path),

@@ -65,8 +65,10 @@ class BlockAdjustmentOptions:
     #: mode they hold the block's datum horizontally (no control points)
     map_rows: bool = True
     #: a priori sd of a map row (px; register's ``vertical_sigma_px``: the
-    #: map's vertex noise) and its robust loss's scale is ``loss_scale_px``
-    map_sigma_px: float = 1.0
+    #: map's vertex noise) and its robust loss's scale is ``loss_scale_px``;
+    #: None: 1 px, or for level cameras the map's noise at their pairs'
+    #: median range (the automatic mode's block placement)
+    map_sigma_px: float | None = None
     #: each map row's line the segment's own fit (not the line through its
     #: image's VP that stage 2 matched; :func:`.map_rows.image_pairs`):
     #: through the VP the 3-point paper block's tilt went 0.017 -> 0.029 deg
@@ -85,7 +87,10 @@ class BlockAdjustmentOptions:
     prior_center_sigma_m: float | None = None
 
     def __post_init__(self) -> None:
-        if not (self.map_sigma_px > 0 and self.map_gate_px > 0):
+        if not (
+            (self.map_sigma_px is None or self.map_sigma_px > 0)
+            and self.map_gate_px > 0
+        ):
             raise ValueError("map_sigma_px and map_gate_px must be > 0")
         if self.prior_center_sigma_m is not None and not self.prior_center_sigma_m > 0:
             raise ValueError("prior_center_sigma_m must be > 0 or None")

@@ -69,7 +69,7 @@ def bundle_options(
         refine_extra_params=options.refine_extra_params,
         gauge="component_mean_camera_height" if hold_mean_height else "none",
         corner_heights="fixed",
-        vertical_sigma_px=options.map_sigma_px,
+        vertical_sigma_px=1.0 if options.map_sigma_px is None else options.map_sigma_px,
         position_prior_sigma_m=(
             options.prior_center_sigma_m if prior_centers else None
         ),

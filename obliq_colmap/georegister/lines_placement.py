@@ -23,6 +23,7 @@ from .block_lines import (
     best_similarity,
     candidate_pairs,
     corners_seen,
+    heading_from_rotations,
     nearest_pairs,
     prior_similarity,
 )
@@ -114,12 +115,15 @@ def lines_placement(
     start: Similarity,
     model_c: np.ndarray,
     prior_c: np.ndarray,
+    model_R: np.ndarray,
+    prior_R: np.ndarray,
     options,
 ) -> tuple[Similarity, list[int], Rays, np.ndarray, dict[int, ImagePairs]]:
     """The upright block's similarity onto the map from all images' segment
     rays (``start``: the priors' similarity of the camera centres
-    ``model_c`` (N, 3) onto ``prior_c`` (N, 3); its inliers give the
-    candidate windows). Returns the
+    ``model_c`` (N, 3) onto ``prior_c`` (N, 3); its inliers and the
+    upright model's and the priors' rotations ``model_R``, ``prior_R``
+    (N, 3, 3 cam_from_world) give the candidate windows). Returns the
     similarity, the image ids in ray order, the rays, the (P, 2) (ray,
     corner) pairs and each image's pairs; exit 2 (InputError) when the
     block finds no consensus."""
@@ -137,6 +141,7 @@ def lines_placement(
         model_c[used, :2],
         prior_c[used, :2],
         lo.min_prior_position_sigma_m,
+        heading_from_rotations(model_R, prior_R),
     )
     _log_prior(prior)
     z0 = float(start.translation[2])
