@@ -4,6 +4,7 @@
         [--cadastre_path FILE] [--control_points_path GCP_FILE]
         [--priors_path PRIORS_MODEL] [--check_points NAME,...]
         [--camera_kind terrestrial|oblique|auto] [--crs EPSG:n]
+        [--automatic_method auto|per_image|block]
         [--add_missing_images 0|1] --output_path OUT_MODEL
 
 Writes, like ``register``, the model files, ``georef.json`` (local frame:
@@ -24,6 +25,7 @@ from obliq_colmap.errors import InputError
 from obliq_colmap.files import AtomicFolder
 from obliq_colmap.georegister.block import BLOCK_SOLVERS, BlockAdjustmentOptions
 from obliq_colmap.georegister.options import (
+    AUTOMATIC_METHODS,
     CAMERA_KINDS,
     GeoregisterOptions,
     VerticalOptions,
@@ -58,6 +60,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="the vanishing-point prior: terrestrial (level camera), oblique "
         "(VP below the image), auto (both; default)",
     )
+    parser.add_argument(
+        "--automatic_method", default="auto", choices=AUTOMATIC_METHODS,
+        help="automatic mode (map and priors, no control points): per_image "
+        "(stage 2 registers each oblique image, one similarity from all their "
+        "pairs), block (all images' vertical segments against the map at "
+        "once: level cameras, a street), auto (block when the vertical came "
+        "from the terrestrial VP prior; default)",
+    )  # fmt: skip
     parser.add_argument("--crs", help="output CRS (default: the map's / the points')")
     parser.add_argument(
         "--block_adjustment", type=int, choices=(0, 1), default=1,
@@ -106,6 +116,7 @@ def run(args: argparse.Namespace) -> int:
     options = GeoregisterOptions(
         vertical=VerticalOptions(camera_kind=args.camera_kind),
         check_points=tuple(n for n in args.check_points.split(",") if n),
+        automatic_method=args.automatic_method,
         crs=args.crs,
         block_adjustment=bool(args.block_adjustment),
         block=BlockAdjustmentOptions(

@@ -14,6 +14,7 @@ Modules, in the order a run uses them:
 - ``similarity``: with control points, the 4-DOF similarity (closed form
   from two, robust weighted least squares from more; 7-DOF without a
   vertical).
+- ``map_rows``: the map's corner lines as rows of the block adjustment.
 - ``block``: the bundle block adjustment on pycolmap's Ceres adjuster (the
   SfM tracks, control point priors by their sigmas, each image's VP as an
   observation of its vertical; principal point and distortion refined).
@@ -22,7 +23,10 @@ Modules, in the order a run uses them:
   3.2.2), their centre from two or more matches to the model's points.
 - ``automatic`` and ``run_automatic``: without control points, stage 2 on
   every image from the priors' positions, then one similarity fitted to all
-  their corner-to-ray pairs.
+  their corner-to-ray pairs (oblique cameras); for level cameras (a street;
+  ``automatic_method``) ``sight``, ``block_lines`` and ``lines_placement``:
+  all images' vertical segments against the map's corners in sight at once,
+  the heading prior from the priors' rotations too.
 - ``run``: :func:`georegister` (the control-point mode, and the dispatch).
 """
 

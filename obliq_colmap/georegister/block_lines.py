@@ -2,38 +2,44 @@
 (issue 27 item 3 for level cameras; MetropoGIS 3.3-3.4).
 
 Stage 2 registers one oblique image from its own segments; a street image
-has too few building corners among its window and door edges, and its
-camera height above the ground is unknown, so it registers none. Here all
-images are registered TOGETHER: in the upright model a vertical segment is a
-vertical plane through its camera centre, i.e. a 2D ray ``(o, d)`` from the
-camera's xy (:class:`~.automatic.Rays`), and the map corner ``c`` it images,
-mapped by the similarity from the map's xy into the model's,
+shows two or three building corners among a few hundred window and door
+edges, and its camera is not above the scene, so it registers none. Here
+all images are registered TOGETHER: in the upright model a vertical segment
+is a vertical plane through its camera centre, i.e. a 2D ray ``(o, d)``
+from the camera's xy (:class:`~.automatic.Rays`), and the map corner ``c``
+it images, mapped into the model's xy by ``x = [[a, -b], [b, a]] c + t``,
+lies on it (``cross(d, x - o) = 0``, linear in ``(a, b, t)``; its value
+the corner's distance from the ray, :func:`pair_inliers`).
 
-    x = [[a, -b], [b, a]] c + t,     (a, b) = s (cos phi, sin phi),
-
-lies on it: ``cross(d, x - o) = 0`` is LINEAR in ``p = (a, b, t_x, t_y)``
-(:func:`pair_rows`), its residual the distance of the mapped corner from
-the ray in model units. Four pairs are a minimal sample (a 4 x 4 solve,
-batched: :func:`solve_samples`).
-
-1. Candidates (:func:`candidate_pairs`): the corners each camera can see at
-   its position under the priors' similarity (the frustum and facing test
-   of :func:`~obliq_colmap.cadastre.visible_corners` and a line of sight in
-   plan, :mod:`.sight`), paired with every segment whose ray passes within
-   the angular window that similarity's uncertainty allows at the corner's
-   range.
-2. Samples (:func:`sample_two_corners`): most candidates are wrong (a street
-   image's vertical segments are mostly window edges), so a sample is two
-   corners, each with two rays from different images that meet near where
-   the prior puts that corner; a uniform sample of four would almost never
-   be clean.
-3. Score (:func:`count_inliers`): the rays with a candidate corner within
-   the metric threshold (the map's vertex noise) or the angular one (the
-   segments'), in front of the camera; the most wins.
+1. Prior (:func:`prior_similarity`): the priors' camera positions give the
+   similarity and its uncertainty; the heading is combined with the one the
+   priors' ROTATIONS give (:func:`heading_from_rotations`: a phone's
+   compass beats the GPS positions along a 70 m line).
+2. Candidates (:func:`candidate_pairs`): the corners each camera can see at
+   its position under that similarity (:func:`corners_seen`: the frustum
+   and facing test of :func:`~obliq_colmap.cadastre.visible_corners` and a
+   line of sight in plan, :mod:`.sight`), paired with every segment whose
+   ray passes within the angular window the prior's uncertainty allows.
+3. Hypotheses (:func:`best_similarity`): per corner, the few places in the
+   model where most of its candidate rays from two images meet
+   (:func:`corner_points`); every two places of two corners give a
+   similarity in closed form (:func:`solve_two_points`), all scored in
+   batches (:func:`count_inliers`): per (image, corner) the LENGTH of the
+   longest segment within the threshold (the map's noise in metres or the
+   segments' in angle). Counting pairs instead let a wrong scale win on
+   street seed 1: a facade of window edges puts SOME short segment near
+   every corner under almost any similarity; the edge at a building's
+   corner runs the facade's height.
 4. Guided matching (:func:`nearest_pairs`): every ray against every corner
-   in sight under the winner, its nearest within the threshold; the 4-DOF
-   refit (:func:`~.automatic.fit_block`, stage 2's angular residuals with a
-   Cauchy loss) and again.
+   in sight under the winner, per (image, corner) the longest segment
+   within the threshold, then the 4-DOF refit (:func:`~.automatic.fit_block`,
+   stage 2's angular residuals with a Cauchy loss), twice.
+
+The first version drew random minimal samples of four candidate pairs
+(two corners, each with two rays from different images meeting near it,
+solved as four linear rows): street seed 1 had 1.3 million such ray pairs
+of 20 corners (the positions' heading window, 2.3 deg sd, before the
+rotations'); the places per corner are few enough (~100) to try every two.
 """
 
 from __future__ import annotations
@@ -280,35 +286,6 @@ def candidate_pairs(
     return CandidatePairs(ray[order], corner[order], window[order])
 
 
-def pair_rows(
-    origin: np.ndarray, bearing: np.ndarray, corner_xy: np.ndarray
-) -> tuple[np.ndarray, np.ndarray]:
-    """(..., 4) rows and (...,) right-hand sides of ``cross(d, x - o) = 0``
-    in ``p = (a, b, t_x, t_y)``, ``x = [[a, -b], [b, a]] c + t``: corners
-    (..., 2) map xy, rays origin (..., 2) and unit bearing (..., 2) in the
-    model's xy (both frames centred by the caller for conditioning)."""
-    dx, dy = bearing[..., 0], bearing[..., 1]
-    cx, cy = corner_xy[..., 0], corner_xy[..., 1]
-    rows = np.stack([dx * cy - dy * cx, dx * cx + dy * cy, -dy, dx], axis=-1)
-    rhs = dx * origin[..., 1] - dy * origin[..., 0]
-    return rows, rhs
-
-
-def solve_samples(
-    origin: np.ndarray, bearing: np.ndarray, corner_xy: np.ndarray
-) -> tuple[np.ndarray, np.ndarray]:
-    """(B, 4) solutions p of B samples of 4 pairs ((B, 4, 2) each) and (B,)
-    bool: solvable (not degenerate: four rays of one camera, say, leave the
-    scale free)."""
-    A, rhs = pair_rows(origin, bearing, corner_xy)
-    cond = np.linalg.cond(A)
-    ok = np.isfinite(cond) & (cond < 1e8)
-    p = np.zeros((len(A), 4))
-    if ok.any():
-        p[ok] = np.linalg.solve(A[ok], rhs[ok][..., None])[..., 0]
-    return p, ok & (np.hypot(p[:, 0], p[:, 1]) > 0)
-
-
 def map_to_model(p: np.ndarray, corner_xy: np.ndarray) -> np.ndarray:
     """(..., N, 2) corners mapped by (..., 4) p into the model's xy."""
     a, b = p[..., 0, None], p[..., 1, None]
@@ -325,7 +302,7 @@ def pair_inliers(
     options: BlockLinesOptions,
 ) -> np.ndarray:
     """(H, P) bool: pair k is an inlier of hypothesis h (p (H, 4); rays and
-    corners (P, 2), frames centred as for :func:`solve_samples`): the mapped
+    corners (P, 2), frames centred as in :func:`best_similarity`): the mapped
     corner in front of the ray and within the threshold of it, in map metres
     (the model's distance divided by the hypothesis's scale) or in angle."""
     x = map_to_model(p, corner_xy)  # (H, P, 2)
