@@ -93,6 +93,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "default) or through the image's VP as stage 2 matched them (vp)",
     )  # fmt: skip
     parser.add_argument(
+        "--block_adjustment_refine_principal_point", type=int, choices=(0, 1),
+        default=1,
+        help="refine each camera's principal point in the block adjustment "
+        "(default 1)",
+    )  # fmt: skip
+    parser.add_argument(
         "--block_adjustment_map_sigma_px", type=float, default=None,
         help="a priori sd of a map row, px (default: 1 px, the map's vertex "
         "noise on an oblique image; level cameras: that noise at the median "
@@ -124,6 +130,7 @@ def run(args: argparse.Namespace) -> int:
             map_rows=bool(args.block_adjustment_map_rows),
             map_measured_directions=args.block_adjustment_map_directions == "measured",
             map_sigma_px=args.block_adjustment_map_sigma_px,
+            refine_principal_point=bool(args.block_adjustment_refine_principal_point),
         ),
         add_missing_images=bool(args.add_missing_images),
         cadastre_path=_path(args.cadastre_path),

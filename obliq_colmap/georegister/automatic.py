@@ -70,7 +70,11 @@ def _transform(params: np.ndarray, rays: Rays) -> tuple[np.ndarray, np.ndarray]:
 
 
 def _refine(rays: Rays, params, corners, pairs, scale_rad, iterations=5):
-    """Gauss-Newton (Cauchy-weighted) on the pairs' angular residuals."""
+    """Gauss-Newton (Cauchy-weighted) on the pairs' angular residuals;
+    ``scale_rad`` one loss scale or (P,) each pair's sd (then also its
+    weight: a level camera's corners carry the map's metric noise, a far
+    one's angle is finer than a near one's)."""
+    per_pair = np.ndim(scale_rad) > 0
     for _ in range(iterations):
         r = _residuals(rays, params, corners, pairs)
         J = np.empty((len(pairs), 4))
@@ -79,6 +83,8 @@ def _refine(rays: Rays, params, corners, pairs, scale_rad, iterations=5):
             e[k] = 1e-6
             J[:, k] = (_residuals(rays, params + e, corners, pairs) - r) / 1e-6
         w = 1.0 / (1.0 + (r / scale_rad) ** 2)
+        if per_pair:
+            w = w / scale_rad**2
         step = np.linalg.lstsq(J * np.sqrt(w)[:, None], -r * np.sqrt(w), rcond=None)[0]
         params = params + step
         if np.abs(step).max() < 1e-10:
@@ -98,11 +104,12 @@ def fit_block(
     corners: np.ndarray,
     pairs: np.ndarray,
     start: tuple[float, float, np.ndarray],
-    scale_deg: float = 0.05,
+    scale_deg: float | np.ndarray = 0.05,
 ) -> BlockPlacement:
     """The 2D similarity from given (P, 2) (ray, corner) pairs (stage 2's
     inliers of every image), Gauss-Newton with a Cauchy loss of
-    ``scale_deg``, from ``start`` = (scale, theta, (2,) t)."""
+    ``scale_deg`` (one, or (P,) per pair: each pair's sd, also its weight),
+    from ``start`` = (scale, theta, (2,) t)."""
     s0, th0, t0 = start
     params = _refine(
         rays, np.r_[np.log(s0), th0, t0], corners, pairs, np.radians(scale_deg), 20

@@ -58,9 +58,13 @@ def bundle_options(
     Ceres problem's: unit weights, Cauchy on the tracks, plain VP rows; the
     map rows where given; the priors' centres or the mean camera height as
     the vertical datum where asked)."""
+    map_sigma = 1.0 if options.map_sigma_px is None else options.map_sigma_px
     return BundleOptions(
         loss="cauchy",
-        loss_scale_px=options.loss_scale_px,
+        # the map rows' robust scale (the bundle's loss keeps it in raw px)
+        # at least their sd: a level camera's rows at 6 px would all sit far
+        # out on a 1 px Cauchy (the tracks have their own scale)
+        loss_scale_px=max(options.loss_scale_px, map_sigma),
         tie_sigma_px=1.0,
         tie_loss_scale_px=options.loss_scale_px,
         refine_focal_length=options.refine_focal_length,
@@ -69,7 +73,7 @@ def bundle_options(
         refine_extra_params=options.refine_extra_params,
         gauge="component_mean_camera_height" if hold_mean_height else "none",
         corner_heights="fixed",
-        vertical_sigma_px=1.0 if options.map_sigma_px is None else options.map_sigma_px,
+        vertical_sigma_px=map_sigma,
         position_prior_sigma_m=(
             options.prior_center_sigma_m if prior_centers else None
         ),

@@ -20,7 +20,7 @@ the corner's distance from the ray, :func:`pair_inliers`).
    and facing test of :func:`~obliq_colmap.cadastre.visible_corners` and a
    line of sight in plan, :mod:`.sight`), paired with every segment whose
    ray passes within the angular window the prior's uncertainty allows.
-3. Hypotheses (:func:`best_similarity`): per corner, the few places in the
+3. Hypotheses (:func:`best_similarities`): per corner, the few places in the
    model where most of its candidate rays from two images meet
    (:func:`corner_points`); every two places of two corners give a
    similarity in closed form (:func:`solve_two_points`), all scored in
@@ -88,11 +88,18 @@ class BlockLinesOptions:
     #: two corners of a hypothesis at least this far apart (m; adjacent
     #: buildings' footprints share their corner points)
     min_corner_spacing_m: float = 1.0
+    #: the best hypotheses that move some corner more than ``start_spacing_m``
+    #: from each other are each refined by guided matching, and the best
+    #: refined one kept (street seed 3: the best raw hypothesis refined to a
+    #: 0.9 deg / 2 % wrong fit, rms 0.47 deg, where the truth's score is higher)
+    num_starts: int = 8
+    start_spacing_m: float = 0.5
     batch_size: int = 250
-    guided_rounds: int = 2
-    #: the Cauchy scale of the guided refits' angular residuals (deg; a
-    #: corner's 0.15 m map noise at 10-30 m is 0.3-0.9 deg)
-    fit_loss_deg: float = 0.3
+    guided_rounds: int = 3
+    #: the refits weigh each pair by its own angular sd (:func:`pair_sd_deg`,
+    #: also the scale of its Cauchy loss): the map's noise at its range (0.15 m
+    #: is 0.9 deg at 10 m, 0.2 deg at 40 m) and this noise of a segment (deg)
+    segment_sigma_deg: float = 0.05
     #: fewer inlier rays than this is a failure
     min_inliers: int = 12
     seed: int = 0
@@ -302,7 +309,7 @@ def pair_inliers(
     options: BlockLinesOptions,
 ) -> np.ndarray:
     """(H, P) bool: pair k is an inlier of hypothesis h (p (H, 4); rays and
-    corners (P, 2), frames centred as in :func:`best_similarity`): the mapped
+    corners (P, 2), frames centred as in :func:`best_similarities`): the mapped
     corner in front of the ray and within the threshold of it, in map metres
     (the model's distance divided by the hypothesis's scale) or in angle."""
     x = map_to_model(p, corner_xy)  # (H, P, 2)
@@ -389,7 +396,7 @@ def corner_points(
     puts the corner): the true vertical edge is seen from many images, each
     window edge near it too, so these are few places, and the block's
     similarity is the one that puts many corners on theirs
-    (:func:`best_similarity`). The meeting points are counted on a grid of
+    (:func:`best_similarities`). The meeting points are counted on a grid of
     ``cluster_cell_m`` (map metres, in model units at the prior's scale)."""
     cell = options.cluster_cell_m / prior.scale
     corner_out, xy_out, support_out = [], [], []
@@ -451,16 +458,14 @@ def solve_two_points(model_xy: np.ndarray, corner_xy: np.ndarray) -> np.ndarray:
 
 @dataclass
 class LinesFit:
-    """The winning hypothesis: ``p`` (4,) map xy -> model xy about the
-    centroids (``map_ref`` (2,), ``model_ref`` (2,)), its score
-    (:func:`count_inliers`, px), the best score of a hypothesis elsewhere,
-    and how many were scored."""
+    """A hypothesis: ``p`` (4,) map xy -> model xy about the centroids
+    (``map_ref`` (2,), ``model_ref`` (2,)), its score (:func:`count_inliers`,
+    px) and how many hypotheses were scored."""
 
     p: np.ndarray
     map_ref: np.ndarray
     model_ref: np.ndarray
     score: float
-    runner_up: float
     num_hypotheses: int
 
     def model_to_map(self) -> tuple[float, float, np.ndarray]:
@@ -474,17 +479,17 @@ class LinesFit:
         return float(scale), theta, t
 
 
-def best_similarity(
+def best_similarities(
     rays: Rays,
     cand: CandidatePairs,
     cad: Cadastre,
     prior: PriorSimilarity,
     options: BlockLinesOptions,
-) -> LinesFit | None:
-    """The similarity with the most inlier rays among those through every
-    two places of two different corners (:func:`corner_points`; all of
-    them: a few hundred places give a few ten thousand hypotheses, scored
-    in batches). None when there are not two corners with a place."""
+) -> list[LinesFit]:
+    """The best-scoring similarities (:func:`distinct_best`) among those
+    through every two places of two different corners (:func:`corner_points`;
+    all of them: a few hundred places give a few ten thousand hypotheses,
+    scored in batches). Empty when there are not two corners with a place."""
     pts = corner_points(rays, cand, cad, prior, options)
     where = cad.corner_xy[pts.corner]
     i, j = np.triu_indices(len(pts), 1)
@@ -495,7 +500,7 @@ def best_similarity(
         len(cand), len(pts), len(np.unique(pts.corner)), len(i),
     )  # fmt: skip
     if len(i) == 0:
-        return None
+        return []
     # centred frames: the rows' columns are then of one size
     model_ref = rays.origin.mean(0)
     map_ref = where.mean(0)
@@ -506,13 +511,54 @@ def best_similarity(
         np.stack([where[i], where[j]], axis=1) - map_ref,
     )
     scores = count_inliers(p, centred, cand, corner_c, options)
-    best = int(np.argmax(scores))
-    # the best hypothesis elsewhere (another scale or place): how clear the win is
-    apart = np.linalg.norm(p[:, 2:] - p[best, 2:], axis=1) > (
-        1.0 * np.hypot(p[best, 0], p[best, 1])
+    keep = distinct_best(p, scores, corner_c[np.unique(cand.corner)], options)
+    return [LinesFit(p[k], map_ref, model_ref, float(scores[k]), len(p)) for k in keep]
+
+
+def distinct_best(
+    p: np.ndarray, scores: np.ndarray, probes: np.ndarray, options: BlockLinesOptions
+) -> list[int]:
+    """Indices of the ``num_starts`` best hypotheses (p (H, 4), scores (H,))
+    that differ from each other: each moves some of the (K, 2) ``probes``
+    (the candidate corners, centred map xy) more than ``start_spacing_m``
+    from where every better one puts it."""
+    order = np.argsort(-scores, kind="stable")[: 50 * options.num_starts]
+    # model xy of the probes under each hypothesis, in map metres
+    x = (
+        map_to_model(p[order], probes)
+        / np.hypot(p[order, 0], p[order, 1])[:, None, None]
     )
-    runner = float(scores[apart].max()) if apart.any() else 0.0
-    return LinesFit(p[best], map_ref, model_ref, float(scores[best]), runner, len(p))
+    kept: list[int] = []
+    for k in range(len(order)):
+        if kept:
+            moved = np.linalg.norm(x[kept] - x[k], axis=2).max(axis=1)
+            if moved.min() <= options.start_spacing_m:
+                continue
+        kept.append(k)
+        if len(kept) == options.num_starts:
+            break
+    return [int(order[k]) for k in kept]
+
+
+def pair_sd_deg(
+    rays: Rays,
+    cad: Cadastre,
+    pairs: np.ndarray,
+    scale: float,
+    theta: float,
+    t: np.ndarray,
+    options: BlockLinesOptions,
+) -> np.ndarray:
+    """(P,) each pair's angular sd (deg) under ``map = scale R(theta) model +
+    t``: the map's vertex noise at the corner's range, and the segment's
+    direction noise (``segment_sigma_deg``)."""
+    c, s = np.cos(theta), np.sin(theta)
+    origin = scale * rays.origin[pairs[:, 0]] @ np.array([[c, s], [-s, c]]) + t
+    rng = np.linalg.norm(cad.corner_xy[pairs[:, 1]] - origin, axis=1)
+    return np.hypot(
+        np.degrees(options.map_noise_m / np.maximum(rng, 1e-3)),
+        options.segment_sigma_deg,
+    )
 
 
 def nearest_pairs(

@@ -19,12 +19,14 @@ from obliq_colmap.geometry import Camera, Pose, rotation_z
 from .automatic import Rays, fit_block, segment_rays
 from .block_lines import (
     BlockLinesOptions,
+    LinesFit,
     PriorSimilarity,
-    best_similarity,
+    best_similarities,
     candidate_pairs,
     corners_seen,
     heading_from_rotations,
     nearest_pairs,
+    pair_sd_deg,
     prior_similarity,
 )
 from .map_rows import ImagePairs
@@ -149,37 +151,29 @@ def lines_placement(
     seen = _seen(rec, images, cad, prior.scale, prior.theta, prior.translation,
                  z0, window, lo)  # fmt: skip
     cand = candidate_pairs(rays, seen, cad, prior, lo)
-    fit = best_similarity(rays, cand, cad, prior, lo)
-    if fit is None:
+    fits = best_similarities(rays, cand, cad, prior, lo)
+    if not fits:
         raise InputError(
             None,
             "the automatic mode (level cameras): no map corner is seen from two "
             "images near where the priors put it",
         )
-    scale, theta, t = fit.model_to_map()
+    refined = [_guided(rec, images, cad, rays, fit, z0, lo) for fit in fits]
+    k = int(np.argmax([r[0] for r in refined]))
+    score, (scale, theta, t), pairs, placed = refined[k]
     logger.info(
-        "block lines: best of %d hypotheses: score %.0f px (elsewhere %.0f), "
-        "scale %.5g, heading %.3f deg", fit.num_hypotheses, fit.score,
-        fit.runner_up, scale, np.degrees(theta),
+        "block lines: %d hypotheses, the best %d refined: scores %s px; kept "
+        "#%d: %d pairs, rms %.3f deg, scale %.5g, heading %.3f deg",
+        fits[0].num_hypotheses, len(fits), [round(r[0]) for r in refined], k,
+        len(pairs), placed.rms_deg, scale, np.degrees(theta),
     )  # fmt: skip
-    pairs = np.zeros((0, 2), int)
-    for _ in range(lo.guided_rounds):
-        seen = _seen(rec, images, cad, scale, theta, t, z0, 2.0, lo)
-        pairs = nearest_pairs(rays, seen, cad, scale, theta, t, lo)
-        if len(pairs) < lo.min_inliers:
-            raise InputError(
-                None,
-                "the automatic mode (level cameras): no consensus of the images' "
-                f"vertical segments with the map ({len(pairs)} pairs, "
-                f"{lo.min_inliers} needed)",
-            )
-        placed = fit_block(rays, cad.corner_xy, pairs, (scale, theta, t),
-                           lo.fit_loss_deg)  # fmt: skip
-        scale, theta, t = placed.scale, placed.theta, placed.translation
-        logger.info(
-            "block lines: guided, %d pairs, rms %.3f deg, scale %.5g, heading "
-            "%.3f deg", len(pairs), placed.rms_deg, scale, np.degrees(theta),
-        )  # fmt: skip
+    if len(pairs) < lo.min_inliers:
+        raise InputError(
+            None,
+            "the automatic mode (level cameras): no consensus of the images' "
+            f"vertical segments with the map ({len(pairs)} pairs, "
+            f"{lo.min_inliers} needed)",
+        )
     sim = Similarity(
         scale,
         rotation_z(theta),
@@ -191,6 +185,25 @@ def lines_placement(
     measured = options.block.map_measured_directions
     per_image = _image_pairs(images, rays, ray_segment, pairs, measured)
     return sim, ids, rays, pairs, per_image
+
+
+def _guided(rec, images, cad, rays, fit: LinesFit, z0, lo: BlockLinesOptions):
+    """Guided matching from one hypothesis, ``guided_rounds`` times: each
+    ray's corner in sight under the current similarity, then the 4-DOF
+    refit on those pairs (each weighted by its sd). Returns (score: the
+    last pairs' segment lengths, px; (scale, theta, t) fitted to them; the
+    (P, 2) pairs; the fit)."""
+    scale, theta, t = fit.model_to_map()
+    pairs, placed = np.zeros((0, 2), int), None
+    for _ in range(lo.guided_rounds):
+        seen = _seen(rec, images, cad, scale, theta, t, z0, 2.0, lo)
+        pairs = nearest_pairs(rays, seen, cad, scale, theta, t, lo)
+        if len(pairs) < 2:
+            return 0.0, (scale, theta, t), pairs, placed
+        sd_deg = pair_sd_deg(rays, cad, pairs, scale, theta, t, lo)
+        placed = fit_block(rays, cad.corner_xy, pairs, (scale, theta, t), sd_deg)
+        scale, theta, t = placed.scale, placed.theta, placed.translation
+    return float(rays.length[pairs[:, 0]].sum()), (scale, theta, t), pairs, placed
 
 
 def _log_prior(prior: PriorSimilarity) -> None:

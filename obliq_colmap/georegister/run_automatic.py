@@ -22,6 +22,7 @@ from obliq_colmap.registration import register_image
 
 from .automatic import Rays, fit_block, segment_rays
 from .block import BlockAdjustmentSummary, adjust_block
+from .block_lines import pair_sd_deg
 from .common import (
     GeoregisterResult,
     add_missing,
@@ -98,7 +99,9 @@ def georegister_automatic(
         coarse, registered, rays, pairs, image_pairs = lines_placement(
             rec, vertical, cad, start, model_c, prior_c, model_R, prior_R, options
         )
-        loss_deg = options.block_lines.fit_loss_deg
+        th = np.arctan2(coarse.rotation[1, 0], coarse.rotation[0, 0])
+        loss_deg = pair_sd_deg(rays, cad, pairs, coarse.scale, th,
+                               coarse.translation[:2], options.block_lines)  # fmt: skip
     else:
         coarse, registered, rays, pairs, image_pairs = _stage2_placement(
             rec, vertical, cad, start, options
