@@ -93,6 +93,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "default) or through the image's VP as stage 2 matched them (vp)",
     )  # fmt: skip
     parser.add_argument(
+        "--block_adjustment_refine_focal_length", type=int, choices=(0, 1),
+        default=0,
+        help="refine each camera's focal length in the block adjustment "
+        "(default 0: with 2-3 control points it trades against the cameras' "
+        "distance)",
+    )  # fmt: skip
+    parser.add_argument(
         "--block_adjustment_refine_principal_point", type=int, choices=(0, 1),
         default=1,
         help="refine each camera's principal point in the block adjustment "
@@ -131,6 +138,7 @@ def run(args: argparse.Namespace) -> int:
             map_measured_directions=args.block_adjustment_map_directions == "measured",
             map_sigma_px=args.block_adjustment_map_sigma_px,
             refine_principal_point=bool(args.block_adjustment_refine_principal_point),
+            refine_focal_length=bool(args.block_adjustment_refine_focal_length),
         ),
         add_missing_images=bool(args.add_missing_images),
         cadastre_path=_path(args.cadastre_path),
