@@ -12,6 +12,7 @@ import pycolmap
 import pytest
 
 from obliq_colmap.cadastre import load_cadastre
+from obliq_colmap.errors import InputError
 from obliq_colmap.geometry import rotation_z
 from obliq_colmap.georegister.block_lines import (
     heading_from_rotations,
@@ -222,3 +223,21 @@ def test_prior_heading_combined_and_widened_when_they_disagree():
 def test_the_method_follows_the_camera_kind(kind, asked, method):
     vertical = ModelVertical(np.array([0.0, 0.0, -1.0]), 0.1, [], kind)
     assert _method(vertical, GeoregisterOptions(automatic_method=asked)) == method
+
+
+def test_no_corner_in_sight_is_one_clear_error(tmp_path):
+    """Priors 300 m off the street (no mapped corner where they put the
+    cameras): an InputError (exit 2), not a guess."""
+    rec, vertical, cad, true_c, R, rng = _street_block(tmp_path, seed=4)
+    ids = sorted(rec.reg_image_ids())
+    model_c = np.array([rec.images[i].projection_center() for i in ids])
+    prior_c = true_c + np.array([300.0, 300.0, 0.0])
+    model_R = np.array([rec.images[i].cam_from_world().rotation.matrix() for i in ids])
+    prior_R = np.array([R for _ in ids])
+    start = similarity_upright(model_c, prior_c, np.full(len(ids), 5.0),
+                               np.full(len(ids), 5.0))  # fmt: skip
+    with pytest.raises(InputError, match="level cameras"):
+        lines_placement(
+            rec, vertical, cad, start, model_c, prior_c, model_R, prior_R,
+            GeoregisterOptions(),
+        )  # fmt: skip
