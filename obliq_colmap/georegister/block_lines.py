@@ -79,7 +79,7 @@ class BlockLinesOptions:
     inlier_threshold_deg: float = 0.15
     #: two rays of one corner meet within this many sds of the corner's
     #: position under the prior
-    sample_gate_sigmas: float = 3.0
+    place_gate_sigmas: float = 3.0
     #: the places where a corner's rays meet are counted on cells of this
     #: size (map metres) ...
     cluster_cell_m: float = 0.3
@@ -100,9 +100,8 @@ class BlockLinesOptions:
     #: also the scale of its Cauchy loss): the map's noise at its range (0.15 m
     #: is 0.9 deg at 10 m, 0.2 deg at 40 m) and this noise of a segment (deg)
     segment_sigma_deg: float = 0.05
-    #: fewer inlier rays than this is a failure
+    #: fewer pairs after guided matching than this is a failure
     min_inliers: int = 12
-    seed: int = 0
 
 
 @dataclass
@@ -412,7 +411,7 @@ def corner_points(
         X, ok = _ray_pair_points(rays, ri, rj)
         corner = cand.corner[group[0]]
         off = np.linalg.norm(prior.apply(X) - cad.corner_xy[corner], axis=1)
-        gate = options.sample_gate_sigmas * prior.position_sd(X)
+        gate = options.place_gate_sigmas * prior.position_sd(X)
         ok &= off <= gate + options.inlier_threshold_m
         # two long segments meeting count most (see count_inliers)
         weight = np.minimum(rays.length[ri], rays.length[rj])[ok]

@@ -30,6 +30,7 @@ from .block_lines import (
     prior_similarity,
 )
 from .map_rows import ImagePairs
+from .options import GeoregisterOptions
 from .similarity import Similarity
 from .vertical import ImageVertical, ModelVertical
 
@@ -119,7 +120,7 @@ def lines_placement(
     prior_c: np.ndarray,
     model_R: np.ndarray,
     prior_R: np.ndarray,
-    options,
+    options: GeoregisterOptions,
 ) -> tuple[Similarity, list[int], Rays, np.ndarray, dict[int, ImagePairs]]:
     """The upright block's similarity onto the map from all images' segment
     rays (``start``: the priors' similarity of the camera centres
@@ -161,19 +162,19 @@ def lines_placement(
     refined = [_guided(rec, images, cad, rays, fit, z0, lo) for fit in fits]
     k = int(np.argmax([r[0] for r in refined]))
     score, (scale, theta, t), pairs, placed = refined[k]
-    logger.info(
-        "block lines: %d hypotheses, the best %d refined: scores %s px; kept "
-        "#%d: %d pairs, rms %.3f deg, scale %.5g, heading %.3f deg",
-        fits[0].num_hypotheses, len(fits), [round(r[0]) for r in refined], k,
-        len(pairs), placed.rms_deg, scale, np.degrees(theta),
-    )  # fmt: skip
-    if len(pairs) < lo.min_inliers:
+    if placed is None or len(pairs) < lo.min_inliers:
         raise InputError(
             None,
             "the automatic mode (level cameras): no consensus of the images' "
             f"vertical segments with the map ({len(pairs)} pairs, "
             f"{lo.min_inliers} needed)",
         )
+    logger.info(
+        "block lines: %d hypotheses, the best %d refined: scores %s px; kept "
+        "#%d: %d pairs, rms %.3f deg, scale %.5g, heading %.3f deg",
+        fits[0].num_hypotheses, len(fits), [round(r[0]) for r in refined], k,
+        len(pairs), placed.rms_deg, scale, np.degrees(theta),
+    )  # fmt: skip
     sim = Similarity(
         scale,
         rotation_z(theta),
