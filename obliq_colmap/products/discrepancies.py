@@ -43,6 +43,7 @@ support under every shift alike, so the tests are relative.
 from __future__ import annotations
 
 import logging
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -60,6 +61,7 @@ from obliq_colmap.products.roof import (
     empty_site,
     footprint_samples,
     height_profile,
+    roof_height,
 )
 from obliq_colmap.products.support import edge_support
 
@@ -76,6 +78,36 @@ def shift_grid(options: DiscrepancyOptions) -> np.ndarray:
     S = np.stack(np.meshgrid(k, k), -1).reshape(-1, 2)
     S = S[np.argsort(np.hypot(S[:, 0], S[:, 1]), kind="stable")]
     return S
+
+
+@dataclass
+class AcrossEvidence:
+    """Per building and shift, over the corner views in which the shift moves
+    the corner's vertical across its image (:func:`.support.across_shift`):
+    how many (views), their supported samples under the shift (support) and
+    without it (support0), and how many of them are seen (half the samples)
+    under the shift (seen) and without it (seen0). All (B, S)."""
+
+    views: np.ndarray
+    support: np.ndarray
+    support0: np.ndarray
+    seen: np.ndarray
+    seen0: np.ndarray
+
+    @classmethod
+    def zeros(cls, B: int, S: int) -> AcrossEvidence:
+        return cls(*(np.zeros((B, S)) for _ in range(5)))
+
+    def add(
+        self, b: np.ndarray, sup: np.ndarray, seen: np.ndarray, across: np.ndarray
+    ) -> None:
+        """Add one image's corner views: b (K,) building of each, sup (K, S)
+        supported samples, seen (K, S) bool, across (K, S) bool."""
+        np.add.at(self.views, b, across)
+        np.add.at(self.support, b, np.where(across, sup, 0))
+        np.add.at(self.support0, b, np.where(across, sup[:, :1], 0))
+        np.add.at(self.seen, b, across & seen)
+        np.add.at(self.seen0, b, across & seen[:, :1])
 
 
 def chance_peaks(
@@ -104,6 +136,7 @@ def classify(
     has_eave: np.ndarray,
     options: DiscrepancyOptions,
     seen: np.ndarray | None = None,
+    across: AcrossEvidence | None = None,
 ) -> dict[str, np.ndarray]:
     """Per building: best shift, supports, score and verdict.
 
@@ -114,6 +147,9 @@ def classify(
         demolished building has none: no absent verdict then).
     seen : (B, S) corner views seen under each shift (:func:`chance_peaks`);
         None: that test is left out.
+    across : the support over the views in which each shift moves the
+        corners across their verticals (:class:`AcrossEvidence`): "not seen
+        in place" is judged there. None: over all views.
 
     Returns
     -------
@@ -129,12 +165,24 @@ def classify(
     absent = judged & (best < options.absent_ratio * ref) & ~has_eave
     shift = shifts[best_i]
     gain = (best - s0) / np.maximum(best, 1e-9)
+    # "not seen in place": judged in the views in which the best shift moves
+    # the corners across their verticals; in the others the map's corner and
+    # the shifted one lie on the same image line and both are seen.
+    s0_unseen = s0
+    if across is not None:
+        r = np.arange(len(frac))
+        n_across = across.views[r, best_i]
+        s0_unseen = np.where(
+            n_across > 0,
+            across.support0[r, best_i] / np.maximum(n_across * options.num_samples, 1),
+            np.inf,
+        )
     shifted = (
         judged
         & ~absent
         & (np.hypot(shift[:, 0], shift[:, 1]) > options.min_shift_m)
         & (gain >= options.min_gain)
-        & (s0 < options.shifted_ratio * ref)
+        & (s0_unseen < options.shifted_ratio * ref)
         & (best >= options.shifted_ratio * ref)
     )
     if seen is not None:
@@ -180,15 +228,86 @@ def empty_sites(
         options.sweep_min_m, options.sweep_max_m + 1e-9, options.sweep_step_m
     )
     out = np.zeros(len(polygons), bool)
+    cen = np.array([p.centroid.coords[0] for p in polygons]).reshape(-1, 2)
+    sees = views_seeing(views, np.column_stack([cen, np.nan_to_num(ground_z)]))
     for b, poly in enumerate(polygons):
         xy = footprint_samples(
             poly, options.sweep_grid_m, options.sweep_inset_m, options.sweep_max_points
         )
-        if len(xy) == 0 or not np.isfinite(ground_z[b]):
+        if len(xy) < options.sweep_min_points or not np.isfinite(ground_z[b]):
             continue
-        ncc, n = height_profile(views, xy, ground_z[b] + up)
+        # only the views that see the footprint's centre (the cost)
+        vb = [views[i] for i in np.flatnonzero(sees[:, b])]
+        ncc, n = height_profile(vb, xy, ground_z[b] + up)
         out[b] = empty_site(ncc, n, up, options.stand_height_m, options.stand_views)
     return out
+
+
+def views_seeing(views: list[RoofView], xyz: np.ndarray) -> np.ndarray:
+    """(V, B) bool: view v has point b (B, 3) in front and inside."""
+    out = np.zeros((len(views), len(xyz)), bool)
+    for i, v in enumerate(views):
+        Xc = v.pose.transform(xyz)
+        q = v.camera.img_from_cam(Xc)
+        h, w = v.gray.shape
+        inside = (q[:, 0] >= 0) & (q[:, 0] < w) & (q[:, 1] >= 0) & (q[:, 1] < h)
+        out[i] = (Xc[:, 2] > 0) & inside
+    return out
+
+
+def sweepable(polygons: list, options: DiscrepancyOptions) -> np.ndarray:
+    """(B,) bool: the footprint holds about ``sweep_min_points`` interior
+    points of the sweep's grid (its inset area over the grid cell)."""
+    inner = shapely.buffer(np.asarray(polygons, dtype=object), -options.sweep_inset_m)
+    return shapely.area(inner) >= options.sweep_min_points * options.sweep_grid_m**2
+
+
+def eaveless_tops(
+    polygons: list,
+    ground_z: np.ndarray,
+    eave_z: np.ndarray,
+    views: list[RoofView],
+    options: DiscrepancyOptions,
+) -> np.ndarray:
+    """(B,) the top of the sampled corner verticals (model z).
+
+    The eave where the facade tracks found one; else ``eaveless_top_fraction``
+    of the height at which the views agree on the roof (:func:`.roof.
+    roof_height`, a sweep of ``top_sweep_points`` interior points), clipped
+    to [``stand_height_m`` + 0.5, ``default_height_m``] above the ground;
+    ``default_height_m`` where the sweep sees nothing standing or cannot
+    run (fewer than ``stand_views`` views of the footprint's centre, no
+    interior point).
+    """
+    top = np.where(np.isfinite(eave_z), eave_z, ground_z + options.default_height_m)
+    up = np.arange(
+        options.sweep_min_m, options.sweep_max_m + 1e-9, options.sweep_step_m
+    )
+    cen = np.array([p.centroid.coords[0] for p in polygons]).reshape(-1, 2)
+    ask = ~np.isfinite(eave_z) & np.isfinite(ground_z)
+    # only the views that see the footprint's centre take part (the sweep's
+    # cost is the projection of every height's points into every view)
+    sees = views_seeing(views, np.column_stack([cen, np.where(ask, ground_z, 0.0)]))
+    ask &= sees.sum(axis=0) >= options.stand_views
+    lo = options.stand_height_m + 0.5
+    # a roof seen higher than this gives the default top anyway
+    up = up[up <= options.default_height_m / options.eaveless_top_fraction]
+    for b in np.flatnonzero(ask):
+        xy = footprint_samples(
+            polygons[b],
+            options.sweep_grid_m,
+            options.sweep_inset_m,
+            options.top_sweep_points,
+        )
+        if len(xy) == 0:
+            continue
+        vb = [views[i] for i in np.flatnonzero(sees[:, b])]
+        ncc, n = height_profile(vb, xy, ground_z[b] + up)
+        h = roof_height(ncc, n, up, options.stand_height_m, options.stand_views)
+        if np.isfinite(h):
+            f = options.eaveless_top_fraction * h
+            top[b] = ground_z[b] + min(max(f, lo), options.default_height_m)
+    return top
 
 
 def roof_views(block, image_path: Path, options: DiscrepancyOptions) -> list[RoofView]:
@@ -222,11 +341,9 @@ def find_discrepancies(
     cad = c.cadastre
     image_path = Path(image_path)
     zg = heights.ground_z[cad.corner_building]
-    top = np.where(
-        np.isfinite(heights.eave_z),
-        heights.eave_z,
-        heights.ground_z + options.default_height_m,
-    )[cad.corner_building]
+    rv = roof_views(block, image_path, options)
+    top = eaveless_tops(cad.polygons, heights.ground_z, heights.eave_z, rv, options)
+    top = top[cad.corner_building]
     common = {
         "options": options,
         "corner_xy": cad.corner_xy,
@@ -257,12 +374,19 @@ def find_discrepancies(
     B, S = len(cad.polygons), len(common["shifts"])
     support, views = np.zeros((B, S)), np.zeros(B)
     views_seen = np.zeros((B, S))
-    for k, sup in results:
+    ac = AcrossEvidence.zeros(B, S)
+    for k, sup, across in results:
         b = cad.corner_building[k]
         np.add.at(support, b, sup)
         np.add.at(views, b, 1.0)
         # a corner view is seen under a shift when half its vertical is
-        np.add.at(views_seen, b, 2 * sup >= options.num_samples)
+        seen = 2 * sup >= options.num_samples
+        np.add.at(views_seen, b, seen)
+        ac.add(b, sup, seen, across)
+    # a shed without an eave: neither its height nor its roof can be read
+    views = np.where(
+        np.isfinite(heights.eave_z) | sweepable(cad.polygons, options), views, 0.0
+    )
     v = classify(
         support,
         views,
@@ -270,15 +394,15 @@ def find_discrepancies(
         np.isfinite(heights.eave_z),
         options,
         views_seen,
+        ac,
     )
     # absent: corners seen clearly nowhere, and the views agree on the ground
     judged = v["judged"]
     ref = float(np.median(v["best"][judged])) if judged.any() else 0.0
     cand = np.flatnonzero(
-        judged & (v["kind"] != "shifted") & (v["best"] < options.shifted_ratio * ref)
+        judged & (v["kind"] != "shifted") & (v["best"] < options.sweep_ratio * ref)
     )
     if len(cand):
-        rv = roof_views(block, image_path, options)
         empty = empty_sites(
             [cad.polygons[b] for b in cand], heights.ground_z[cand], rv, options
         )

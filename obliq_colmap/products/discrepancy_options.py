@@ -21,8 +21,25 @@ class DiscrepancyOptions:
     support_px: float = 1.5
     #: heights sampled along each corner's vertical.
     num_samples: int = 6
-    #: height of a building without an eave height (m).
+    #: height of a building without an eave height (m), where the height
+    #: sweep of its roof cannot say more (:func:`.discrepancies.eaveless_tops`).
     default_height_m: float = 6.0
+    #: a building without an eave height whose roof the sweep sees standing
+    #: is sampled up to this fraction of the roof's height (a pitched roof
+    #: is seen anywhere between its eave and its ridge, and a one-storey
+    #: house's ridge can be twice its eave above the ground: a third of the
+    #: height stays on the walls), at least up to ``stand_height_m``, at most
+    #: up to ``default_height_m``. Sampled above its walls, a low house's
+    #: corners are seen nowhere, and a shift towards one head, which lowers
+    #: the samples in that head's views onto the real edge, looks like
+    #: evidence of a shift (houses-102, 2026-12-06).
+    eaveless_top_fraction: float = 0.33
+    #: the sweep's interior points used for that roof height (a cheaper sweep)
+    top_sweep_points: int = 150
+    #: a shift is evidence in a corner view only where it moves the
+    #: corner's vertical across its image by more than this (px): along it,
+    #: a shift looks like a change of height.
+    across_px: float = 3.0
     #: shifts searched: +-max_shift_m in steps of shift_step_m.
     max_shift_m: float = 2.0
     shift_step_m: float = 0.25
@@ -49,10 +66,18 @@ class DiscrepancyOptions:
     sweep_blur_px: float = 1.5
     #: interior points: a grid of this spacing (m), this far inside the
     #: outline (m: roof rims, parapets and overhangs are not at one height),
-    #: at most this many.
+    #: at most this many; a footprint without an eave height with fewer than
+    #: sweep_min_points (a shed or garage of ~4 x 4 m: 16) is not judged:
+    #: the sweep can tell neither its height (hence the corners' sampled
+    #: range) nor whether it stands (an NCC over so few points is noise).
     sweep_grid_m: float = 0.5
     sweep_inset_m: float = 1.0
     sweep_max_points: int = 600
+    sweep_min_points: int = 30
+    #: the sweep is asked about every judged footprint not called shifted
+    #: whose best corner support is below this fraction of the block's median
+    #: (its corners are not seen better than a typical building's).
+    sweep_ratio: float = 1.0
     #: something stands on the footprint when the views agree best at least
     #: this high above its ground (m: the eave of a one-storey building) ...
     stand_height_m: float = 2.5

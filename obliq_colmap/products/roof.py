@@ -20,7 +20,14 @@ import shapely
 
 from obliq_colmap.geometry import Camera, Pose
 
-__all__ = ["RoofView", "empty_site", "footprint_samples", "height_profile", "stands"]
+__all__ = [
+    "RoofView",
+    "empty_site",
+    "footprint_samples",
+    "height_profile",
+    "roof_height",
+    "stands",
+]
 
 
 @dataclass
@@ -146,3 +153,17 @@ def empty_site(
         return False
     k = int(np.nanargmax(profile))
     return bool(above_ground[k] < min_height_m and views[k] >= min_views)
+
+
+def roof_height(
+    profile: np.ndarray,
+    views: np.ndarray,
+    above_ground: np.ndarray,
+    min_height_m: float,
+    min_views: int,
+) -> float:
+    """The height above the ground (m) at which the views agree best, where
+    something stands there (:func:`stands`); NaN otherwise."""
+    if not stands(profile, views, above_ground, min_height_m, min_views):
+        return float("nan")
+    return float(above_ground[int(np.nanargmax(profile))])

@@ -18,7 +18,7 @@ from obliq_colmap.lines import detect_segments
 if TYPE_CHECKING:
     from obliq_colmap.products.discrepancy_options import DiscrepancyOptions
 
-__all__ = ["edge_support", "vertical_edge_distance"]
+__all__ = ["across_shift", "edge_support", "vertical_edge_distance"]
 
 
 def vertical_edge_distance(
@@ -44,7 +44,30 @@ def vertical_edge_distance(
     return cv2.distanceTransform(mask, cv2.DIST_L2, 3)
 
 
-def edge_support(task: dict) -> tuple[np.ndarray, np.ndarray]:
+def across_shift(
+    camera: Camera, pose: Pose, base: np.ndarray, moved: np.ndarray
+) -> np.ndarray:
+    """(K, S) image distance (px) of each moved point from the image of the
+    vertical through its base point, across that image line.
+
+    base : (K, 3) a point on each corner's vertical; moved : (K, S, 3) the
+    same point under each shift. A horizontal shift along the view moves the
+    vertical's image along itself (the same as a change of height, which an
+    unknown eave cannot tell apart); only the part across it is evidence of
+    a shift.
+    """
+    top = base + np.array([0.0, 0.0, 1.0])
+    a = camera.img_from_cam(pose.transform(base))
+    b = camera.img_from_cam(pose.transform(top))
+    d = b - a
+    d /= np.linalg.norm(d, axis=1, keepdims=True) + 1e-12
+    K, S = moved.shape[:2]
+    q = camera.img_from_cam(pose.transform(moved.reshape(-1, 3))).reshape(K, S, 2)
+    r = q - a[:, None]
+    return np.abs(r[..., 0] * d[:, None, 1] - r[..., 1] * d[:, None, 0])
+
+
+def edge_support(task: dict) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """One image's support of every corner it should see, under every shift.
 
     ``task``: image file, camera, pose, options, and the map's arrays:
@@ -55,11 +78,14 @@ def edge_support(task: dict) -> tuple[np.ndarray, np.ndarray]:
     -------
     corners : (K,) int, the corners the image should see.
     supported : (K, S) int, supported samples per corner and shift.
+    across : (K, S) bool, the shift moves the corner's vertical across its
+        image by more than ``across_px`` (:func:`across_shift`).
     """
     img, _ = read_image(task["path"])
     cam, pose, o = task["camera"], task["pose"], task["options"]
     if img is None:
-        return np.zeros(0, int), np.zeros((0, len(task["shifts"])), int)
+        S = len(task["shifts"])
+        return np.zeros(0, int), np.zeros((0, S), int), np.zeros((0, S), bool)
     dmap = vertical_edge_distance(img, cam, pose, o)
     xy, n = task["corner_xy"], task["corner_wall_normals"]
     c = pose.center
@@ -91,4 +117,6 @@ def edge_support(task: dict) -> tuple[np.ndarray, np.ndarray]:
     d = np.full(len(q), np.inf, np.float32)
     d[ok] = dmap[row[ok], col[ok]]
     sup = (d <= o.support_px).reshape(len(k), len(S), o.num_samples).sum(axis=2)
-    return k, sup
+    mid = P[:, :, o.num_samples // 2]  # (K, S, 3)
+    across = across_shift(cam, pose, mid[:, 0], mid) > o.across_px
+    return k, sup, across
