@@ -110,6 +110,26 @@ class AcrossEvidence:
         np.add.at(self.seen0, b, across & seen[:, :1])
 
 
+def refined_shift(
+    frac: np.ndarray, shifts: np.ndarray, best_i: np.ndarray, step: float
+) -> np.ndarray:
+    """(B, 2) the best shift refined below the grid's step: the mean of the
+    shifts within one step of it (3 x 3), weighted by their support above
+    the least of them. The 0.5 m test then meets the map's vertex noise
+    (0.1-0.35 m) less often at the grid's smallest step past it (0.56 m).
+
+    frac : (B, S) support; shifts : (S, 2); best_i : (B,) the best shift.
+    """
+    near = (
+        np.abs(shifts[None, :, :] - shifts[best_i][:, None, :]).max(axis=2)
+        <= step + 1e-9
+    )  # (B, S)
+    w = np.where(near, frac, np.inf)
+    w = np.where(near, frac - w.min(axis=1, keepdims=True), 0.0)
+    tot = w.sum(axis=1, keepdims=True)
+    return np.where(tot > 0, (w @ shifts) / np.maximum(tot, 1e-12), shifts[best_i])
+
+
 def chance_peaks(
     seen: np.ndarray, views: np.ndarray, best_i: np.ndarray, options: DiscrepancyOptions
 ) -> np.ndarray:
@@ -163,19 +183,25 @@ def classify(
     s0 = frac[:, 0]
     ref = float(np.median(best[judged])) if judged.any() else 0.0
     absent = judged & (best < options.absent_ratio * ref) & ~has_eave
-    shift = shifts[best_i]
+    shift = refined_shift(frac, shifts, best_i, options.shift_step_m)
     gain = (best - s0) / np.maximum(best, 1e-9)
-    # "not seen in place": judged in the views in which the best shift moves
-    # the corners across their verticals; in the others the map's corner and
-    # the shifted one lie on the same image line and both are seen.
+    # "not seen in place" and the gain judged in the views in which the best
+    # shift moves the corners across their verticals: in the others the
+    # map's corner and the shifted one lie on the same image line, both are
+    # seen, and the gain over all views is diluted (urban-101 DENW0000134:
+    # 0.37 over all views, 0.77 over the 8 across). The gain there only
+    # where those views alone are enough to judge a building (min_views).
     s0_unseen = s0
     if across is not None:
         r = np.arange(len(frac))
         n_across = across.views[r, best_i]
-        s0_unseen = np.where(
-            n_across > 0,
-            across.support0[r, best_i] / np.maximum(n_across * options.num_samples, 1),
-            np.inf,
+        den = np.maximum(n_across * options.num_samples, 1)
+        fa0 = across.support0[r, best_i] / den
+        fa = across.support[r, best_i] / den
+        s0_unseen = np.where(n_across > 0, fa0, np.inf)
+        gain_across = (fa - fa0) / np.maximum(fa, 1e-9)
+        gain = np.where(
+            n_across >= options.min_views, np.maximum(gain, gain_across), gain
         )
     shifted = (
         judged
