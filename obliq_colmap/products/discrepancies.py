@@ -5,17 +5,18 @@ final poses. In every registered image, the line segments that point at the
 image's vertical vanishing point are drawn into an edge map; each corner the
 image should see (inside the image, one of its walls facing the camera) is
 sampled along its vertical (``num_samples`` heights between 1 m above the
-ground and 0.5 m below the eave) and a sample is supported when a vertical
-edge passes within ``support_px``. The same is done with the whole
-footprint shifted by each offset of a grid (+-``max_shift_m``), so that
-``support[b, s]`` is the share of supported samples of building b under
-shift s.
+ground and 0.5 m below the top: the eave, or for a building without one a
+third of the height at which the views agree on its roof,
+:func:`eaveless_tops`) and a sample is supported when a vertical edge passes
+within ``support_px``. The same is done with the whole footprint shifted by
+each offset of a grid (+-``max_shift_m``), so that ``support[b, s]`` is the
+share of supported samples of building b under shift s. A footprint without
+an eave too small for the height sweep (a shed) is not judged.
 
 * A building not called shifted whose best support is below
-  ``shifted_ratio`` times the block's median best support (its corners
-  seen clearly nowhere), and whose views agree best at the ground of its
-  footprint (:mod:`.roof`, a height
-  sweep of its interior; :func:`.roof.empty_site`): absent from the scene
+  ``sweep_ratio`` times the block's median best support, and whose views
+  agree best at the ground of its footprint (:mod:`.roof`, a height sweep
+  of its interior; :func:`.roof.empty_site`): absent from the scene
   (demolished but mapped). The corners alone do not tell a demolished
   building from a present one whose corners the images do not show (e.g.
   where a building the map lacks adjoins it: the facade runs on past the
@@ -26,12 +27,15 @@ shift s.
   and an "eave" on its walls (in dense blocks, the edges of the buildings
   behind) do not count against the ground.
 * A building whose best support comes with a shift longer than
-  ``min_shift_m``, beats the unshifted support by ``min_gain`` of itself,
-  and whose support is below ``shifted_ratio`` times the median unshifted
-  and above it shifted, and that chance does not explain
-  (:func:`chance_peaks`: the corner views seen at the shifted place against
-  the building's own rate over all shifts, < 1 such peak expected):
-  shifted (a consistent offset of all its corners).
+  ``min_shift_m`` (measured below the grid's step, :func:`refined_shift`),
+  beats the unshifted support by ``min_gain`` of itself, whose support is
+  below ``shifted_ratio`` times the median unshifted and above it shifted,
+  and that chance does not explain (:func:`chance_peaks`: the corner views
+  seen at the shifted place against the building's own rate over all
+  shifts, < 1 such peak expected): shifted (a consistent offset of all its
+  corners). "Unshifted" and the gain are read in the views in which the
+  shift moves the corners across their verticals (:class:`AcrossEvidence`):
+  along a view a shift only slides the vertical along its own image.
 
 Corners on another footprint's outline (party walls) are left out: the
 neighbour's edge supports them whatever this footprint does.
