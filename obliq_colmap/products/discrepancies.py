@@ -269,7 +269,7 @@ def empty_sites(
         # only the views that see the footprint's centre (the cost)
         vb = [views[i] for i in np.flatnonzero(sees[:, b])]
         ncc, n = height_profile(vb, xy, ground_z[b] + up)
-        out[b] = empty_site(ncc, n, up, options.stand_height_m, options.stand_views)
+        out[b] = empty_site(ncc, n, up, options.stand_height_m, options.empty_views)
     return out
 
 
