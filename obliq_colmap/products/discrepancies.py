@@ -424,7 +424,7 @@ def find_discrepancies(
         np.isfinite(heights.eave_z),
         options,
         views_seen,
-        ac,
+        ac if options.judge_across else None,
     )
     # absent: corners seen clearly nowhere, and the views agree on the ground
     judged = v["judged"]

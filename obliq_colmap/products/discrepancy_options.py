@@ -40,6 +40,11 @@ class DiscrepancyOptions:
     #: corner's vertical across its image by more than this (px): along it,
     #: a shift looks like a change of height.
     across_px: float = 3.0
+    #: judge "not seen in place" and the gain over those views (False: over
+    #: all views, as before 2026-12-06; a trade measured in the journal:
+    #: +2 true shifts on the external scenes, +1 false there and on paper
+    #: s2 and s3 each).
+    judge_across: bool = True
     #: shifts searched: +-max_shift_m in steps of shift_step_m.
     max_shift_m: float = 2.0
     shift_step_m: float = 0.25
