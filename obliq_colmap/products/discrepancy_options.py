@@ -90,7 +90,7 @@ class DiscrepancyOptions:
     stand_views: int = 3
     #: an empty site needs this many views agreeing at the ground (6 pairs):
     #: with 3 (3 pairs), chance agreements at the ground of present
-    #: buildings seen by few views (NCC -0.07 to 0.31) made 4 of the false
+    #: buildings seen by three views (NCC 0.00-0.31) made 4 of the false
     #: "absent" verdicts on houses-102 and paper s1 / s3 (2026-12-06).
     empty_views: int = 4
 
