@@ -26,10 +26,12 @@ the VPs (:mod:`.block_ceres`), kept as the check.
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import math
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 import pycolmap
@@ -61,8 +63,8 @@ class BlockAdjustmentOptions:
     #: "obliq" (the project's bundle) or "ceres" (pycolmap + pyceres)
     solver: str = "obliq"
     #: the map's corner lines as rows where a map is given (stage 2's inlier
-    #: pairs, :mod:`.map_rows`; the obliq solver only): in the automatic
-    #: mode they hold the block's datum horizontally (no control points)
+    #: pairs, :mod:`.map_rows`; both solvers): in the automatic mode they
+    #: hold the block's datum horizontally (no control points)
     map_rows: bool = True
     #: a priori sd of a map row (px; register's ``vertical_sigma_px``: the
     #: map's vertex noise) and its robust loss's scale is ``loss_scale_px``;
@@ -85,6 +87,10 @@ class BlockAdjustmentOptions:
     #: then tilts the block (paper seed 2: 0.021 deg with 50 m, 0.034 deg
     #: with 5 m, 0.19 deg with 1 m; journal, 2026-12-06)
     prior_center_sigma_m: float | None = None
+    #: each camera's pose covariance from the adjustment's cofactor matrix
+    #: (obliq solver; the project's bundle computes it where the problem
+    #: has map rows: :class:`BlockUncertainty`)
+    covariance: bool = True
 
     def __post_init__(self) -> None:
         if not (
@@ -98,6 +104,34 @@ class BlockAdjustmentOptions:
             raise ValueError(
                 f"solver={self.solver!r}; allowed: {', '.join(BLOCK_SOLVERS)}"
             )
+
+
+def map_row_weighting(options: BlockAdjustmentOptions) -> tuple[float, float]:
+    """The map rows' a priori sd and their Cauchy scale (px), the same in
+    both solvers: the sd ``map_sigma_px`` (1 px by default), the scale at
+    least that sd (the bundle's loss keeps its scale in raw px; a level
+    camera's rows at 6 px would all sit far out on a 1 px Cauchy)."""
+    sigma = 1.0 if options.map_sigma_px is None else float(options.map_sigma_px)
+    return sigma, max(float(options.loss_scale_px), sigma)
+
+
+@dataclass
+class BlockUncertainty:
+    """The adjusted block's a-posteriori precision (the project's bundle;
+    :attr:`~obliq_colmap.bundle.BundleResult.pose_covariance`).
+
+    pose_covariance : image_id -> (6, 6) covariance of (rotation increment
+        omega, rad, ``R <- Exp(omega) R``; centre, m), the cofactor matrix
+        times ``variance_factor``.
+    image_precision_px : image_id -> predicted sd (px) of the projections of
+        its map rows' points (NaN for an image without map rows).
+    variance_factor : a-posteriori variance of unit weight (tracks at 1 px,
+        map rows at their sd, control points at their stated sigmas).
+    """
+
+    pose_covariance: dict[int, np.ndarray]
+    image_precision_px: dict[int, float]
+    variance_factor: float
 
 
 @dataclass
@@ -116,6 +150,17 @@ class BlockAdjustmentSummary:
     solver: str = "obliq"
     #: wall time of the whole adjustment (problem built, solved, written back), s
     time_s: float = math.nan
+    #: the block's covariance where computed (not in :meth:`report`)
+    uncertainty: BlockUncertainty | None = field(default=None, repr=False)
+
+    def report(self) -> dict[str, Any]:
+        """The summary for report.json (without the covariance, which has
+        its own section: :func:`.uncertainty.block_uncertainty_report`)."""
+        return {
+            f.name: getattr(self, f.name)
+            for f in dataclasses.fields(self)
+            if f.name != "uncertainty"
+        }
 
 
 @dataclass
@@ -168,30 +213,35 @@ def adjust_block(
     verticals : image_id -> ((3,) observed down direction in the camera
         frame, through the camera's pinhole at the start, its sd in deg).
     map_rows : the map's corner-to-line rows (:mod:`.map_rows`), used where
-        ``options.map_rows`` (obliq solver only).
+        ``options.map_rows`` (both solvers).
     prior_centers : image_id -> (3,) a camera centre from the priors (rec's
         frame), each observed at ``options.prior_center_sigma_m`` (where
-        not None) with one horizontal offset estimated. Without control
-        points and without them, the block's mean camera height is held
-        (obliq solver only).
+        not None; obliq solver only) with one horizontal offset estimated.
+        Without control points and without them, the block's mean camera
+        height is held (both solvers).
     """
     options = options or BlockAdjustmentOptions()
     t0 = time.perf_counter()
     rows = vertical_rows(rec, verticals, options.min_vertical_sd_deg)
+    if not options.map_rows:
+        map_rows = None
     if options.solver == "ceres":
-        if (map_rows is not None and len(map_rows)) or prior_centers:
+        use_priors = bool(prior_centers) and options.prior_center_sigma_m is not None
+        if use_priors:
             logger.warning(
-                "block adjustment (ceres): the map rows and the priors' centres "
-                "are the obliq solver's only; left out"
+                "block adjustment (ceres): the priors' centres are the obliq "
+                "solver's only; the mean camera height is held instead"
             )
         from .block_ceres import adjust_block_ceres
 
-        summary = adjust_block_ceres(rec, control_point_ids, rows, options)
+        # the obliq solver's gauge without control points (block_bundle)
+        hold = not control_point_ids
+        summary = adjust_block_ceres(
+            rec, control_point_ids, rows, options, map_rows, hold
+        )
     else:
         from .block_bundle import adjust_block_bundle
 
-        if not options.map_rows:
-            map_rows = None
         summary = adjust_block_bundle(
             rec, control_point_ids, rows, options, map_rows, prior_centers
         )

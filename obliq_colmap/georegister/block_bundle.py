@@ -43,7 +43,13 @@ import pycolmap
 from obliq_colmap.bundle import BundleOptions, BundleProblem, solve_bundle
 from obliq_colmap.geometry import Camera, Pose, calibration_matrix
 
-from .block import BlockAdjustmentOptions, BlockAdjustmentSummary, VerticalRow
+from .block import (
+    BlockAdjustmentOptions,
+    BlockAdjustmentSummary,
+    BlockUncertainty,
+    VerticalRow,
+    map_row_weighting,
+)
 from .map_rows import MapRows, empty_map_rows
 
 logger = logging.getLogger(__name__)
@@ -58,13 +64,10 @@ def bundle_options(
     Ceres problem's: unit weights, Cauchy on the tracks, plain VP rows; the
     map rows where given; the priors' centres or the mean camera height as
     the vertical datum where asked)."""
-    map_sigma = 1.0 if options.map_sigma_px is None else options.map_sigma_px
+    map_sigma, map_scale = map_row_weighting(options)
     return BundleOptions(
         loss="cauchy",
-        # the map rows' robust scale (the bundle's loss keeps it in raw px)
-        # at least their sd: a level camera's rows at 6 px would all sit far
-        # out on a 1 px Cauchy (the tracks have their own scale)
-        loss_scale_px=max(options.loss_scale_px, map_sigma),
+        loss_scale_px=map_scale,  # the map rows' (the tracks have their own)
         tie_sigma_px=1.0,
         tie_loss_scale_px=options.loss_scale_px,
         refine_focal_length=options.refine_focal_length,
@@ -83,7 +86,9 @@ def bundle_options(
         vp_loss_scale=np.inf,
         max_iterations=options.max_num_iterations,
         function_tolerance=options.function_tolerance,
-        compute_precision=False,
+        # the covariance needs map rows in today's bundle (it computes its
+        # cofactor only where the problem has them)
+        compute_precision=options.covariance,
     )
 
 
@@ -207,7 +212,15 @@ def adjust_block_bundle(
         s.initial_cost, s.final_cost, s.num_iterations, n_ctrl,
         len(result.vp_angle_deg), len(problem.corner_xy), s.termination,
     )  # fmt: skip
+    uncertainty = None
+    if result.pose_covariance:
+        uncertainty = BlockUncertainty(
+            pose_covariance=dict(result.pose_covariance),
+            image_precision_px=dict(result.image_precision_px),
+            variance_factor=float(result.variance_factor),
+        )
     return BlockAdjustmentSummary(
+        uncertainty=uncertainty,
         initial_cost=float(s.initial_cost),
         final_cost=float(s.final_cost),
         iterations=int(s.num_iterations),

@@ -2,10 +2,13 @@
 the check of the project's solver on the same problem.
 
 pycolmap's Ceres bundle adjuster on the model itself (the SfM tracks, C++
-reprojection costs through its camera models, Cauchy loss), plus the few
-rows it lacks as pyceres Python cost functions: a prior on each control
-point's coordinates and each image's vertical VP. ``pyceres.solve``
-releases the GIL.
+reprojection costs through its camera models, Cauchy loss), plus the rows
+it lacks as pyceres Python cost functions: a prior on each control point's
+coordinates, each image's vertical VP, the map's corner-to-line rows (one
+block per image, :class:`MapLineRows`) and, without control points, the
+block's mean camera height held (:class:`MeanCameraHeight`, the project's
+gauge as a stiff row). ``pyceres.solve`` releases the GIL. The priors'
+centres (``prior_center_sigma_m``) are the obliq solver's only.
 """
 
 from __future__ import annotations
@@ -19,10 +22,17 @@ import pycolmap
 from obliq_colmap.geometry import (
     calibration_matrix,
     rotation_from_quat_xyzw,
+    skew,
     tangent_basis,
 )
 
-from .block import BlockAdjustmentOptions, BlockAdjustmentSummary, VerticalRow
+from .block import (
+    BlockAdjustmentOptions,
+    BlockAdjustmentSummary,
+    VerticalRow,
+    map_row_weighting,
+)
+from .map_rows import MapRows
 
 logger = logging.getLogger(__name__)
 
@@ -96,13 +106,210 @@ class VerticalObservation(pyceres.CostFunction):
         return True
 
 
+def quaternion_rotation_jacobian(q: np.ndarray, X: np.ndarray) -> np.ndarray:
+    """(N, 3, 4) derivative of ``R(q) X`` by ``q = [x, y, z, w]`` (a unit
+    quaternion, Eigen's formula ``X + 2 w (v x X) + 2 v x (v x X)``; exact
+    along the sphere's tangent, all that Ceres' quaternion manifold uses).
+    X: (N, 3)."""
+    v, w = np.asarray(q[:3], float), float(q[3])
+    X = np.asarray(X, float).reshape(-1, 3)
+    n = len(X)
+    J = np.empty((n, 3, 4))
+    J[:, :, 3] = 2.0 * np.cross(v, X)
+    # d/dv of 2 w (v x X) = -2 w [X]x; of 2 v x (v x X) = 2 (v.X I + v X^T - 2 X v^T)
+    J[:, :, :3] = -2.0 * w * skew(X) + 2.0 * (
+        (X @ v)[:, None, None] * np.eye(3)
+        + v[None, :, None] * X[:, None, :]
+        - 2.0 * X[:, :, None] * v[None, None, :]
+    )
+    return J
+
+
+def _line_jacobian_by_point(
+    camera: pycolmap.Camera, Xc: np.ndarray, n: np.ndarray
+) -> np.ndarray:
+    """(N, 3) derivative of ``n . img_from_cam(Xc)`` by the camera-frame
+    point (central differences through pycolmap's camera model, vectorised
+    over the rows; the step relative to the point's depth). Xc, n: (N, 3),
+    (N, 2)."""
+    h = 1e-6 * np.maximum(np.abs(Xc[:, 2]), 1e-3)
+    out = np.empty((len(Xc), 3))
+    for k in range(3):
+        e = np.zeros_like(Xc)
+        e[:, k] = h
+        d = camera.img_from_cam(Xc + e) - camera.img_from_cam(Xc - e)
+        out[:, k] = np.sum(n * d, axis=1) / (2.0 * h)
+    return out
+
+
+class MapLineRows(pyceres.CostFunction):
+    """The map's corner-to-line rows of ONE image (:mod:`.map_rows`), as the
+    project's bundle has them: each row ``r = n . pi(R X + t) + c`` (px, the
+    fixed point ``X`` on the corner's vertical projected through the
+    camera's model against the segment's unit line ``(n, c)``), its cost
+    ``1/2 rho(r^2) / sigma^2`` with Cauchy's ``rho`` at ``scale`` px.
+
+    The robust loss is applied inside (each row's residual is
+    ``sign(r) sqrt(rho(r^2)) / sigma``, whose square is that cost) rather
+    than by a Ceres loss function, which acts on the norm of a whole
+    residual block: one block per image keeps the Python callbacks to a few
+    dozen per evaluation (one block per row: thousands). The cost, hence the
+    optimum, is the bundle's; Ceres' Gauss-Newton model of it differs (no
+    Triggs correction). On pycolmap's pose block ``[qx qy qz qw tx ty tz]``
+    and the camera's parameter block.
+    """
+
+    def __init__(
+        self,
+        X: np.ndarray,
+        lines: np.ndarray,
+        camera: pycolmap.Camera,
+        sigma_px: float,
+        scale_px: float,
+    ) -> None:
+        super().__init__()
+        self.X = np.asarray(X, float).reshape(-1, 3)
+        lines = np.asarray(lines, float).reshape(-1, 3)
+        self.lines = lines / np.linalg.norm(lines[:, :2], axis=1)[:, None]
+        # a copy whose params are set per evaluation
+        self.camera = pycolmap.Camera(
+            model=camera.model,
+            width=camera.width,
+            height=camera.height,
+            params=np.array(camera.params),
+        )
+        self.sigma, self.b = float(sigma_px), float(scale_px) ** 2
+        self.set_num_residuals(len(self.X))
+        self.set_parameter_block_sizes([7, len(camera.params)])
+
+    def _rows(self, q, t, params) -> tuple[np.ndarray, np.ndarray]:
+        """(N,) raw residuals r (px) and (N, 3) camera-frame points."""
+        self.camera.params = params
+        Xc = self.X @ rotation_from_quat_xyzw(q).T + t
+        uv = self.camera.img_from_cam(Xc)
+        return np.sum(self.lines[:, :2] * uv, axis=1) + self.lines[:, 2], Xc
+
+    def raw_residuals(self, pose: np.ndarray, params: np.ndarray) -> np.ndarray:
+        """(N,) the rows' distances (px) at a pose block and camera params."""
+        pose = np.asarray(pose, float)
+        return self._rows(pose[:4], pose[4:], np.asarray(params, float))[0]
+
+    def Evaluate(self, parameters, residuals, jacobians):  # noqa: N802 - Ceres' name
+        pose = np.asarray(parameters[0], float)
+        q, t = pose[:4], pose[4:]
+        params = np.asarray(parameters[1], float)
+        r, Xc = self._rows(q, t, params)
+        if not np.all(np.isfinite(r)):
+            return False  # a point behind the camera: Ceres rejects the step
+        r2 = r * r
+        rho = self.b * np.log1p(r2 / self.b)
+        s = np.sign(r) * np.sqrt(rho)
+        residuals[:] = s / self.sigma
+        if jacobians is None:
+            return True
+        # d s / d r = rho'(r^2) r / s, 1 at r = 0
+        small = np.abs(r) < 1e-9
+        f = np.where(small, 1.0, r / np.where(small, 1.0, s)) / (1.0 + r2 / self.b)
+        f /= self.sigma
+        if jacobians[0] is not None:
+            d_pt = _line_jacobian_by_point(self.camera, Xc, self.lines[:, :2])
+            J = np.empty((len(r), 7))
+            dq = quaternion_rotation_jacobian(q, self.X)  # (N, 3, 4)
+            J[:, :4] = np.einsum("ni,nij->nj", d_pt, dq)
+            J[:, 4:] = d_pt
+            jacobians[0][:] = (J * f[:, None]).ravel()
+        if jacobians[1] is not None:
+            J = np.empty((len(r), len(params)))
+            for k in range(len(params)):
+                h = 1e-6 * max(1.0, abs(params[k]))
+                e = np.zeros(len(params))
+                e[k] = h
+                up = self._rows(q, t, params + e)[0]
+                down = self._rows(q, t, params - e)[0]
+                J[:, k] = (up - down) / (2.0 * h)
+            self.camera.params = params
+            jacobians[1][:] = (J * f[:, None]).ravel()
+        return True
+
+
+class MeanCameraHeight(pyceres.CostFunction):
+    """``(mean_k c_z,k - h0) / sd`` over the given images' pose blocks, ``c =
+    -R^T t``: the project's gauge ``component_mean_camera_height`` (a hard
+    constraint there) as a stiff row, for the automatic mode without control
+    points. At ``sd`` = 1e-4 m it held the test block's mean to 2e-9 m (the
+    map rows' fixed heights pull on it only weakly) in 14 iterations; at
+    1e-6 m Ceres needed 44, at 1e-9 m it stopped at 100 far from the
+    optimum."""
+
+    def __init__(self, num_images: int, h0: float, sd_m: float = 1e-4) -> None:
+        super().__init__()
+        self.k, self.h0, self.w = num_images, float(h0), 1.0 / sd_m
+        self.set_num_residuals(1)
+        self.set_parameter_block_sizes([7] * num_images)
+
+    def Evaluate(self, parameters, residuals, jacobians):  # noqa: N802 - Ceres' name
+        z, ez = 0.0, np.array([[0.0, 0.0, 1.0]])
+        for k in range(self.k):
+            p = np.asarray(parameters[k], float)
+            R = rotation_from_quat_xyzw(p[:4])
+            # c_z = -(R e_z) . t
+            z -= float(R[:, 2] @ p[4:])
+            if jacobians is not None and jacobians[k] is not None:
+                J = np.empty(7)
+                J[:4] = -p[4:] @ quaternion_rotation_jacobian(p[:4], ez)[0]
+                J[4:] = -R[:, 2]
+                jacobians[k][:] = self.w * J / self.k
+        residuals[0] = self.w * (z / self.k - self.h0)
+        return True
+
+
+def _add_map_rows(
+    problem: pyceres.Problem,
+    rec: pycolmap.Reconstruction,
+    rows: MapRows,
+    options: BlockAdjustmentOptions,
+) -> list[MapLineRows]:
+    """One :class:`MapLineRows` block per image with rows (and a pose in
+    the problem); the cost functions, kept alive with the problem."""
+    sigma, scale = map_row_weighting(options)
+    costs = []
+    for image_id in np.unique(rows.image_id):
+        image = rec.images[int(image_id)]
+        pose = rec.frame(image.frame_id).rig_from_world.params
+        params = rec.cameras[image.camera_id].params
+        if not problem.has_parameter_block(pose):
+            continue
+        sel = rows.image_id == image_id
+        X = np.c_[rows.xy[sel], rows.height[sel]]
+        cost = MapLineRows(X, rows.line[sel], image.camera, sigma, scale)
+        problem.add_residual_block(cost, None, [pose, params])
+        costs.append(cost)
+    return costs
+
+
+def _hold_mean_height(
+    problem: pyceres.Problem, rec: pycolmap.Reconstruction
+) -> MeanCameraHeight:
+    """The mean camera height of the registered images held where it is."""
+    ids = sorted(rec.reg_image_ids())
+    poses = [rec.frame(rec.images[i].frame_id).rig_from_world.params for i in ids]
+    h0 = float(np.mean([rec.images[i].projection_center()[2] for i in ids]))
+    cost = MeanCameraHeight(len(ids), h0)
+    problem.add_residual_block(cost, None, poses)
+    return cost
+
+
 def adjust_block_ceres(
     rec: pycolmap.Reconstruction,
     control_point_ids: dict[int, tuple[np.ndarray, np.ndarray]],
     verticals: dict[int, VerticalRow],
     options: BlockAdjustmentOptions,
+    map_rows: MapRows | None = None,
+    hold_mean_height: bool = False,
 ) -> BlockAdjustmentSummary:
-    """:func:`~obliq_colmap.georegister.block.adjust_block` in Ceres."""
+    """:func:`~obliq_colmap.georegister.block.adjust_block` in Ceres; with
+    ``map_rows`` the map's rows, with ``hold_mean_height`` the block's mean
+    camera height held (the obliq solver's gauge without control points)."""
     ba = pycolmap.BundleAdjustmentOptions()
     ba.refine_focal_length = options.refine_focal_length
     ba.refine_principal_point = options.refine_principal_point
@@ -130,6 +337,10 @@ def adjust_block_ceres(
         cost = VerticalObservation(row, image.camera.model.name, np.array(params))
         problem.add_residual_block(cost, None, [pose, params])
         n_vert += 1
+    line_costs = []
+    if map_rows is not None and len(map_rows):
+        line_costs = _add_map_rows(problem, rec, map_rows, options)
+    gauge = _hold_mean_height(problem, rec) if hold_mean_height else None
     solver = pyceres.SolverOptions()
     solver.linear_solver_type = pyceres.LinearSolverType.SPARSE_SCHUR
     solver.max_num_iterations = options.max_num_iterations
@@ -137,11 +348,12 @@ def adjust_block_ceres(
     solver.num_threads = 1
     summary = pyceres.SolverSummary()
     pyceres.solve(solver, problem, summary)
+    n_map = sum(c.num_residuals() for c in line_costs)
     logger.info(
         "block adjustment (ceres): cost %.6g -> %.6g in %d iterations (%d "
-        "control points, %d verticals)",
+        "control points, %d verticals, %d map rows%s)",
         summary.initial_cost, summary.final_cost, summary.num_successful_steps,
-        n_ctrl, n_vert,
+        n_ctrl, n_vert, n_map, ", mean camera height held" if gauge else "",
     )  # fmt: skip
     del adjuster  # after the solve: the problem refers to rec's arrays
     return BlockAdjustmentSummary(
@@ -152,4 +364,5 @@ def adjust_block_ceres(
         num_vertical_rows=n_vert,
         termination=str(summary.termination_type),
         solver="ceres",
+        num_map_rows=n_map,
     )

@@ -40,6 +40,7 @@ from .common import (
 from .map_rows import MapRows, gate_map_rows, map_rows, pairs_on_map
 from .options import GeoregisterOptions
 from .similarity import Similarity, similarity_7dof, similarity_upright
+from .uncertainty import block_uncertainty_report
 from .vertical import model_vertical
 
 logger = logging.getLogger(__name__)
@@ -184,7 +185,10 @@ def georegister(
         "check_points": summarise(rows, "check"),
         "points": rows,
         "num_control_points_written": len(added),
-        "block_adjustment": None if block is None else dataclasses.asdict(block),
+        "block_adjustment": None if block is None else block.report(),
+        "uncertainty": block_uncertainty_report(
+            block, {i: rec.images[i].name for i in rec.reg_image_ids()}
+        ),
     }
     if missing is not None:
         report["missing_images"] = missing
@@ -198,17 +202,12 @@ def _map_rows(
     options: GeoregisterOptions,
     origin: np.ndarray,
 ) -> MapRows | None:
-    """With a map (and ``options.block.map_rows``, the obliq solver): the
+    """With a map (and ``options.block.map_rows``): the
     map's corner lines as rows of the block adjustment, from stage 2 on
     every image started from its pose as the control points placed it
     (the map read in their CRS and frame, kept around the cameras), gated
     against that pose."""
-    if (
-        options.cadastre_path is None
-        or vertical is None
-        or not options.block.map_rows
-        or options.block.solver != "obliq"
-    ):
+    if options.cadastre_path is None or vertical is None or not options.block.map_rows:
         return None
     from obliq_colmap.cadastre import CadastreOptions, build_cadastre, read_footprints
 

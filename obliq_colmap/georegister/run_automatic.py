@@ -35,6 +35,7 @@ from .map_rows import ImagePairs, gate_map_rows, map_rows
 from .map_rows import image_pairs as pairs_of_image
 from .options import GeoregisterOptions
 from .similarity import similarity_upright
+from .uncertainty import block_uncertainty_report
 from .vertical import model_vertical
 
 logger = logging.getLogger(__name__)
@@ -167,7 +168,10 @@ def georegister_automatic(
                 "heading_deg": coarse.heading_deg,
             },
         },
-        "block_adjustment": None if block is None else dataclasses.asdict(block),
+        "block_adjustment": None if block is None else block.report(),
+        "uncertainty": block_uncertainty_report(
+            block, {i: rec.images[i].name for i in rec.reg_image_ids()}
+        ),
     }
     if missing is not None:
         report["missing_images"] = missing
@@ -214,12 +218,6 @@ def _adjust_on_map(
     """The block adjustment held by the map (stage 2's pairs as corner-to-line
     rows, gated against the placed block), the VPs (the tilt) and the
     priors' camera heights (the vertical datum, a weak prior)."""
-    if options.block.solver != "obliq":
-        logger.warning(
-            "automatic mode: the block adjustment needs the map rows, which "
-            "only the obliq solver has; not run"
-        )
-        return None
     if rec.num_points3D() == 0:
         # no tracks: nothing holds the block together, each image would be
         # refitted alone on its own rows (the sample's true cameras as a
