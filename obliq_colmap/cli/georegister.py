@@ -83,7 +83,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--block_adjustment_map_rows", type=int, choices=(0, 1), default=1,
         help="where a map is given, stage 2's corner-to-segment pairs as rows of "
-        "the block adjustment (obliq solver); in the automatic mode they and the "
+        "the block adjustment (both solvers); in the automatic mode they and the "
         "priors' camera heights hold the block's datum (default 1)",
     )  # fmt: skip
     parser.add_argument(
@@ -125,8 +125,10 @@ def _path(value: str | None) -> Path | None:
     return None if value is None else Path(value)
 
 
-def run(args: argparse.Namespace) -> int:
-    options = GeoregisterOptions(
+def options_from_args(args: argparse.Namespace) -> GeoregisterOptions:
+    """The command's options from its parsed arguments (also what the
+    benchmarks use to run the same problem in-process)."""
+    return GeoregisterOptions(
         vertical=VerticalOptions(camera_kind=args.camera_kind),
         check_points=tuple(n for n in args.check_points.split(",") if n),
         automatic_method=args.automatic_method,
@@ -146,6 +148,10 @@ def run(args: argparse.Namespace) -> int:
         priors_path=_path(args.priors_path),
         progress=not args.no_progress,
     )
+
+
+def run(args: argparse.Namespace) -> int:
+    options = options_from_args(args)
     if not Path(args.image_path).is_dir():
         raise InputError(args.image_path, "image folder not found")
     result = georegister(Path(args.input_path), Path(args.image_path), options)

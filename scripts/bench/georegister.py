@@ -26,6 +26,17 @@ centre (m) errors per image, median of the per-image mean corner deviations
 command is not available (``georegister`` not in the CLI yet) is reported
 as such.
 
+The block's covariance (report.json's ``uncertainty``) against the truth
+(:func:`uncertainty_check`): per image the centre's and rotation's errors
+over their predicted sd (``|e| / sqrt(trace C)``: 1 in RMS where the
+covariance is right), median and RMS over the images; the centre in 3D
+after the one vertical offset the scoring removes, and horizontally.
+
+``--compare_solvers N`` also runs each georegister mode's block adjustment
+with both solvers on the same captured block in this process
+(``georegister_solvers.compare_solvers``, N alternating repeats each; both
+to ``--compare_tolerance``): the time ratio and the optima's differences.
+
 The exact command (from the repository root; ~1 min per street scene, a few
 for paper, on 2 shared cores)::
 
@@ -35,7 +46,7 @@ for paper, on 2 shared cores)::
         [--block_adjustment_solver obliq|ceres] [--block_adjustment_map_rows 0|1]
         [--sfm_lens_error PP_PX FOCAL] [--gcp_with_map 0|1]
         [--georegister_arg=ARG ...] [--seed 1]
-        [--paper_width 1002]
+        [--paper_width 1002] [--compare_solvers N] [--compare_tolerance TOL]
         [--output_path bench_georegister.json]
 
 Figures go to docs/STATUS.md (issue 27) and docs/journal/georegister-bench.md.
@@ -68,6 +79,9 @@ from obliq_colmap.synthetic.sfm_like import (
     write_sfm_like,
 )
 from obliq_colmap.synthetic.street import write_gcp_list
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from georegister_solvers import compare_solvers  # noqa: E402 - beside this script
 
 MODES = ("gcp2", "gcp3", "auto", "reference3", "oracle")
 
@@ -151,6 +165,76 @@ def ensure_scene(work: Path, kind: str, seed: int, paper_width: int) -> Path:
     return path
 
 
+def _rms(a: np.ndarray) -> float:
+    return float(np.sqrt(np.mean(np.square(a)))) if len(a) else float("nan")
+
+
+def uncertainty_check(report: dict, est: Block, scene) -> dict:
+    """The covariance in ``report["uncertainty"]`` against the truth: per
+    image ``|e| / sqrt(trace C)`` of the centre (3D, after the median
+    vertical offset of the centres; and horizontally) and of the rotation
+    (the angle of ``R_est R_true^T``); median and RMS over the images, the
+    medians of the errors and of the predicted sds beside them."""
+    unc = report.get("uncertainty") or {}
+    if not unc.get("available"):
+        return {"available": False, "reason": unc.get("reason", "no section")}
+    truth = {im.name: im.cam_from_world for im in scene.gt.images.values()}
+    names, e, rot, sd_c, sd_h, sd_r = [], [], [], [], [], []
+    for im in est.images.values():
+        u = unc["images"].get(im.name)
+        if u is None or im.name not in truth or u["position_sd_m"][0] is None:
+            continue
+        t = truth[im.name]
+        names.append(im.name)
+        e.append(im.cam_from_world.center - t.center)
+        dR = im.cam_from_world.rotation @ t.rotation.T
+        rot.append(np.degrees(np.arccos(np.clip((np.trace(dR) - 1) / 2, -1, 1))))
+        p = np.asarray(u["position_sd_m"], float)
+        sd_c.append(np.linalg.norm(p))
+        sd_h.append(np.linalg.norm(p[:2]))
+        sd_r.append(np.linalg.norm(np.asarray(u["rotation_sd_deg"], float)))
+    e = np.array(e).reshape(-1, 3)
+    e[:, 2] -= np.median(e[:, 2])  # the scoring's one vertical offset
+    c_ratio = np.linalg.norm(e, axis=1) / np.array(sd_c)
+    h_ratio = np.linalg.norm(e[:, :2], axis=1) / np.array(sd_h)
+    r_ratio = np.array(rot) / np.array(sd_r)
+    return {
+        "available": True,
+        "num_images": len(names),
+        "variance_factor": unc.get("variance_factor"),
+        "centre_ratio_median": float(np.median(c_ratio)),
+        "centre_ratio_rms": _rms(c_ratio),
+        "horizontal_ratio_median": float(np.median(h_ratio)),
+        "horizontal_ratio_rms": _rms(h_ratio),
+        "rotation_ratio_median": float(np.median(r_ratio)),
+        "rotation_ratio_rms": _rms(r_ratio),
+        "centre_error_median_m": float(np.median(np.linalg.norm(e, axis=1))),
+        "centre_sd_median_m": float(np.median(sd_c)),
+        "horizontal_error_median_m": float(np.median(np.linalg.norm(e[:, :2], axis=1))),
+        "horizontal_sd_median_m": float(np.median(sd_h)),
+        "rotation_error_median_deg": float(np.median(rot)),
+        "rotation_sd_median_deg": float(np.median(sd_r)),
+    }
+
+
+def solver_comparison(cmd: list[str], repeats: int, tolerance: float | None) -> dict:
+    """Both solvers on the block of this georegister command, in-process."""
+    import argparse
+
+    from obliq_colmap.cli.georegister import add_arguments, options_from_args
+
+    parser = argparse.ArgumentParser()
+    add_arguments(parser)
+    args = parser.parse_args(cmd[cmd.index("georegister") + 1 :] + ["--no_progress"])
+    return compare_solvers(
+        Path(args.input_path),
+        Path(args.image_path),
+        options_from_args(args),
+        repeats,
+        tolerance,
+    )
+
+
 def run_mode(
     mode: str,
     scene_path: Path,
@@ -163,6 +247,8 @@ def run_mode(
     map_rows: int | None = None,
     gcp_with_map: bool = False,
     extra: list[str] | None = None,
+    compare: int = 0,
+    compare_tolerance: float | None = None,
 ) -> dict:
     """Run one mode; returns the score or the reason it did not run."""
     out = work / f"out_{mode}"
@@ -214,10 +300,15 @@ def run_mode(
         return {"status": f"exit {proc.returncode}", "stderr": proc.stderr[-2000:]}
     wall = time.perf_counter() - t0
     est, _ = read_absolute_block(out)
-    score = score_block(est, load_scene(scene_path))
+    scene = load_scene(scene_path)
+    score = score_block(est, scene)
     report = json.loads((out / "report.json").read_text())
     block = report.get("block_adjustment")
-    return {"status": "ok", "time_s": wall, "block_adjustment": block, **score}
+    res = {"status": "ok", "time_s": wall, "block_adjustment": block, **score}
+    res["uncertainty_check"] = uncertainty_check(report, est, scene)
+    if compare:
+        res["solvers"] = solver_comparison(cmd, compare, compare_tolerance)
+    return res
 
 
 def print_result(mode: str, res: dict) -> None:
@@ -240,6 +331,40 @@ def print_result(mode: str, res: dict) -> None:
             f"{block['initial_cost']:.6g} -> {block['final_cost']:.6g}, "
             f"{block['iterations']} iterations, {block['time_s']:.2f} s, "
             f"{block.get('num_map_rows', 0)} map rows"
+        )
+    u = res.get("uncertainty_check")
+    if u and u.get("available"):
+        print(
+            f"  {'':11s} measured / predicted sd (median, RMS): centre "
+            f"{u['centre_ratio_median']:.2f}, {u['centre_ratio_rms']:.2f} "
+            f"(horizontal {u['horizontal_ratio_median']:.2f}, "
+            f"{u['horizontal_ratio_rms']:.2f}), rotation "
+            f"{u['rotation_ratio_median']:.2f}, {u['rotation_ratio_rms']:.2f}; "
+            f"centre error {u['centre_error_median_m']:.3f} m, sd "
+            f"{u['centre_sd_median_m']:.3f} m; rotation error "
+            f"{u['rotation_error_median_deg']:.4f} deg, sd "
+            f"{u['rotation_sd_median_deg']:.4f} deg; variance factor "
+            f"{u['variance_factor']}"
+        )
+    elif u:
+        print(f"  {'':11s} no covariance: {u['reason']}")
+    c = res.get("solvers")
+    if c:
+        print(
+            f"  {'':11s} solvers (tolerance {c['function_tolerance']:g}): obliq "
+            f"{c['time_s']['obliq']:.2f} s, ceres {c['time_s']['ceres']:.2f} s, "
+            f"ratio {c['time_ratio_obliq_over_ceres']:.2f}; cost "
+            f"{c['summaries']['obliq']['final_cost']:.9g} / "
+            f"{c['summaries']['ceres']['final_cost']:.9g} (rel. "
+            f"{c['final_cost_relative_difference']:.2e}, start "
+            f"{c['initial_cost_relative_difference']:.1e}); centres apart "
+            f"{c['centre_difference_m_max']:.2e} m (moved "
+            f"{c['centre_moved_by_adjustment_m_median']:.3f} m), rotations "
+            f"{c['rotation_difference_deg_max']:.1e} deg, points "
+            f"{c['point_difference_m_max']:.1e} m, intrinsics "
+            f"{max(c['params_difference_max'].values()):.1e}; iterations "
+            f"{c['summaries']['obliq']['iterations']} / "
+            f"{c['summaries']['ceres']['iterations']}; {c['num_map_rows']} map rows"
         )
 
 
@@ -307,6 +432,21 @@ def main(argv: list[str] | None = None) -> int:
         help="one more argument for every georegister command (repeat; "
         "use --georegister_arg=--flag for a leading dash)",
     )
+    ap.add_argument(
+        "--compare_solvers",
+        type=int,
+        default=0,
+        metavar="N",
+        help="also run each mode's block adjustment with both solvers on the "
+        "same block in this process, N alternating repeats (default 0: off)",
+    )
+    ap.add_argument(
+        "--compare_tolerance",
+        type=float,
+        default=None,
+        help="both solvers' function tolerance in --compare_solvers "
+        "(default: the command's, 1e-6)",
+    )
     ap.add_argument("--seed", type=int, default=1)
     ap.add_argument("--paper_width", type=int, default=1002)
     ap.add_argument("--output_path", type=Path, default=None)
@@ -359,6 +499,8 @@ def main(argv: list[str] | None = None) -> int:
                     args.block_adjustment_map_rows,
                     bool(args.gcp_with_map),
                     args.georegister_arg,
+                    args.compare_solvers,
+                    args.compare_tolerance,
                 )
                 res["camera_kind"] = kind_arg
                 res["num_images_in_model"] = n_reg
