@@ -94,7 +94,7 @@ def main(argv: list[str] | None = None) -> int:
         Path(gargs.input_path), Path(gargs.image_path), options
     )
     rec = pycolmap.Reconstruction(inputs.rec)
-    block = dataclasses.replace(options.block, solver="obliq")
+    block = dataclasses.replace(inputs.block, solver="obliq")
     summary = adjust_block(rec, inputs.control, inputs.verticals, block,
                            **inputs.kwargs)  # fmt: skip
     out: dict = {"variance_factor": summary.uncertainty.variance_factor

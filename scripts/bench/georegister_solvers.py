@@ -22,7 +22,7 @@ import pycolmap
 
 import obliq_colmap.georegister.run as georegister_run
 import obliq_colmap.georegister.run_automatic as georegister_automatic
-from obliq_colmap.georegister.block import adjust_block
+from obliq_colmap.georegister.block import BlockAdjustmentOptions, adjust_block
 from obliq_colmap.georegister.options import GeoregisterOptions
 
 #: the modules whose ``adjust_block`` the capture replaces (control points;
@@ -37,6 +37,9 @@ class BlockInputs:
     rec: pycolmap.Reconstruction  # a copy from before the adjustment
     control: dict
     verticals: dict
+    #: the options the run passed (the automatic mode's block placement
+    #: sets the map rows' sd from their range: not the command's options)
+    block: BlockAdjustmentOptions
     kwargs: dict  # map_rows, prior_centers as the run passed them
 
 
@@ -52,7 +55,9 @@ def capture_block_inputs(
         names = ("map_rows", "prior_centers")
         kw = dict(zip(names, args, strict=False)) | kwargs
         captured.append(
-            BlockInputs(pycolmap.Reconstruction(rec), control, verticals, kw)
+            BlockInputs(
+                pycolmap.Reconstruction(rec), control, verticals, block_options, kw
+            )
         )
         return original(rec, control, verticals, block_options, **kw)
 
@@ -94,7 +99,7 @@ def compare_solvers(
     differences (see the module docstring). ``function_tolerance``: both
     solvers' stop (None: the options')."""
     inputs = capture_block_inputs(input_path, image_path, options)
-    block = dataclasses.replace(options.block, covariance=False)
+    block = dataclasses.replace(inputs.block, covariance=False)
     if function_tolerance is not None:
         block = dataclasses.replace(block, function_tolerance=function_tolerance)
     times = {"obliq": [], "ceres": []}
