@@ -15,9 +15,13 @@ Modules, in the order a run uses them:
   from two, robust weighted least squares from more; 7-DOF without a
   vertical).
 - ``map_rows``: the map's corner lines as rows of the block adjustment.
-- ``block``: the bundle block adjustment on pycolmap's Ceres adjuster (the
-  SfM tracks, control point priors by their sigmas, each image's VP as an
-  observation of its vertical; principal point and distortion refined).
+- ``block``: the bundle block adjustment (the SfM tracks, control point
+  priors by their sigmas, each image's VP as an observation of its
+  vertical, the map rows; principal point and distortion refined) in the
+  project's bundle (``block_bundle``) or, as its check, in pycolmap's Ceres
+  adjuster (``block_ceres``).
+- ``uncertainty``: report.json's ``uncertainty`` section, each camera's sds
+  from the adjustment's covariance.
 - ``relative_vp``: with ``--add_missing_images 1``, images that SfM left
   out: their rotation from VPs against a registered neighbour (MetropoGIS
   3.2.2), their centre from two or more matches to the model's points.

@@ -20,8 +20,10 @@ Two solvers of the same problem (``BlockAdjustmentOptions.solver``):
 "obliq", the project's bundle (:mod:`obliq_colmap.bundle`: the tracks as
 tie points eliminated by their 3x3 blocks, the control points' coordinates
 as rows on those blocks; :mod:`.block_bundle`), the default; "ceres",
-pycolmap's Ceres adjuster with pyceres cost functions for the priors and
-the VPs (:mod:`.block_ceres`), kept as the check.
+pycolmap's Ceres adjuster with pyceres cost functions for the priors, the
+VPs, the map rows and the automatic mode's gauge (:mod:`.block_ceres`),
+kept as the check. Where the problem has map rows, the obliq solver also
+returns each camera's pose covariance (:class:`BlockUncertainty`).
 """
 
 from __future__ import annotations
