@@ -32,7 +32,8 @@ NO_COVARIANCE = {
     "solver": "the covariance comes from the obliq solver only",
     "no_map_rows": (
         "the project's bundle computes the covariance only where the problem "
-        "has map rows (give --cadastre_path with the control points)"
+        "has map rows (give --cadastre_path with the control points) and up "
+        "to 3000 camera parameters (about 450 images)"
     ),
 }
 
