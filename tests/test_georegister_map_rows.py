@@ -391,3 +391,23 @@ def test_the_block_covariance_is_ceres_covariance_without_a_robust_loss(monkeypa
         C_c = J @ got["ba"].get_cam_cov_from_world(i) @ J.T
         C_o = ours.pose_covariance[i] / ours.variance_factor
         assert np.allclose(C_o, C_c, rtol=1e-4, atol=1e-4 * np.abs(C_c).max())
+
+
+def test_the_uncertainty_section_lists_the_cameras_worst_first():
+    """report.json's ``uncertainty``: register's keys per written image,
+    sorted by the centre's 3D sd; without a covariance, why."""
+    from obliq_colmap.georegister.block import BlockAdjustmentSummary, BlockUncertainty
+    from obliq_colmap.georegister.uncertainty import block_uncertainty_report
+
+    cov = {i: np.diag([1e-8] * 3 + [s**2] * 3) for i, s in ((1, 0.01), (2, 0.05))}
+    u = BlockUncertainty(cov, {1: 0.2, 2: float("nan")}, 0.5)
+    summary = BlockAdjustmentSummary(1.0, 0.5, 3, 0, 2, "done", uncertainty=u)
+    rep = block_uncertainty_report(summary, {1: "a.jpg", 2: "b.jpg", 3: "new.jpg"})
+    assert rep["available"] and list(rep["images"]) == ["b.jpg", "a.jpg"]
+    b = rep["images"]["b.jpg"]
+    assert b["position_sd_m"] == [0.05, 0.05, 0.05] and b["predicted_sd_px"] is None
+    assert set(b) >= {"horizontal_ellipse_m", "rotation_sd_deg", "rotation_max_sd_deg"}
+    assert "uncertainty" not in summary.report()
+    assert not block_uncertainty_report(None, {})["available"]
+    summary.uncertainty = None
+    assert "map rows" in block_uncertainty_report(summary, {1: "a.jpg"})["reason"]
