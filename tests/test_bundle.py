@@ -298,6 +298,36 @@ def test_noise_free_tie_points_recover_the_truth_and_link_components():
     assert np.abs(out.tie_residuals_px).max() < 1e-6
 
 
+def test_tie_observations_are_weighted_by_their_own_sd():
+    """Half the tie observations 0.3 px off, half 3 px (fine and coarse SIFT
+    scales): weighted by their own sd (``tie_sd``) the tie points end closer
+    to the truth than with one sd for all, and their residuals are reported
+    in pixels, their scaled residuals in units of the sd."""
+    syn = make_synthetic_problem(
+        seed=1, stations=(3, 3), noise_px=0.5, tie_points=1500, tie_noise_px=0.0
+    )
+    rng = np.random.default_rng(7)
+    P = syn.problem
+    sd = np.where(rng.random(len(P.tie_xy)) < 0.5, 0.3, 3.0)
+    noisy = dataclasses.replace(
+        P, tie_xy=P.tie_xy + rng.normal(0.0, 1.0, P.tie_xy.shape) * sd[:, None]
+    )
+    weighted = dataclasses.replace(noisy, tie_sd=sd / 0.3)
+    rms = float(np.sqrt(np.mean(sd**2)))
+    one = solve_bundle(noisy, BundleOptions(tie_sigma_px=rms, tie_loss_scale_px=30))
+    own = solve_bundle(weighted, BundleOptions(tie_sigma_px=0.3, tie_loss_scale_px=30))
+
+    def point_error(out):
+        return np.median(np.linalg.norm(out.tie_xyz - syn.tie_xyz, axis=1))
+
+    assert point_error(own) < 0.7 * point_error(one)
+    e = np.linalg.norm(own.tie_residuals_px, axis=1)
+    assert np.median(e[sd > 1]) > 5 * np.median(e[sd < 1])
+    scaled = np.linalg.norm(own.tie_residuals_scaled_px, axis=1)
+    fine, coarse = np.median(scaled[sd < 1]), np.median(scaled[sd > 1])
+    assert coarse == pytest.approx(fine, rel=0.3)
+
+
 def test_tie_points_tighten_the_block_and_keep_the_variance_factor():
     """0.5 px of noise on every row: with tie points the rotations and focal
     lengths end closer to the truth, and the variance factor stays the noise

@@ -368,7 +368,7 @@ def build_bundle_problem(
     ]
     tie = {}
     if ties is not None and len(ties.obs_point):
-        xyz, img, point, xy = tie_rows(
+        xyz, img, point, xy, sd = tie_rows(
             ties,
             ids,
             [state.cameras[i].to_pycolmap() for i in ids],
@@ -376,7 +376,7 @@ def build_bundle_problem(
             state.ground_height(ids),
             tie_options or TiePointOptions(),
         )
-        tie = dict(tie_xyz=xyz, tie_image=img, tie_point=point, tie_xy=xy)
+        tie = dict(tie_xyz=xyz, tie_image=img, tie_point=point, tie_xy=xy, tie_sd=sd)
     return BundleProblem(
         cameras=cameras,
         poses={i: state.poses[i] for i in ids},

@@ -112,7 +112,7 @@ def bundle_stage(
         # The tie points enter from the second solve, triangulated from the
         # first and without the image pairs it shows on a wrong geometry
         # (with_tie_points); the first is the map's alone.
-        tie_obs = (problem.tie_image, problem.tie_point, problem.tie_xy)
+        tie_obs = (problem.tie_image, problem.tie_point, problem.tie_xy, problem.tie_sd)
         problem = problem.without_ties()
         bundle_options = dataclasses.replace(
             options.bundle,
@@ -221,10 +221,11 @@ def with_tie_points(
     image: np.ndarray,
     point: np.ndarray,
     xy: np.ndarray,
+    sd: np.ndarray | None,
     options: AdjustmentOptions,
 ) -> BundleProblem:
     """``problem`` with the tie observations (image index, track, raw
-    pixel; (O,) each) as rows, triangulated from the solved block
+    pixel, relative sd or None; (O,) each) as rows, triangulated from the solved block
     ``result``, without the tracks of image pairs the block shows on a
     wrong geometry (:func:`~obliq_colmap.adjustment.ties.consistent_pairs`)."""
     ids = problem.image_ids
@@ -251,6 +252,7 @@ def with_tie_points(
         tie_image=image[keep],
         tie_point=track,
         tie_xy=xy[keep],
+        tie_sd=None if sd is None else sd[keep],
     )
 
 

@@ -72,7 +72,9 @@ def extract_features(
     down-sampled to ``max_image_size``
     (pycolmap's array entry point does not down-sample): a list of ((K, 2)
     full-resolution pixel coordinates, pycolmap keypoints in the down-sampled
-    image, pycolmap descriptors, (2,) scales = down-sampled / full size).
+    image, pycolmap descriptors, (2,) scales = down-sampled / full size, (K,)
+    keypoint scales in full-resolution pixels: the square root of the
+    determinant of SIFT's affine shape).
 
     With ``options.num_workers`` > 1 the images are shared out over so many
     processes (pycolmap's SIFT holds the GIL: threads do not help; measured
@@ -93,12 +95,14 @@ def extract_features(
     out = []
     for k, d, kind, scale in found:
         # COLMAP's pixel convention (corner at 0): scaling is a plain division
+        size = np.sqrt(np.abs(k[:, 2] * k[:, 5] - k[:, 3] * k[:, 4]))
         out.append(
             (
                 k[:, :2] / scale,
                 _keypoints(k),
                 pycolmap.FeatureDescriptors(kind, d),
                 scale,
+                size / float(np.mean(scale)),
             )
         )
     return out
@@ -219,8 +223,8 @@ def match_pairs(
 
     def verified(pair: tuple[int, int]) -> np.ndarray | None:
         i, j = pair
-        _, ki, di, _ = features[i]
-        _, kj, dj, _ = features[j]
+        ki, di = features[i][1:3]
+        kj, dj = features[j][1:3]
         if options.guided_matching:
             geom = _pose_geometry(small[i], small[j], poses[i], poses[j])
             err = options.max_epipolar_error_px

@@ -47,7 +47,9 @@ class TiePoints:
     xyz: (T, 3) world points; obs_point: (M,) track of each observation;
     obs_image: (M,) index of its image (into the caller's list);
     obs_xy: (M, 2) pixel coordinates (COLMAP convention, full resolution);
-    obs_feature: (M,) feature index in its image.
+    obs_feature: (M,) feature index in its image;
+    obs_scale: (M,) its SIFT keypoint's scale (px, full resolution), or None
+    (not known: every observation alike).
     """
 
     xyz: np.ndarray
@@ -57,6 +59,7 @@ class TiePoints:
     obs_feature: np.ndarray
     #: The image id of each index of ``obs_image``, where the caller set them.
     image_ids: tuple[int, ...] = ()
+    obs_scale: np.ndarray | None = None
 
     def per_image(self, num_images: int) -> np.ndarray:
         """(num_images,) number of observations in each image."""
@@ -213,6 +216,7 @@ def tie_points(
     counts = np.array([len(f[0]) for f in features])
     offset = np.concatenate([[0], np.cumsum(counts)])[:-1]
     xy = np.concatenate([f[0] for f in features])[offset[image] + feature]
+    size = np.concatenate([f[4] for f in features])[offset[image] + feature]
     _, track = np.unique(track, return_inverse=True)
     xyz = triangulate_tie_tracks(cameras, poses, track, image, xy)
     err = reprojection_errors(cameras, poses, xyz, track, image, xy)
@@ -230,7 +234,14 @@ def tie_points(
         len(kept_tracks),
         int(keep.sum()),
     )
-    return TiePoints(xyz[kept_tracks], new_track, image[keep], xy[keep], feature[keep])
+    return TiePoints(
+        xyz[kept_tracks],
+        new_track,
+        image[keep],
+        xy[keep],
+        feature[keep],
+        obs_scale=size[keep],
+    )
 
 
 def tie_rows(
@@ -240,11 +251,18 @@ def tie_rows(
     poses: Sequence[pycolmap.Rigid3d],
     ground_z: float,
     options: TiePointOptions,
-) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """The tie points as the bundle's rows over the images ``ids`` (with
     their cameras and poses, in that order): (T, 3) start points
     triangulated from these poses, (O,) image index into ``ids``, (O,) point
-    index, (O, 2) raw pixels.
+    index, (O, 2) raw pixels, (O,) relative standard deviation.
+
+    A SIFT keypoint is located to a share of its scale: at the true cameras
+    of urban-101 the tie residuals' median grows from 0.23 px at scales of
+    3-4 px to 0.69 px above 10 px, 0.04-0.05 of the scale throughout. So
+    each observation's sd is its keypoint's scale over the median scale of
+    the kept observations (1 where the scale is not known); the bundle
+    estimates the sd at the median scale (``BundleOptions.tie_sigma_px``).
 
     Kept: the observations of images in ``ids`` in front of their camera, of
     points in the scene (:func:`in_the_scene`) seen at least
@@ -257,20 +275,21 @@ def tie_rows(
     img = img.reshape(-1).astype(np.int64)
     keep = img >= 0
     track, img, xy = ties.obs_point[keep], img[keep], ties.obs_xy[keep]
+    size = ties.obs_scale[keep] if ties.obs_scale is not None else np.ones(len(track))
     R = np.stack([p.rotation.matrix() for p in poses]).reshape(-1, 3, 3)
     t = np.stack([p.translation for p in poses]).reshape(-1, 3)
     while True:
         many = np.bincount(track)[track] >= options.min_track_length
-        track, img, xy = track[many], img[many], xy[many]
+        track, img, xy, size = track[many], img[many], xy[many], size[many]
         if len(track) == 0:
-            return np.zeros((0, 3)), img, track, xy
+            return np.zeros((0, 3)), img, track, xy, size
         _, track = np.unique(track, return_inverse=True)
         xyz = triangulate_tie_tracks(cameras, poses, track, img, xy)
         depth = np.einsum("kj,kj->k", R[img][:, 2], xyz[track]) + t[img][:, 2]
         ok = (depth > 0) & in_the_scene(xyz, poses, ground_z, options)[track]
         if ok.all():
-            return xyz, img, track, xy
-        track, img, xy = track[ok], img[ok], xy[ok]
+            return xyz, img, track, xy, size / np.median(size)
+        track, img, xy, size = track[ok], img[ok], xy[ok], size[ok]
 
 
 def consistent_pairs(

@@ -263,6 +263,11 @@ class BundleProblem:
         Image (index into ``image_ids``) and tie point of each observation.
     tie_xy : (O, 2) array, optional
         Observed pixel of each, RAW (distorted) pixels, COLMAP convention.
+    tie_sd : (O,) array, optional
+        Each observation's standard deviation relative to the others' (> 0;
+        its keypoint's scale over the median: a SIFT keypoint is located to
+        a share of its scale): its rows are divided by it, so that
+        ``BundleOptions.tie_sigma_px`` is the sd at 1. None: all 1.
     tie_prior_xyz, tie_prior_sigma : (T, 3) arrays, optional
         Observed coordinates of tie points (control points of a survey) and
         their standard deviations, metres: one row ``(X - X_given) /
@@ -312,6 +317,7 @@ class BundleProblem:
     tie_image: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
     tie_point: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
     tie_xy: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))
+    tie_sd: np.ndarray | None = None
     tie_prior_xyz: np.ndarray | None = None
     tie_prior_sigma: np.ndarray | None = None
     horizontal_ends: np.ndarray | None = None
@@ -384,6 +390,10 @@ class BundleProblem:
         self.tie_image = _as(self.tie_image, (), "tie_image", np.int64)
         self.tie_point = _as(self.tie_point, (), "tie_point", np.int64)
         self.tie_xy = _as(self.tie_xy, (2,), "tie_xy")
+        if self.tie_sd is not None:
+            self.tie_sd = _as(self.tie_sd, (), "tie_sd")
+            if not np.all(self.tie_sd > 0):
+                raise ValueError("tie_sd must be > 0")
         self._check_tie_priors()
         nc, ni, nj = len(self.corner_xy), len(self.image_ids), len(self.facade_heights)
         checks = [
@@ -409,6 +419,7 @@ class BundleProblem:
             ),
             ("tie_point", len(self.tie_point) == len(self.tie_image)),
             ("tie_xy", len(self.tie_xy) == len(self.tie_image)),
+            ("tie_sd", self.tie_sd is None or len(self.tie_sd) == len(self.tie_image)),
         ]
         for name, ok in checks:
             if not ok:
@@ -492,6 +503,7 @@ class BundleProblem:
             tie_image=np.zeros(0, np.int64),
             tie_point=np.zeros(0, np.int64),
             tie_xy=np.zeros((0, 2)),
+            tie_sd=None,
             tie_prior_xyz=None,
             tie_prior_sigma=None,
         )
@@ -586,8 +598,9 @@ class BundleResult:
     tie_residuals_px : (O, 2) array
         Final reprojection errors of their observations, problem order.
     tie_residuals_scaled_px : (O, 2) array
-        The same scaled by sqrt(2n / (2n - 3)), n the point's observations
-        (its 3 unknowns fit part of its 2n rows): their spread is the noise's.
+        The same over each observation's ``tie_sd``, scaled by sqrt(2n /
+        (2n - 3)), n the point's observations (its 3 unknowns fit part of
+        its 2n rows): their spread is the noise's at the relative sd 1.
     facade_offsets, facade_angles : (J,) arrays
         With ``BundleOptions.facade_lines``: each track's solved offset (m)
         across its map edge and angle (rad) from its direction; else empty.

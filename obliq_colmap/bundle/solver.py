@@ -313,10 +313,11 @@ def _solve(problem: BundleProblem, opts: BundleOptions) -> BundleResult:
         )
     tie_r = tie_scaled = np.zeros((0, 2))
     if ties is not None:
-        tie_r = np.empty((len(ties.img), 2))
-        tie_r[ties.order] = ties.evaluate(S, st, jac=False)[0]
+        white = np.empty((len(ties.img), 2))
+        white[ties.order] = ties.evaluate(S, st, jac=False)[0]
+        tie_r = white if P.tie_sd is None else white * P.tie_sd[:, None]
         n = np.bincount(P.tie_point, minlength=len(P.tie_xyz))[P.tie_point]
-        tie_scaled = tie_r * np.sqrt(2 * n / np.maximum(2 * n - 3, 1))[:, None]
+        tie_scaled = white * np.sqrt(2 * n / np.maximum(2 * n - 3, 1))[:, None]
         e = np.linalg.norm(tie_r, axis=1)
         logger.info(
             "bundle: %d tie points, %d observations: error median %.3f px, p95 %.3f px",

@@ -2,8 +2,9 @@
 
 A tie point (a feature matched across images, ``BundleProblem.tie_xyz``) is a
 free 3D unknown; each observation gives two rows, projection minus observed
-pixel, weighted ``1 / tie_sigma_px^2`` under the robust loss on the
-observation's squared 2D error. The tie points tie the images to each other
+pixel over its relative sd (``BundleProblem.tie_sd``), weighted
+``1 / tie_sigma_px^2`` under the robust loss on the observation's squared 2D
+error so whitened. The tie points tie the images to each other
 in 3D, where the map's rows tie each image to the map alone; across heads
 they are what holds each head's tilt, focal and height to the others'. The
 points are eliminated by their 3x3 blocks (:mod:`.blocks`).
@@ -67,6 +68,10 @@ class TieRows(EliminatedBlocks):
             opts.tie_loss_scale_px,
         )
         self.xy = np.ascontiguousarray(P.tie_xy[self.order].T)  # (2, O)
+        #: (O,) 1 / each observation's relative sd, in the layout's order
+        self.inv_sd = (
+            np.ones(len(self.img)) if P.tie_sd is None else 1.0 / P.tie_sd[self.order]
+        )
         # the observed coordinates (weight 0 on a free axis or a free point)
         self.prior_w = self.prior_xyz = None
         if P.tie_prior_xyz is not None:
@@ -85,8 +90,9 @@ class TieRows(EliminatedBlocks):
         return 0 if self.prior_w is None else int(np.count_nonzero(self.prior_w))
 
     def evaluate(self, S: Setup, st: State, jac: bool):
-        """(O, 2) residuals (px) and, if jac, the (O, 2, L) camera and (O, 2, 3)
-        point Jacobians."""
+        """(O, 2) residuals (px at the relative sd 1: each observation's over
+        its ``tie_sd``) and, if jac, the (O, 2, L) camera and (O, 2, 3) point
+        Jacobians, alike."""
         r, Jc, Jp, Rk = self.outputs(S, st, jac)
         for g in self.groups:
             a, b = g.start, g.end
@@ -101,4 +107,8 @@ class TieRows(EliminatedBlocks):
                 Jc[a:b, :, :6] = d_pose.transpose(2, 0, 1)
                 Jp[a:b] = d_point.transpose(2, 0, 1)
                 write_intrinsics(S, g, d_params, Jc)
+        r *= self.inv_sd[:, None]
+        if jac:
+            Jc *= self.inv_sd[:, None, None]
+            Jp *= self.inv_sd[:, None, None]
         return r, Jc, Jp
