@@ -478,3 +478,29 @@ def test_an_image_placed_by_ties_that_the_bundle_no_longer_holds_is_left_out():
     assert set(state.poses) == {10, 11, 12}
     assert outcomes[13].status == "failed"
     assert "only 0 of its tie observations" in outcomes[13].message
+
+
+def test_keypoint_scales_are_in_full_resolution_pixels():
+    """SIFT on the sample image down-sampled to half and at full size: the
+    keypoints found at one place have one scale in full-resolution pixels
+    (the scale the tie rows' sd follows), within SIFT's own scale steps."""
+    from pathlib import Path
+
+    from scipy.spatial import cKDTree
+
+    from obliq_colmap.adjustment.tie_matching import extract_features
+    from obliq_colmap.adjustment.tie_options import TiePointOptions
+
+    image = Path(__file__).parents[1] / "data_samples/oblique_small/images/N_00.jpg"
+    found = []
+    for size in (1000, 500):
+        options = TiePointOptions(max_image_size=size, num_workers=1)
+        xy, _, _, _, scale = extract_features([image], options)[0]
+        found.append((xy, scale))
+    (xy_full, s_full), (xy_half, s_half) = found
+    assert np.all(s_full > 0) and np.all(s_half > 0)
+    d, j = cKDTree(xy_full).query(xy_half)
+    same = d < 1.0
+    assert same.sum() > 100
+    ratio = s_half[same] / s_full[j[same]]
+    assert np.median(ratio) == pytest.approx(1.0, abs=0.1)
