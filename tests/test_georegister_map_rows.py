@@ -356,6 +356,35 @@ def test_the_block_covariance_predicts_the_errors():
     assert 0.5 < rms(r_ratio) < 2.0, rms(r_ratio)
 
 
+def test_control_points_alone_give_a_block_covariance():
+    """No map: the tracks, the VPs and three control points (0.05 m). The
+    project's bundle computed its cofactor only where a problem had map
+    rows; every camera now has a finite, positive definite pose covariance.
+    Not yet calibrated here: over these 6 draws the horizontal centre errors
+    are 2.65 times their sd (RMS; journal georegister.md, 2026-12-06), so
+    the bound checks the order of magnitude only."""
+    ratio = []
+    for seed in range(6):
+        rng = np.random.default_rng(20 + seed)
+        rec, _, poses, _ = _scene(rng)
+        truth = _centres(rec)
+        ids = sorted(rec.points3D)[:: len(rec.points3D) // 3][:3]
+        sd = np.full(3, 0.05)
+        control = {p: (rec.points3D[p].xyz + rng.normal(0.0, 0.05, 3), sd) for p in ids}
+        tilt = pycolmap.Rotation3d(np.radians([0.05, 0.0, 0.2]))
+        rec.transform(pycolmap.Sim3d(1.002, tilt, [0.5, -0.3, 0.2]))
+        options = BlockAdjustmentOptions()
+        u = adjust_block(rec, control, _verticals(poses), options).uncertainty
+        assert u is not None and set(u.pose_covariance) == set(rec.reg_image_ids())
+        for k, i in enumerate(sorted(rec.images)):
+            C = u.pose_covariance[i]
+            assert np.all(np.isfinite(C)) and np.all(np.linalg.eigvalsh(C) > 0)
+            e = rec.images[i].projection_center() - truth[k]
+            ratio.append(np.linalg.norm(e[:2]) / np.sqrt(np.trace(C[3:5, 3:5])))
+    rms = float(np.sqrt(np.mean(np.square(ratio))))
+    assert 0.5 < rms < 4.0, rms
+
+
 def test_the_block_covariance_is_ceres_covariance_without_a_robust_loss(monkeypatch):
     """The obliq solver's cofactor (its covariance over the variance factor)
     with map rows, VPs and the gauge against pycolmap's covariance of the
@@ -410,4 +439,4 @@ def test_the_uncertainty_section_lists_the_cameras_worst_first():
     assert "uncertainty" not in summary.report()
     assert not block_uncertainty_report(None, {})["available"]
     summary.uncertainty = None
-    assert "map rows" in block_uncertainty_report(summary, {1: "a.jpg"})["reason"]
+    assert "3000 camera" in block_uncertainty_report(summary, {1: "a.jpg"})["reason"]

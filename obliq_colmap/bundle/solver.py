@@ -227,8 +227,12 @@ def _solve(problem: BundleProblem, opts: BundleOptions) -> BundleResult:
     pose_cov: dict[int, np.ndarray] = {}
     vp_stats = None
     # The cofactor matrix serves the precision and the VP rows' redundancy
-    # numbers and tests (which the rounds read between solves).
-    want = (opts.compute_precision or vp_obs is not None) and len(r)
+    # numbers and tests (which the rounds read between solves). Any rows
+    # will do: a block of tie points and control points alone (georegister
+    # without a map) has pose covariances too, though no map point to
+    # predict pixels at.
+    rows = len(r) + sum(len(b.img) for b in blocks)
+    want = (opts.compute_precision or vp_obs is not None) and rows > 0
     if want and S.n_red > opts.precision_max_camera_params:
         logger.info(
             "bundle: no precision for %d camera parameters (more than %d)",
@@ -241,7 +245,7 @@ def _solve(problem: BundleProblem, opts: BundleOptions) -> BundleResult:
             precision, variance_factor = _precision(
                 S, st, pose_priors, prior_w, prior_mask, heights0, r, w, cov, blocks
             )
-            if precision:
+            if np.isfinite(variance_factor):
                 pose_cov = covariance.pose_covariances(S, variance_factor * cov)
         if vp_obs is not None:
             vp_stats = vp_obs.statistics(st, cov)

@@ -22,8 +22,8 @@ tie points eliminated by their 3x3 blocks, the control points' coordinates
 as rows on those blocks; :mod:`.block_bundle`), the default; "ceres",
 pycolmap's Ceres adjuster with pyceres cost functions for the priors, the
 VPs, the map rows and the automatic mode's gauge (:mod:`.block_ceres`),
-kept as the check. Where the problem has map rows, the obliq solver also
-returns each camera's pose covariance (:class:`BlockUncertainty`).
+kept as the check. The obliq solver also returns each camera's pose
+covariance (:class:`BlockUncertainty`).
 """
 
 from __future__ import annotations
@@ -90,8 +90,7 @@ class BlockAdjustmentOptions:
     #: with 5 m, 0.19 deg with 1 m; journal, 2026-12-06)
     prior_center_sigma_m: float | None = None
     #: each camera's pose covariance from the adjustment's cofactor matrix
-    #: (obliq solver; the project's bundle computes it where the problem
-    #: has map rows: :class:`BlockUncertainty`)
+    #: (obliq solver: :class:`BlockUncertainty`)
     covariance: bool = True
 
     def __post_init__(self) -> None:

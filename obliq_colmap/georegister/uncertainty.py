@@ -30,10 +30,9 @@ TRUST_NOTE = (
 NO_COVARIANCE = {
     "no_adjustment": "no block adjustment was run",
     "solver": "the covariance comes from the obliq solver only",
-    "no_map_rows": (
-        "the project's bundle computes the covariance only where the problem "
-        "has map rows (give --cadastre_path with the control points) and up "
-        "to 3000 camera parameters (about 450 images)"
+    "too_large": (
+        "the project's bundle computes the covariance up to 3000 camera "
+        "parameters (about 450 images)"
     ),
 }
 
@@ -50,7 +49,7 @@ def block_uncertainty_report(
     ``horizontal_ellipse_m`` (semi-major, semi-minor, angle deg
     counter-clockwise from east), ``rotation_sd_deg`` (about the camera's x,
     y, z axes), ``rotation_max_sd_deg`` and, where it has map rows,
-    ``predicted_sd_px``; images worst first (the centre's 3D sd). Without a
+    ``predicted_sd_px`` (else null); images worst first (the centre's 3D sd). Without a
     covariance: ``{"available": False, "reason": ...}``."""
     if block is None or block.uncertainty is None:
         if block is None:
@@ -58,7 +57,7 @@ def block_uncertainty_report(
         elif block.solver != "obliq":
             why = "solver"
         else:
-            why = "no_map_rows"
+            why = "too_large"
         return {"available": False, "reason": NO_COVARIANCE[why]}
     u = block.uncertainty
     ids = [i for i in u.pose_covariance if i in names]
