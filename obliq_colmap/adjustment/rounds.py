@@ -720,7 +720,15 @@ def _ties_kept(
 ) -> dict[str, np.ndarray]:
     """The tie rows whose 2D error is within ``factor`` robust standard
     deviations (per axis, sqrt 2 for the 2D length) and ``floor_px``, of
-    points still seen twice, started at the solved points."""
+    points still seen twice, started at the solved points.
+
+    Their relative sds (``BundleProblem.tie_sd``, the keypoint scales) are
+    not carried on: the first solve with tie points weights them by their
+    scale, the later rounds weight all alike. Measured (journal, stage 3,
+    2026-12-06): carried through every round, houses-102 / stage-2 seed 1
+    34 / 36 at 0.77 px and our industrial class s2 / seed 0 32 / 36 at 0.87
+    px, against 33 / 36 at 0.50 and 34 / 36 at 0.49 this way; with a floor
+    fitted between the rounds as well, houses-102 seed 1 fell to 2 / 36."""
     e = np.linalg.norm(result.tie_residuals_px, axis=1)
     if len(e) == 0:
         return {}

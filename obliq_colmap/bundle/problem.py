@@ -267,7 +267,9 @@ class BundleProblem:
         Each observation's standard deviation relative to the others' (> 0;
         its keypoint's scale over the median: a SIFT keypoint is located to
         a share of its scale): its rows are divided by it, so that
-        ``BundleOptions.tie_sigma_px`` is the sd at 1. None: all 1.
+        ``BundleOptions.tie_sigma_px`` is the sd at 1. None: all 1. The
+        adjustment's rounds give it to the first solve with tie points
+        only (``adjustment.rounds._ties_kept``).
     tie_prior_xyz, tie_prior_sigma : (T, 3) arrays, optional
         Observed coordinates of tie points (control points of a survey) and
         their standard deviations, metres: one row ``(X - X_given) /
