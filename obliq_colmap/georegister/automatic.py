@@ -61,12 +61,19 @@ def segment_rays(
     return center[:2], b / np.linalg.norm(b, axis=1, keepdims=True)
 
 
+def rays_in_map(
+    rays: Rays, scale: float, theta: float, t: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """(R, 2) ray origins and (R, 2) bearings in the map frame under
+    ``map_xy = scale R(theta) model_xy + t``."""
+    c, sn = np.cos(theta), np.sin(theta)
+    Rm = np.array([[c, -sn], [sn, c]])
+    return scale * rays.origin @ Rm.T + t, rays.bearing @ Rm.T
+
+
 def _transform(params: np.ndarray, rays: Rays) -> tuple[np.ndarray, np.ndarray]:
     """Ray origins and bearings in the map frame under (log s, theta, tx, ty)."""
-    s, th = np.exp(params[0]), params[1]
-    c, sn = np.cos(th), np.sin(th)
-    Rm = np.array([[c, -sn], [sn, c]])
-    return s * rays.origin @ Rm.T + params[2:], rays.bearing @ Rm.T
+    return rays_in_map(rays, np.exp(params[0]), params[1], params[2:])
 
 
 def _refine(rays: Rays, params, corners, pairs, scale_rad, iterations=5):

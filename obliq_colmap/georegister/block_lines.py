@@ -52,7 +52,7 @@ import numpy as np
 from obliq_colmap.cadastre import Cadastre, visible_corners
 from obliq_colmap.geometry import Camera, Pose
 
-from .automatic import Rays
+from .automatic import Rays, rays_in_map
 from .sight import corners_in_sight
 
 logger = logging.getLogger(__name__)
@@ -119,10 +119,10 @@ class PriorSimilarity:
     sd_ref_m: float
 
     def apply(self, xy: np.ndarray) -> np.ndarray:
+        """(N, 2) model points in the map frame."""
         c, s = np.cos(self.theta), np.sin(self.theta)
-        return self.scale * np.asarray(xy) @ np.array([[c, s], [-s, c]]) + (
-            self.translation
-        )
+        R = np.array([[c, -s], [s, c]])
+        return self.scale * np.asarray(xy) @ R.T + self.translation
 
     def position_sd(self, xy: np.ndarray) -> np.ndarray:
         """(N,) sd (m) of (N, 2) model points mapped (the three errors
@@ -131,11 +131,6 @@ class PriorSimilarity:
         return np.sqrt(
             self.sd_ref_m**2 + (rho * self.sd_scale) ** 2 + (rho * self.sd_theta) ** 2
         )
-
-    @property
-    def heading_sd(self) -> float:
-        """sd of theta (rad)."""
-        return self.sd_theta
 
 
 def _wrap(angle: np.ndarray) -> np.ndarray:
@@ -238,6 +233,16 @@ def _bearing_offset(
     return np.arctan2(cross, along), along
 
 
+def _ray_corner_grid(rays: Rays, seen: list[np.ndarray]):
+    """Per image with rays and corners in sight (``seen``, per image): (M,)
+    ray and (M,) corner indices of every ray of the image against every
+    corner it sees."""
+    for i, corners in enumerate(seen):
+        r_idx = np.flatnonzero(rays.image == i)
+        if len(corners) and len(r_idx):
+            yield np.repeat(r_idx, len(corners)), np.tile(corners, len(r_idx))
+
+
 def corners_seen(
     cad: Cadastre,
     camera: Camera,
@@ -269,18 +274,12 @@ def candidate_pairs(
 ) -> CandidatePairs:
     """Every ray against the corners its image sees (``seen``, per image)
     whose bearing under the prior is within ``window_sigmas`` of the ray's."""
-    origin = prior.apply(rays.origin)
+    origin, bearing = rays_in_map(rays, prior.scale, prior.theta, prior.translation)
     pos_sd = prior.position_sd(rays.origin)
-    c, s = np.cos(prior.theta), np.sin(prior.theta)
-    bearing = rays.bearing @ np.array([[c, s], [-s, c]])
     out_r, out_c, out_w = [], [], []
-    for i, corners in enumerate(seen):
-        r_idx = np.flatnonzero(rays.image == i)
-        if len(corners) == 0 or len(r_idx) == 0:
-            continue
-        rr, cc = np.repeat(r_idx, len(corners)), np.tile(corners, len(r_idx))
+    for rr, cc in _ray_corner_grid(rays, seen):
         ang, rng = _bearing_offset(origin[rr], bearing[rr], cad.corner_xy[cc])
-        sd = np.hypot(pos_sd[rr] / np.maximum(rng, 1e-3), prior.heading_sd)
+        sd = np.hypot(pos_sd[rr] / np.maximum(rng, 1e-3), prior.sd_theta)
         ok = (rng >= options.min_range_m) & (np.abs(ang) <= options.window_sigmas * sd)
         out_r.append(rr[ok])
         out_c.append(cc[ok])
@@ -551,8 +550,7 @@ def pair_sd_deg(
     """(P,) each pair's angular sd (deg) under ``map = scale R(theta) model +
     t``: the map's vertex noise at the corner's range, and the segment's
     direction noise (``segment_sigma_deg``)."""
-    c, s = np.cos(theta), np.sin(theta)
-    origin = scale * rays.origin[pairs[:, 0]] @ np.array([[c, s], [-s, c]]) + t
+    origin = rays_in_map(rays, scale, theta, t)[0][pairs[:, 0]]
     rng = np.linalg.norm(cad.corner_xy[pairs[:, 1]] - origin, axis=1)
     return np.hypot(
         np.degrees(options.map_noise_m / np.maximum(rng, 1e-3)),
@@ -573,16 +571,9 @@ def nearest_pairs(
     ray's nearest corner in sight of its image (``seen``) within the inlier
     threshold, then per (image, corner) only the longest such ray (the
     others are window edges near it by chance; :func:`count_inliers`)."""
-    c, s = np.cos(theta), np.sin(theta)
-    Rm = np.array([[c, -s], [s, c]])
-    origin = scale * rays.origin @ Rm.T + t
-    bearing = rays.bearing @ Rm.T
+    origin, bearing = rays_in_map(rays, scale, theta, t)
     out = []
-    for i, corners in enumerate(seen):
-        r_idx = np.flatnonzero(rays.image == i)
-        if len(corners) == 0 or len(r_idx) == 0:
-            continue
-        rr, cc = np.repeat(r_idx, len(corners)), np.tile(corners, len(r_idx))
+    for rr, cc in _ray_corner_grid(rays, seen):
         ang, rng = _bearing_offset(origin[rr], bearing[rr], cad.corner_xy[cc])
         perp = np.abs(np.sin(ang)) * np.hypot(*(cad.corner_xy[cc] - origin[rr]).T)
         thr = np.maximum(

@@ -148,7 +148,7 @@ def lines_placement(
     )
     _log_prior(prior)
     z0 = float(start.translation[2])
-    window = np.degrees(lo.window_sigmas * prior.heading_sd) + 5.0
+    window = np.degrees(lo.window_sigmas * prior.sd_theta) + 5.0
     seen = _seen(rec, images, cad, prior.scale, prior.theta, prior.translation,
                  z0, window, lo)  # fmt: skip
     cand = candidate_pairs(rays, seen, cad, prior, lo)
@@ -210,5 +210,5 @@ def _guided(rec, images, cad, rays, fit: LinesFit, z0, lo: BlockLinesOptions):
 def _log_prior(prior: PriorSimilarity) -> None:
     logger.info(
         "block lines: prior similarity scale %.5g, heading %.2f deg (sd %.2f deg)",
-        prior.scale, np.degrees(prior.theta), np.degrees(prior.heading_sd),
+        prior.scale, np.degrees(prior.theta), np.degrees(prior.sd_theta),
     )  # fmt: skip
