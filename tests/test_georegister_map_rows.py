@@ -327,6 +327,30 @@ def test_the_map_line_cost_jacobians_match_finite_differences():
     assert np.allclose(r0**2, 4.0 * np.log1p(raw**2 / 4.0) / 1.5**2)
 
 
+def _error_ratios(rec, truth, poses, u) -> tuple[list, list]:
+    """Per camera of ``rec`` (adjusted; ``truth`` its true centres in image
+    order, ``poses`` its true cam_from_world) the horizontal centre error
+    and the rotation error over their sd from ``u``'s pose covariance,
+    which must be finite and positive definite for every camera."""
+    assert u is not None and set(u.pose_covariance) == set(rec.reg_image_ids())
+    centre, rotation = [], []
+    for k, i in enumerate(sorted(rec.images)):
+        C = u.pose_covariance[i]
+        assert np.all(np.isfinite(C)) and np.all(np.linalg.eigvalsh(C) > 0)
+        e = rec.images[i].projection_center() - truth[k]
+        # horizontal: where the mean height is the datum (held), its error
+        # is no noise
+        centre.append(np.linalg.norm(e[:2]) / np.sqrt(np.trace(C[3:5, 3:5])))
+        R = rec.images[i].cam_from_world().rotation.matrix()
+        dR = pycolmap.Rotation3d(R @ poses[i].rotation.matrix().T)
+        rotation.append(abs(dR.angle()) / np.sqrt(np.trace(C[:3, :3])))
+    return centre, rotation
+
+
+def _rms(a) -> float:
+    return float(np.sqrt(np.mean(np.square(a))))
+
+
 def test_the_block_covariance_predicts_the_errors():
     """The obliq solver's covariance (map rows in the problem): every
     camera has a finite pose covariance, and over 6 noise draws the centre
@@ -336,24 +360,14 @@ def test_the_block_covariance_predicts_the_errors():
     variance factor, which the covariance includes."""
     c_ratio, r_ratio = [], []
     for seed in range(6):
-        rng_seed = 10 + seed
-        rec, truth, poses, rows, _ = _perturbed(rng_seed)
+        rec, truth, poses, rows, _ = _perturbed(10 + seed)
         summary = adjust_block(rec, {}, _verticals(poses), BlockAdjustmentOptions(),
                                rows)  # fmt: skip
-        u = summary.uncertainty
-        assert u is not None and set(u.pose_covariance) == set(rec.reg_image_ids())
-        for k, i in enumerate(sorted(rec.images)):
-            C = u.pose_covariance[i]
-            assert np.all(np.isfinite(C)) and np.all(np.linalg.eigvalsh(C) > 0)
-            e = rec.images[i].projection_center() - truth[k]
-            # the mean height is the datum (held), so its error is no noise
-            c_ratio.append(np.linalg.norm(e[:2]) / np.sqrt(np.trace(C[3:5, 3:5])))
-            R = rec.images[i].cam_from_world().rotation.matrix()
-            dR = pycolmap.Rotation3d(R @ poses[i].rotation.matrix().T)
-            r_ratio.append(abs(dR.angle()) / np.sqrt(np.trace(C[:3, :3])))
-    rms = lambda a: float(np.sqrt(np.mean(np.square(a))))  # noqa: E731
-    assert 0.5 < rms(c_ratio) < 2.0, rms(c_ratio)
-    assert 0.5 < rms(r_ratio) < 2.0, rms(r_ratio)
+        c, r = _error_ratios(rec, truth, poses, summary.uncertainty)
+        c_ratio += c
+        r_ratio += r
+    assert 0.5 < _rms(c_ratio) < 2.0, _rms(c_ratio)
+    assert 0.5 < _rms(r_ratio) < 2.0, _rms(r_ratio)
 
 
 def test_control_points_alone_give_a_block_covariance():
@@ -375,14 +389,8 @@ def test_control_points_alone_give_a_block_covariance():
         rec.transform(pycolmap.Sim3d(1.002, tilt, [0.5, -0.3, 0.2]))
         options = BlockAdjustmentOptions()
         u = adjust_block(rec, control, _verticals(poses), options).uncertainty
-        assert u is not None and set(u.pose_covariance) == set(rec.reg_image_ids())
-        for k, i in enumerate(sorted(rec.images)):
-            C = u.pose_covariance[i]
-            assert np.all(np.isfinite(C)) and np.all(np.linalg.eigvalsh(C) > 0)
-            e = rec.images[i].projection_center() - truth[k]
-            ratio.append(np.linalg.norm(e[:2]) / np.sqrt(np.trace(C[3:5, 3:5])))
-    rms = float(np.sqrt(np.mean(np.square(ratio))))
-    assert 0.5 < rms < 4.0, rms
+        ratio += _error_ratios(rec, truth, poses, u)[0]
+    assert 0.5 < _rms(ratio) < 4.0, _rms(ratio)
 
 
 def test_the_block_covariance_is_ceres_covariance_without_a_robust_loss(monkeypatch):

@@ -742,4 +742,5 @@ def _ties_kept(
         tie_image=problem.tie_image[keep],
         tie_point=point,
         tie_xy=problem.tie_xy[keep],
+        tie_sd=None,  # the first solve's only (docstring)
     )
