@@ -398,12 +398,22 @@ def test_the_block_covariance_is_ceres_covariance_without_a_robust_loss(monkeypa
     with map rows, VPs and the gauge against pycolmap's covariance of the
     Ceres problem at its optimum, both plain least squares (the robust
     losses' linearisations differ: 3 % in sd on the paper block): the same
-    to 1e-4. Ceres' rotation tangent is half the rotation vector."""
+    to 1e-4. Ceres' rotation tangent is half the rotation vector. Ours with
+    one pooled variance factor, which the cofactor is the covariance over
+    (with a component per observation group the covariance is a sandwich
+    of the same cofactor)."""
     pytest.importorskip("pyceres", reason="the Ceres check needs pyceres")
+    import functools
+
     import pyceres
 
+    import obliq_colmap.georegister.block_bundle as block_bundle
     import obliq_colmap.georegister.block_ceres as block_ceres
+    from obliq_colmap.bundle import BundleOptions
     from obliq_colmap.geometry import skew
+
+    pooled = functools.partial(BundleOptions, variance_components=False)
+    monkeypatch.setattr(block_bundle, "BundleOptions", pooled)
 
     options = BlockAdjustmentOptions(loss_scale_px=1e6, function_tolerance=1e-12)
     rec, _, poses, rows, _ = _perturbed()

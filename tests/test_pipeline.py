@@ -1016,6 +1016,7 @@ def test_images_placed_by_tie_points_outvote_an_image_the_bundle_now_rejects(
     assert not y.registered and y.image_id not in state.poses
 
 
+@pytest.mark.slow
 def test_pose_priors_far_worse_than_their_sigma_are_an_input_error(initial_run):
     """The sample's prior centres (a median 10 m off) given as 0.05 m: the bundle
     follows them and disagrees with most images; solved without them it

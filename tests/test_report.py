@@ -104,6 +104,11 @@ def test_uncertainty_report_lists_the_worst_first_with_the_final_pose_blocks():
     i = syn.problem.image_ids[0]
     sd = np.sqrt(np.diag(out.pose_covariance[i])[3:])
     np.testing.assert_allclose(unc["images"][names[i]]["position_sd_m"], sd, atol=1e-4)
+    # each observation group's factor and redundancy, as the bundle gave them
+    groups = unc["variance_components"]
+    assert set(groups) == set(out.variance_components) and "map rows" in groups
+    v, red = out.variance_components["map rows"]
+    assert groups["map rows"] == {"factor": round(v, 4), "redundancy": round(red, 1)}
 
 
 def test_project_edges_through_a_known_camera():

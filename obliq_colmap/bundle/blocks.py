@@ -93,6 +93,8 @@ class EliminatedBlocks:
 
     #: The attribute of :class:`State` holding the (T, 3) unknowns.
     state_attr = ""
+    #: Its name as a group of observations (:mod:`.components`).
+    group_name = ""
 
     def __init__(
         self,

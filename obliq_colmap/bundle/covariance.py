@@ -22,21 +22,27 @@ from .setup import Setup, State
 def camera_covariance(
     S: Setup, H_cc, Jc, Jh, w, height_prior: np.ndarray, offset_w: float
 ) -> np.ndarray:
-    """(n_red, n_red) cofactor matrix of the camera block at the optimum.
+    """(n_red, n_red) cofactor matrix of the camera block at the optimum:
+    :func:`gauge_cofactor` of :func:`eliminate_heights`'s reduced matrix."""
+    return gauge_cofactor(
+        S, eliminate_heights(S, H_cc, Jc, Jh, w, height_prior, offset_w)
+    )
 
-    The point unknowns are eliminated (undamped Schur complement): each
-    height, and with it, where its rows have an offset direction
-    (``S.offset_dir``), the anchor's offset along it (prior weight
-    ``offset_w``): one 2 x 2 block per height. The datum is the gauge: the
-    camera block of the inverse of ``[[A_red, A^T], [A, 0]]`` is the
-    cofactor matrix of the gauge-constrained solution; times the variance
-    factor, its covariance. NaN where it is singular.
+
+def eliminate_heights(
+    S: Setup, H_cc, Jc, Jh, w, height_prior: np.ndarray, offset_w: float
+) -> np.ndarray:
+    """(n_red, n_red) ``J^T W J``'s camera block with the point unknowns
+    eliminated (undamped Schur complement): each height, and with it, where
+    its rows have an offset direction (``S.offset_dir``), the anchor's
+    offset along it (prior weight ``offset_w``): one 2 x 2 block per height.
 
     Parameters
     ----------
     H_cc : (n_red, n_red) camera block of ``J^T W J``.
     Jc : (N, L) camera Jacobian; ``Jh`` (N,) height Jacobian; ``w`` (N,)
-        weights; ``height_prior`` (n_heights,) prior weight per height.
+        weights (zero: a row not in the matrix); ``height_prior``
+        (n_heights,) prior weight per height.
     """
     n, nh, L = S.n_red, S.n_heights, S.L
     A_red = H_cc.copy()
@@ -66,6 +72,15 @@ def camera_covariance(
         cols = np.repeat(np.r_[hid, hid + nh], L)
         G = sp.csr_matrix((vals, (rows, cols)), (n + 1, 2 * nh))
         A_red -= (G @ G.T).toarray()[:n, :n]
+    return A_red
+
+
+def gauge_cofactor(S: Setup, A_red: np.ndarray) -> np.ndarray:
+    """(n_red, n_red) cofactor matrix of the gauge-constrained solution: the
+    camera block of the inverse of ``[[A_red, A^T], [A, 0]]`` (the datum is
+    the gauge ``S.A``); times the variance factor, its covariance. NaN
+    where it is singular."""
+    n = S.n_red
     # Jacobi scaling: the columns (radians, metres, pixels, distortion) differ
     # by orders of magnitude; scaled, the condition number is the geometry's.
     d = np.sqrt(np.clip(np.diag(A_red), 0.0, None))

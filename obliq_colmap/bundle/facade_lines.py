@@ -72,6 +72,7 @@ class FacadeLineRows(EliminatedBlocks):
     """
 
     state_attr = "lines"
+    group_name = "facade lines"
 
     def __init__(
         self, P: BundleProblem, S: Setup, opts: BundleOptions, st: State

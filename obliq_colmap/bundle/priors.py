@@ -26,6 +26,8 @@ class PosePrior:
 
     k: np.ndarray
     w: float
+    #: Its name as a group of observations (:mod:`.components`).
+    group_name = "prior"
 
     @property
     def n_rows(self) -> int:
@@ -39,12 +41,18 @@ class PosePrior:
         e = self.errors(st)
         return 0.5 * self.w * float(np.sum(e * e))
 
+    def weighted_sum_of_squares(self, st: State) -> float:
+        """``r^T W r`` of its rows (with their robust weights, if any)."""
+        return 2.0 * self.cost(st)
+
 
 class AttitudePrior(PosePrior):
     """Each active image's rotation observed: ``e = Log(R R_prior^T) / sigma``
     (3 rows, radians over radians), linearised in the solver's increment
     ``R <- Exp(omega) R`` as ``d e / d omega = I / sigma`` (exact at e = 0;
     the cost is evaluated exactly, so LM stays correct)."""
+
+    group_name = "attitude prior"
 
     def __init__(self, S: Setup, prior: np.ndarray, sigma_rad: float) -> None:
         self.k = S.active_images  # (K',) slots of the images with rows
@@ -75,6 +83,8 @@ class CentrePrior(PosePrior):
     sigma`` (3 rows, metres over metres), ``s`` the priors' horizontal
     offset (held at zero unless ``S.shift_col``); linear in the solver's
     increments ``c <- c + dc``, ``s <- s + ds``."""
+
+    group_name = "centre prior"
 
     def __init__(self, S: Setup, prior: np.ndarray, sigma_m: float) -> None:
         self.k = S.active_images
@@ -121,6 +131,8 @@ class PrincipalPointPrior(PosePrior):
     pixels where a head's images leave that mode open (long lenses, few
     facades).
     """
+
+    group_name = "principal point prior"
 
     def __init__(
         self,
@@ -208,6 +220,8 @@ class VanishingPointObservation(PosePrior):
     distortion terms do not move the pinhole direction): ``dm = -P K^-1 dK
     m / |K^-1 v|``, P the projector across ``m``.
     """
+
+    group_name = "vertical VPs"
 
     def __init__(
         self,
@@ -322,6 +336,12 @@ class VanishingPointObservation(PosePrior):
         if not np.isfinite(self.c2):  # no robust loss (inf * log1p(0) is NaN)
             return 0.5 * float(np.sum(s))
         return 0.5 * float(np.sum(self.c2 * np.log1p(s / self.c2)))
+
+    def weighted_sum_of_squares(self, st: State) -> float:
+        """``sum w |z|^2`` with the Cauchy loss's IRLS weights."""
+        z = self.errors(st)
+        s = np.sum(z * z, axis=1)
+        return float(np.sum(s / (1.0 + s / self.c2)))
 
     def jacobians(self, st: State):
         """Per observation: (z (2,), J_rot (2, 3), J_intr (2, q)), whitened."""

@@ -106,6 +106,14 @@ class BundleOptions:
     #: parameters (6 per image + the intrinsics): above this n it is skipped
     #: (NaN, and a log line).
     precision_max_camera_params: int = 3000
+    #: The precision from a variance component per observation group (map
+    #: corners, segment directions, facade rows, tie points, VPs, priors;
+    #: :mod:`~obliq_colmap.bundle.components`): each group's noise as its own
+    #: residuals show it, the covariance the sandwich over the groups. False:
+    #: one pooled variance factor scales the cofactor matrix.
+    variance_components: bool = True
+    #: A group with less redundancy than this keeps its stated sd (factor 1).
+    component_min_redundancy: float = 10.0
     #: Prior standard deviation (m) of the anchor offsets counted in the
     #: precision (``BundleProblem.horizontal_offset_normal``).
     horizontal_offset_sigma_m: float = 10.0
@@ -570,14 +578,21 @@ class BundleResult:
         Predicted RMS deviation (px) of the image's constrained points (map
         corners and facade-edge anchors at their solved heights) projected by
         its solved camera, from the a-posteriori covariance of its pose and
-        intrinsics (heights marginalised, datum by the gauge, scaled by the
+        intrinsics (heights marginalised, datum by the gauge, each observation
+        group's part scaled by its variance component, or all by the pooled
         variance factor). NaN where not computed or not determinable.
     pose_covariance : dict image_id -> (6, 6) array
         Where the precision is computed: the a-posteriori covariance of the
         image's pose, rotation increment omega (rad, ``R <- Exp(omega) R``)
         then centre (m, local frame), datum by the gauge.
     variance_factor : float
-        A-posteriori variance of unit weight, ``r^T W r / redundancy``.
+        A-posteriori variance of unit weight, ``r^T W r / redundancy``, all
+        observations pooled.
+    variance_components : dict group name -> (float, float)
+        Where the precision is computed with them
+        (``BundleOptions.variance_components``): each observation group's
+        variance component (its ``r^T W r`` over its redundancy: the factor
+        on its stated variance) and its redundancy.
     prior_offset_m : (2,) array or None
         The priors' centres' horizontal offset against the map (m, priors
         minus solved), where estimated (``BundleOptions.estimate_prior_offset``).
@@ -626,6 +641,7 @@ class BundleResult:
     image_precision_px: dict[int, float] = field(default_factory=dict)
     pose_covariance: dict[int, np.ndarray] = field(default_factory=dict)
     variance_factor: float = float("nan")
+    variance_components: dict[str, tuple[float, float]] = field(default_factory=dict)
     prior_offset_m: np.ndarray | None = None
     vp_angle_deg: dict[int, float] = field(default_factory=dict)
     vp_chi2: dict[int, float] = field(default_factory=dict)

@@ -45,6 +45,7 @@ import numpy as np
 from ..geometry import Camera, Pose, rotation_exp
 from . import camera_block, covariance
 from .blocks import EliminatedBlocks
+from .components import Group, component_factors, sandwich_covariance
 from .facade_lines import FacadeLineRows
 from .loss import robust_loss
 from .priors import (
@@ -224,6 +225,7 @@ def _solve(problem: BundleProblem, opts: BundleOptions) -> BundleResult:
 
     final_rmse = rmse(r, st)
     precision, variance_factor = {}, float("nan")
+    components: dict[str, tuple[float, float]] = {}
     pose_cov: dict[int, np.ndarray] = {}
     vp_stats = None
     # The cofactor matrix serves the precision and the VP rows' redundancy
@@ -240,13 +242,16 @@ def _solve(problem: BundleProblem, opts: BundleOptions) -> BundleResult:
             opts.precision_max_camera_params,
         )
     elif want:
-        r, w, cov = _cofactor(S, opts, st, pose_priors, prior_w, prior_mask, blocks)
+        r, groups = _observation_groups(
+            S, opts, st, pose_priors, prior_w, prior_mask, heights0, blocks
+        )
+        cov = covariance.gauge_cofactor(S, sum(g.normal for g in groups))
         if opts.compute_precision:
-            precision, variance_factor = _precision(
-                S, st, pose_priors, prior_w, prior_mask, heights0, r, w, cov, blocks
+            precision, variance_factor, components, C = _precision(
+                S, st, opts, groups, cov
             )
-            if np.isfinite(variance_factor):
-                pose_cov = covariance.pose_covariances(S, variance_factor * cov)
+            if C is not None:
+                pose_cov = covariance.pose_covariances(S, C)
         if vp_obs is not None:
             vp_stats = vp_obs.statistics(st, cov)
     r_rows = r
@@ -374,6 +379,7 @@ def _solve(problem: BundleProblem, opts: BundleOptions) -> BundleResult:
             iid: pose_cov[k] for k, iid in enumerate(P.image_ids) if k in pose_cov
         },
         variance_factor=variance_factor,
+        variance_components=components,
         prior_offset_m=-st.shift.copy() if S.shift_col >= 0 else None,
         vp_angle_deg=vp_angle,
         vp_chi2=vp_chi2,
@@ -494,72 +500,113 @@ def _levenberg_marquardt(
     return st, cost, r, it, n_ok, termination, converged
 
 
-def _cofactor(
+def _observation_groups(
     S: Setup,
     opts: BundleOptions,
     st: State,
     pose_priors: list[PosePrior],
     prior_w: float,
     prior_mask: np.ndarray,
+    heights0: np.ndarray,
     blocks: list[EliminatedBlocks] = (),
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Residuals ``r`` (N,), their weights ``w`` and the camera block's
-    cofactor matrix at ``st`` (:func:`covariance.camera_covariance`, the
-    observed camera parameters' rows in, the tie points eliminated)."""
+) -> tuple[np.ndarray, list[Group]]:
+    """The residuals ``r`` (N,) at ``st`` and the observation groups
+    (:class:`~.components.Group`): each with its normal matrix on the camera
+    block (its own unknowns eliminated: heights and anchor offsets, tie
+    points, facade lines), its weighted sum of squares and rows."""
+    n = S.n_red
     r, Jc, Jh = evaluate(S, st, jac=True)
     _, w = robust_loss(opts.loss, S.loss_scale, r * r)
     w = w * S.weight
-    H_cc = normal_equations(S, Jc, Jh, r, w)[0]
-    for p in pose_priors:
-        p.add_to(H_cc, np.zeros(S.n_red), st)
-    for b in blocks:
-        b.linearise(S, st, H_cc, np.zeros(S.n_red))
-    H_cc = camera_block.to_dense(camera_block.finish(H_cc))
-    for b in blocks:
-        H_cc = H_cc - camera_block.to_dense(b.reduced)
     offset_w = 1.0 / opts.horizontal_offset_sigma_m**2
-    cov = covariance.camera_covariance(
-        S, H_cc, Jc, Jh, w, prior_w * prior_mask, offset_w
-    )
-    return r, w, cov
+    difference = np.zeros(len(r), bool)
+    difference[S.pair_b] = True
+    if np.any(S.has_h & (S.kind == 0)):
+        # free corner heights: both kinds observe them, one group
+        masks = {"map rows": np.ones(len(r), bool)}
+    else:
+        masks = {
+            "map corners": (S.kind == 0) & ~difference,
+            "segment directions": difference,
+            "facade rows": S.kind == 1,
+        }
+    groups = []
+    for name, m in masks.items():
+        if not m.any():
+            continue
+        wm = np.where(m, w, 0.0)
+        H = camera_block.finish(normal_equations(S, Jc, Jh, r, wm)[0])
+        heights = m & S.has_h
+        with_prior = prior_w * prior_mask if heights.any() else np.zeros(S.n_heights)
+        normal = covariance.eliminate_heights(
+            S, camera_block.to_dense(H)[:n, :n], Jc, Jh, wm, with_prior, offset_w
+        )
+        offsets = heights & np.any(S.offset_dir != 0, axis=1)
+        private = len(np.unique(S.hidx[heights])) + len(np.unique(S.hidx[offsets]))
+        wss, rows = float(np.sum(wm * r * r)), int(m.sum())
+        if heights.any() and prior_w:  # the corner heights' prior rows
+            dh = (st.heights - heights0)[prior_mask]
+            wss, rows = wss + prior_w * float(dh @ dh), rows + int(prior_mask.sum())
+        groups.append(Group(name, normal, wss, rows, private))
+    for p in pose_priors:
+        H = camera_block.empty(n, S.sparse_camera)
+        p.add_to(H, np.zeros(n + 1), st)
+        normal = camera_block.to_dense(camera_block.finish(H))[:n, :n]
+        groups.append(
+            Group(p.group_name, normal, p.weighted_sum_of_squares(st), p.n_rows)
+        )
+    for b in blocks:
+        H = camera_block.empty(n, S.sparse_camera)
+        b.linearise(S, st, H, np.zeros(n + 1))
+        normal = camera_block.to_dense(camera_block.finish(H))[:n, :n]
+        normal = normal - camera_block.to_dense(b.reduced)
+        private = 3 * b.n_points
+        groups.append(
+            Group(
+                b.group_name,
+                normal,
+                b.weighted_sum_of_squares(S, st),
+                b.redundancy + private,
+                private,
+            )
+        )
+    return r, groups
 
 
 def _precision(
     S: Setup,
     st: State,
-    pose_priors: list[PosePrior],
-    prior_w: float,
-    prior_mask: np.ndarray,
-    heights0: np.ndarray,
-    r: np.ndarray,
-    w: np.ndarray,
-    cov: np.ndarray,
-    blocks: list[EliminatedBlocks] = (),
-) -> tuple[dict[int, float], float]:
-    """Each active image's a-posteriori precision (px) at ``st``, from the
-    residuals ``r``, weights ``w`` and cofactor matrix ``cov`` of
-    :func:`_cofactor`.
+    opts: BundleOptions,
+    groups: list[Group],
+    cofactor: np.ndarray,
+) -> tuple[dict[int, float], float, dict[str, tuple[float, float]], np.ndarray | None]:
+    """Each active image's a-posteriori precision (px) at ``st`` from the
+    observation groups and the cofactor matrix of their sum.
 
     Returns
     -------
     precision : dict image slot -> px (empty where the redundancy is not
         positive).
-    variance_factor : float, NaN where the redundancy is not positive.
+    variance_factor : float, the pooled one (all groups' ``r^T W r`` over the
+        redundancy), NaN where the redundancy is not positive.
+    components : dict group name -> (variance component, redundancy), where
+        the covariance uses them (``BundleOptions.variance_components``).
+    covariance : (n_red, n_red) the camera block's, or None.
     """
-    precision, variance_factor = {}, float("nan")
-    redundancy = (
-        len(r) + int(prior_mask.sum()) + len(S.A) - S.n_red - S.n_heights - S.n_offsets
-    )
-    redundancy += sum(p.n_rows for p in pose_priors)
-    redundancy += sum(b.redundancy for b in blocks)
-    block_wss = sum(b.weighted_sum_of_squares(S, st) for b in blocks)
-    if redundancy > 0:
-        variance_factor = (float(np.sum(w * r * r)) + block_wss) / redundancy
-        variance_factor += 2.0 * sum(p.cost(st) for p in pose_priors) / redundancy
-        dh = (st.heights - heights0)[prior_mask]
-        variance_factor += prior_w * float(dh @ dh) / redundancy
-        precision = covariance.image_precision(S, st, variance_factor * cov)
-    return precision, variance_factor
+    redundancy = sum(g.redundancy(cofactor) for g in groups)
+    if not redundancy > 0 or not np.all(np.isfinite(cofactor)):
+        return {}, float("nan"), {}, None
+    variance_factor = sum(g.wss for g in groups) / redundancy
+    if opts.variance_components:
+        components = component_factors(groups, cofactor, opts.component_min_redundancy)
+        C = sandwich_covariance(groups, cofactor, components)
+        logger.info(
+            "bundle: variance components (factor, redundancy): %s",
+            ", ".join(f"{k} {v:.3g} ({r:.0f})" for k, (v, r) in components.items()),
+        )
+    else:
+        components, C = {}, variance_factor * cofactor
+    return covariance.image_precision(S, st, C), variance_factor, components, C
 
 
 def _apply(

@@ -56,6 +56,7 @@ class TieRows(EliminatedBlocks):
     out; ``order`` maps back to the problem's order)."""
 
     state_attr = "points"
+    group_name = "tie points"
 
     def __init__(self, P: BundleProblem, S: Setup, opts: BundleOptions) -> None:
         super().__init__(

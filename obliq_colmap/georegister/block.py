@@ -122,17 +122,20 @@ class BlockUncertainty:
     :attr:`~obliq_colmap.bundle.BundleResult.pose_covariance`).
 
     pose_covariance : image_id -> (6, 6) covariance of (rotation increment
-        omega, rad, ``R <- Exp(omega) R``; centre, m), the cofactor matrix
-        times ``variance_factor``.
+        omega, rad, ``R <- Exp(omega) R``; centre, m).
     image_precision_px : image_id -> predicted sd (px) of the projections of
         its map rows' points (NaN for an image without map rows).
     variance_factor : a-posteriori variance of unit weight (tracks at 1 px,
-        map rows at their sd, control points at their stated sigmas).
+        map rows at their sd, control points at their stated sigmas), pooled.
+    variance_components : group name -> (factor, redundancy): each
+        observation group's own (:mod:`obliq_colmap.bundle.components`); the
+        covariance is their sandwich.
     """
 
     pose_covariance: dict[int, np.ndarray]
     image_precision_px: dict[int, float]
     variance_factor: float
+    variance_components: dict[str, tuple[float, float]] = field(default_factory=dict)
 
 
 @dataclass

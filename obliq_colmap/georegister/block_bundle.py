@@ -86,8 +86,6 @@ def bundle_options(
         vp_loss_scale=np.inf,
         max_iterations=options.max_num_iterations,
         function_tolerance=options.function_tolerance,
-        # the covariance needs map rows in today's bundle (it computes its
-        # cofactor only where the problem has them)
         compute_precision=options.covariance,
     )
 
@@ -218,6 +216,7 @@ def adjust_block_bundle(
             pose_covariance=dict(result.pose_covariance),
             image_precision_px=dict(result.image_precision_px),
             variance_factor=float(result.variance_factor),
+            variance_components=dict(result.variance_components),
         )
     return BlockAdjustmentSummary(
         uncertainty=uncertainty,

@@ -496,6 +496,12 @@ def run_report(
             # A-posteriori variance of unit weight (residuals weighted by
             # their kind's sigma): ~1 where the sigmas fit the residuals.
             "variance_factor": json_float(bundle.variance_factor),
+            # Per observation group: its own factor and redundancy (the
+            # precision's covariance is their sandwich).
+            "variance_components": {
+                k: [json_float(v), json_float(r)]
+                for k, (v, r) in bundle.variance_components.items()
+            },
             # With --bundle_position_sigma: how far the priors' centres sit
             # off the map horizontally (priors minus solved, m).
             "prior_offset_m": (

@@ -15,6 +15,7 @@
 
 from obliq_colmap.report.uncertainty import (
     TRUST_NOTE,
+    components_report,
     horizontal_ellipse,
     pose_uncertainty,
     uncertainty_report,
@@ -23,6 +24,7 @@ from obliq_colmap.report.uncertainty import (
 __all__ = [
     "TRUST_NOTE",
     "horizontal_ellipse",
+    "components_report",
     "pose_uncertainty",
     "uncertainty_report",
 ]
