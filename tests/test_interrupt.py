@@ -37,6 +37,14 @@ def _running_in_group(pgid: int) -> list[int]:
     return found
 
 
+def _default_sigint() -> None:
+    """In the child before it starts: SIGINT at its default, as a terminal's
+    shell starts a foreground job. A runner started in the background of a
+    non-interactive shell ignores SIGINT, and an ignored signal stays ignored
+    across exec (Python then installs no KeyboardInterrupt handler)."""
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+
 def _lines(stream, out: queue.Queue) -> None:
     for line in stream:
         out.put(line)
@@ -67,6 +75,7 @@ def test_ctrl_c_mid_run_leaves_nothing(tmp_path, when):
         stdout=subprocess.DEVNULL,
         text=True,
         start_new_session=True,  # its own process group, as a shell job
+        preexec_fn=_default_sigint,
     )  # fmt: skip
     try:
         lines: queue.Queue = queue.Queue()
@@ -90,7 +99,7 @@ def test_ctrl_c_mid_run_leaves_nothing(tmp_path, when):
         if proc.poll() is None:  # a failed check: leave nothing running
             os.killpg(proc.pid, signal.SIGKILL)
             proc.wait()
-    proc.stderr.close()
+        proc.stderr.close()
     tail = "".join(rest)
     assert "interrupted" in tail
     assert "Traceback" not in tail, tail
