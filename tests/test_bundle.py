@@ -986,29 +986,11 @@ def test_image_precision_predicts_the_deviation_from_the_truth():
         syn = make_synthetic_problem(
             seed=seed, buildings=(5, 5), stations=(2, 2), noise_px=noise
         )
-        P = syn.problem
-        out = solve_bundle(P, opts)
+        out = solve_bundle(syn.problem, opts)
         factors.append(out.variance_factor)
-        X = np.concatenate(
-            [
-                np.column_stack(
-                    [
-                        P.corner_xy[P.vertical_corner],
-                        syn.corner_heights[P.vertical_corner],
-                    ]
-                ),
-                np.column_stack(
-                    [P.horizontal_anchor_xy, syn.facade_heights[P.horizontal_height]]
-                ),
-            ]
-        )
-        img = np.concatenate([P.vertical_image, P.horizontal_image])
-        for k, i in enumerate(P.image_ids):
-            cid = P.image_camera[i]
-            a, _ = g.project(syn.cameras[cid], syn.poses[i], X[img == k])
-            b, _ = g.project(out.cameras[cid], out.poses[i], X[img == k])
-            dev.append(np.sqrt(np.mean(np.sum((a - b) ** 2, axis=1))))
-            pred.append(out.image_precision_px[i])
+        d, p = _deviation_and_prediction(syn, out)
+        dev += d
+        pred += p
     pred, dev = np.array(pred), np.array(dev)
     assert np.all(np.isfinite(pred)) and np.all(pred > 0)
     ratio = np.sqrt(np.mean(dev**2) / np.mean(pred**2))
