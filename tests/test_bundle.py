@@ -18,7 +18,7 @@ from obliq_colmap.bundle import (
     residuals as res,
 )
 from obliq_colmap.bundle.coupling import Coupling
-from obliq_colmap.bundle.covariance import camera_covariance
+from obliq_colmap.bundle.covariance import eliminate_heights, gauge_cofactor
 from obliq_colmap.bundle.priors import (
     AttitudePrior,
     CentrePrior,
@@ -1035,6 +1035,13 @@ def test_fitted_anchor_offsets_count_as_unknowns_in_the_variance_factor(noisy):
     )
 
 
+def _camera_cofactor(S, H_cc, Jc, Jh, w, height_prior, offset_w):
+    """The camera block's cofactor matrix as the solver forms it."""
+    return gauge_cofactor(
+        S, eliminate_heights(S, H_cc, Jc, Jh, w, height_prior, offset_w)
+    )
+
+
 def test_camera_covariance_matches_a_dense_inverse_with_offset_unknowns():
     """The camera block of the covariance, with the heights and the anchor
     offsets eliminated per height (2 x 2 blocks), against the inverse of the
@@ -1054,7 +1061,7 @@ def test_camera_covariance_matches_a_dense_inverse_with_offset_unknowns():
     w = rng.uniform(0.5, 1.0, len(r))
     height_prior = np.r_[np.zeros(J), np.full(len(P.corner_xy), 1 / 3.0**2)]
     offset_w = 1 / 2.0**2
-    ours = camera_covariance(
+    ours = _camera_cofactor(
         S, normal_equations(S, Jc, Jh, r, w)[0], Jc, Jh, w, height_prior, offset_w
     )
 
@@ -1082,7 +1089,7 @@ def test_camera_covariance_matches_a_dense_inverse_with_offset_unknowns():
     # Without offsets (anchors known) the covariance is smaller: the
     # offsets are nuisance unknowns.
     S0 = Setup(P0, opts)
-    fixed = camera_covariance(
+    fixed = _camera_cofactor(
         S0, normal_equations(S0, Jc, Jh, r, w)[0], Jc, Jh, w, height_prior, offset_w
     )
     assert np.all(np.linalg.eigvalsh(dense - fixed) > -1e-9 * np.abs(dense).max())

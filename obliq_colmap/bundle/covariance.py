@@ -1,11 +1,12 @@
 """A-posteriori precision: the camera block's cofactor matrix and each image's
 predicted deviation in pixels.
 
-:func:`camera_covariance` eliminates the heights (and fitted anchor offsets)
-and inverts the gauge-constrained reduced system; :func:`image_jacobians`
-and :func:`image_precision` propagate it to the projections of each image's
-constrained points. The solver calls them through this module
-(``covariance.image_precision``), so a diagnosis can wrap them.
+:func:`eliminate_heights` eliminates the heights (and fitted anchor
+offsets), :func:`gauge_cofactor` inverts the gauge-constrained reduced
+system; :func:`image_jacobians` and :func:`image_precision` propagate it
+to the projections of each image's constrained points. The solver calls
+them through this module (``covariance.image_precision``), so a diagnosis
+can wrap them.
 """
 
 from __future__ import annotations
@@ -17,16 +18,6 @@ from ..geometry import skew
 from . import residuals as res
 from .linear import kkt_inverse
 from .setup import Setup, State
-
-
-def camera_covariance(
-    S: Setup, H_cc, Jc, Jh, w, height_prior: np.ndarray, offset_w: float
-) -> np.ndarray:
-    """(n_red, n_red) cofactor matrix of the camera block at the optimum:
-    :func:`gauge_cofactor` of :func:`eliminate_heights`'s reduced matrix."""
-    return gauge_cofactor(
-        S, eliminate_heights(S, H_cc, Jc, Jh, w, height_prior, offset_w)
-    )
 
 
 def eliminate_heights(

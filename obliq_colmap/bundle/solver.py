@@ -549,16 +549,12 @@ def _observation_groups(
             wss, rows = wss + prior_w * float(dh @ dh), rows + int(prior_mask.sum())
         groups.append(Group(name, normal, wss, rows, private))
     for p in pose_priors:
-        H = camera_block.empty(n, S.sparse_camera)
-        p.add_to(H, np.zeros(n + 1), st)
-        normal = camera_block.to_dense(camera_block.finish(H))[:n, :n]
+        normal = _dense_terms(S, lambda H, p=p: p.add_to(H, np.zeros(n + 1), st))
         groups.append(
             Group(p.group_name, normal, p.weighted_sum_of_squares(st), p.n_rows)
         )
     for b in blocks:
-        H = camera_block.empty(n, S.sparse_camera)
-        b.linearise(S, st, H, np.zeros(n + 1))
-        normal = camera_block.to_dense(camera_block.finish(H))[:n, :n]
+        normal = _dense_terms(S, lambda H, b=b: b.linearise(S, st, H, np.zeros(n + 1)))
         normal = normal - camera_block.to_dense(b.reduced)
         private = 3 * b.n_points
         groups.append(
@@ -571,6 +567,15 @@ def _observation_groups(
             )
         )
     return r, groups
+
+
+def _dense_terms(
+    S: Setup, fill: Callable[[camera_block.CameraBlock], None]
+) -> np.ndarray:
+    """(n_red, n_red) the camera-block terms ``fill`` adds to an empty block."""
+    H = camera_block.empty(S.n_red, S.sparse_camera)
+    fill(H)
+    return camera_block.to_dense(camera_block.finish(H))[: S.n_red, : S.n_red]
 
 
 def _precision(
