@@ -1231,3 +1231,29 @@ def test_an_image_without_a_precision_from_the_bundle_is_warned():
     assert "cannot state its precision" in outcomes[2].message
     assert "2.50 px" in outcomes[3].message
     assert outcomes[1].message == "" and outcomes[4].message == ""
+
+
+def test_without_the_block_an_image_without_its_own_vertical_is_warned():
+    """``--stop_after initial`` names the registered images whose vertical
+    vanishing point stage 1 did not confirm (low confidence or none): their
+    tilt rests on the prior and stage 2 alone; a failed image and one with
+    a confirmed VP are not named."""
+    from types import SimpleNamespace
+
+    from obliq_colmap.pipeline import warn_unconfirmed_vertical
+
+    def outcome(name, registered, vp_status):
+        return SimpleNamespace(
+            name=name, registered=registered, vp_status=vp_status, message=""
+        )
+
+    outcomes = [
+        outcome("A.jpg", True, "ok"),
+        outcome("B.jpg", True, "low_confidence"),
+        outcome("C.jpg", True, "no_vp"),
+        outcome("D.jpg", False, "no_vp"),
+    ]
+    assert warn_unconfirmed_vertical(outcomes) == ["B.jpg", "C.jpg"]
+    assert outcomes[0].message == "" and outcomes[3].message == ""
+    assert "low confidence" in outcomes[1].message
+    assert "not found" in outcomes[2].message

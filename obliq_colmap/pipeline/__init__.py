@@ -81,6 +81,7 @@ from obliq_colmap.pipeline.verdicts import (
     leave_out_rejected,
     unsupported_placements,
     warn_imprecise,
+    warn_unconfirmed_vertical,
     warn_vp_disagreement,
 )
 from obliq_colmap.pipeline.workers import (
@@ -119,6 +120,7 @@ __all__ = [
     "leave_out_rejected",
     "unsupported_placements",
     "warn_imprecise",
+    "warn_unconfirmed_vertical",
     "warn_vp_disagreement",
     "load_inputs",
     "overlay_name",

@@ -30,6 +30,7 @@ from obliq_colmap.pipeline.output import (
     tie_point_records,
 )
 from obliq_colmap.pipeline.overlays import STAGE2_FOLDER, final_overlays
+from obliq_colmap.pipeline.verdicts import warn_unconfirmed_vertical
 from obliq_colmap.pipeline.workers import draw_overlay, worker_pool
 from obliq_colmap.registration import block_ground_height
 from obliq_colmap.state import BlockState
@@ -114,6 +115,7 @@ def run_register(
             inputs, tasks, outcomes, options, timings, (workers, init_args)
         )
     else:
+        warn_unconfirmed_vertical(outcomes)
         state = BlockState.from_outcomes([o for o in outcomes if o.registered])
     registered = [o for o in outcomes if o.registered]
     ground = block_ground_height([o.registration for o in registered], 1)

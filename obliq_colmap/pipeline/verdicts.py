@@ -3,7 +3,9 @@
 (:func:`leave_out_rejected`); the written images the bundle determines
 worse than the registration criterion (:func:`warn_imprecise`) and those
 whose own vanishing point contradicts them (:func:`warn_vp_disagreement`) are
-named.
+named; without the block (``--stop_after initial``), so are the images
+registered without a vertical vanishing point of their own
+(:func:`warn_unconfirmed_vertical`).
 """
 
 from __future__ import annotations
@@ -24,6 +26,7 @@ __all__ = [
     "leave_out_rejected",
     "unsupported_placements",
     "warn_imprecise",
+    "warn_unconfirmed_vertical",
     "warn_vp_disagreement",
 ]
 
@@ -246,3 +249,38 @@ def warn_vp_disagreement(
             ),
         )
     return named
+
+
+def warn_unconfirmed_vertical(outcomes: Sequence[ImageOutcome]) -> list[str]:
+    """Name the registered images whose vertical stage 1 did not confirm
+    (its VP "low_confidence" or "no_vp"), for a run that stops before the
+    block: such an image's tilt comes from the prior and stage 2's own
+    search, and nothing else checks it (houses-102, ``--stop_after
+    initial``: the four images written 13-22 px off across the verticals
+    were all such images, with 13-23 inlier corners against a chance level
+    of 8-9; the full run tests them against the block). One warning for the
+    run, the reason in each image's message; they stay written. Returns
+    their names."""
+    named = [
+        o
+        for o in outcomes
+        if o.registered and o.vp_status in ("low_confidence", "no_vp")
+    ]
+    for o in named:
+        status = "not found" if o.vp_status == "no_vp" else "of low confidence"
+        _add_note(
+            o,
+            f"written with a warning: its vertical vanishing point was {status},"
+            " so its tilt rests on the prior and the map corners alone and it may"
+            " be more than 2 px off (the full run checks it against the block)",
+        )
+    if named:
+        logger.warning(
+            "%d of %d registered images have no confirmed vertical vanishing point"
+            " (they may be more than 2 px off; the full run checks them against"
+            " the block): %s",
+            len(named),
+            sum(o.registered for o in outcomes),
+            ", ".join(o.name for o in named),
+        )
+    return [o.name for o in named]
