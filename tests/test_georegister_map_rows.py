@@ -218,9 +218,12 @@ def test_measured_directions_take_each_segments_own_fit():
     free = through + 100.0
     im = SimpleNamespace(segments=through, segments_free=free)
     result = SimpleNamespace(
-        inlier_pairs=np.array([[7, 3], [9, 1]]), inlier_segments_px=through[[3, 1]]
+        inlier_pairs=np.array([[7, 3], [9, 1]]),
+        inlier_segments_px=through[[3, 1]],
+        height_plane=np.array([0.01, 0.0, 42.0]),
     )
     vp = image_pairs(im, result, measured_directions=False)
+    assert np.array_equal(vp.height_plane, [0.01, 0.0, 42.0])  # the facades' ground
     own = image_pairs(im, result, measured_directions=True)
     assert np.array_equal(vp.corner, [7, 9]) and np.array_equal(own.corner, [7, 9])
     assert np.array_equal(vp.segments, through[[3, 1]])
