@@ -208,6 +208,7 @@ def adjust_block_bundle(
         bopts = dataclasses.replace(bopts, height_initialisation_steps=3)
     result = solve_bundle(problem, bopts)
     _write_back(rec, result, point_ids)
+    initial_cost, iterations = result.summary.initial_cost, 0
     if len(problem.facade_heights):
         # one outlier round on the facade rows (register's rounds, once),
         # then the adjustment again from the solved block
@@ -227,14 +228,16 @@ def adjust_block_bundle(
             dataclasses.replace(map_rows, facades=kept),
             prior_centers if use_priors else None,
         )
+        iterations = result.summary.num_iterations
         result = solve_bundle(problem, bopts)
         _write_back(rec, result, point_ids)
     s = result.summary
+    iterations += s.num_iterations  # both solves, from the first's start
     n_ctrl = int(np.sum(np.any(np.isfinite(problem.tie_prior_sigma), axis=1)))
     logger.info(
         "block adjustment (obliq): cost %.6g -> %.6g in %d iterations (%d "
         "control points, %d verticals, %d map rows, %d facade rows), %s",
-        s.initial_cost, s.final_cost, s.num_iterations, n_ctrl,
+        initial_cost, s.final_cost, iterations, n_ctrl,
         len(result.vp_angle_deg), len(problem.corner_xy),
         len(problem.horizontal_image), s.termination,
     )  # fmt: skip
@@ -248,9 +251,9 @@ def adjust_block_bundle(
         )
     return BlockAdjustmentSummary(
         uncertainty=uncertainty,
-        initial_cost=float(s.initial_cost),
+        initial_cost=float(initial_cost),
         final_cost=float(s.final_cost),
-        iterations=int(s.num_iterations),
+        iterations=int(iterations),
         num_control_rows=n_ctrl,
         num_vertical_rows=len(result.vp_angle_deg),
         termination=s.termination,
