@@ -1,22 +1,28 @@
 """The map's corner lines in georegister's block adjustment (issue 27 item 4):
 with no control point, the map rows (horizontally), the VPs (the tilt) and
-the priors' camera heights (the vertical datum) hold a known block."""
+the priors' camera heights (the vertical datum) hold a known block; the
+map's facade edges (horizontal edges on the walls, matched across the images
+into tracks of one height) as rows beside them."""
 
 from __future__ import annotations
 
 import dataclasses
+import json
 
 import numpy as np
 import pycolmap
 import pytest
 
+from obliq_colmap.cadastre import load_cadastre
 from obliq_colmap.georegister.block import BlockAdjustmentOptions, adjust_block
+from obliq_colmap.georegister.facade_rows import facade_rows, outlier_free
 from obliq_colmap.georegister.map_rows import (
     ImagePairs,
     gate_map_rows,
     map_rows,
     row_residuals_px,
 )
+from obliq_colmap.lines import Segments
 
 F, W, H = 1000.0, 1000, 700
 NOISE_PX = 0.3  # tracks and segment ends, per axis
@@ -212,9 +218,12 @@ def test_measured_directions_take_each_segments_own_fit():
     free = through + 100.0
     im = SimpleNamespace(segments=through, segments_free=free)
     result = SimpleNamespace(
-        inlier_pairs=np.array([[7, 3], [9, 1]]), inlier_segments_px=through[[3, 1]]
+        inlier_pairs=np.array([[7, 3], [9, 1]]),
+        inlier_segments_px=through[[3, 1]],
+        height_plane=np.array([0.01, 0.0, 42.0]),
     )
     vp = image_pairs(im, result, measured_directions=False)
+    assert np.array_equal(vp.height_plane, [0.01, 0.0, 42.0])  # the facades' ground
     own = image_pairs(im, result, measured_directions=True)
     assert np.array_equal(vp.corner, [7, 9]) and np.array_equal(own.corner, [7, 9])
     assert np.array_equal(vp.segments, through[[3, 1]])
@@ -458,3 +467,102 @@ def test_the_uncertainty_section_lists_the_cameras_worst_first():
     assert not block_uncertainty_report(None, {})["available"]
     summary.uncertainty = None
     assert "3000 camera" in block_uncertainty_report(summary, {1: "a.jpg"})["reason"]
+
+
+ORIGIN = (500_000.0, 5_600_000.0)
+FLOORS_M = (3.0, 6.0)  # the heights of the horizontal edges on every wall
+
+
+def _map(tmp_path, corner_xy: np.ndarray):
+    """The scene's nine boxes as a GeoJSON cadastre (EPSG:25832), read back
+    in the scene's frame."""
+    rings = corner_xy.reshape(-1, 4, 2) + ORIGIN
+    features = [
+        {
+            "type": "Feature",
+            "properties": {"id": f"b{k}"},
+            "geometry": {
+                "type": "Polygon",
+                "coordinates": [[*r.tolist(), r[0].tolist()]],
+            },
+        }
+        for k, r in enumerate(rings)
+    ]
+    doc = {
+        "type": "FeatureCollection",
+        "crs": {"type": "name", "properties": {"name": "EPSG:25832"}},
+        "features": features,
+    }
+    path = tmp_path / "map.geojson"
+    path.write_text(json.dumps(doc))
+    return load_cadastre(path, origin=ORIGIN)
+
+
+def _floor_lines(rec, corner_xy, rng) -> dict[int, Segments]:
+    """Per image the horizontal edges at ``FLOORS_M`` on the walls facing it
+    (20-80 % of each wall's length), with the segments' noise."""
+    rings = corner_xy.reshape(-1, 4, 2)
+    out = {}
+    for i in sorted(rec.images):
+        image = rec.images[i]
+        cam, pose = image.camera, image.cam_from_world()
+        centre = image.projection_center()
+        ends = []
+        for ring in rings:
+            middle = ring.mean(axis=0)
+            for a, b in zip(ring, np.roll(ring, -1, axis=0), strict=True):
+                out_dir = (a + b) / 2 - middle
+                if out_dir @ (centre[:2] - (a + b) / 2) <= 0:
+                    continue  # the wall faces away
+                for z in FLOORS_M:
+                    p = [np.r_[a + t * (b - a), z] for t in (0.2, 0.8)]
+                    uv = cam.img_from_cam(np.array([pose * q for q in p]))
+                    if np.all((uv >= 0) & (uv < [cam.width, cam.height])):
+                        ends.append(uv + rng.normal(0, NOISE_PX, (2, 2)))
+        ends = np.array(ends).reshape(-1, 2, 2)
+        d = ends[:, 1] - ends[:, 0]
+        normal = np.c_[d[:, 1], -d[:, 0]] / np.linalg.norm(d, axis=1)[:, None]
+        out[i] = Segments(ends, normal, np.full(len(ends), 10.0))
+    return out
+
+
+def test_facade_rows_match_the_floor_lines_across_images(tmp_path):
+    """On the true block every track is one floor line of one wall: its
+    height one of ``FLOORS_M``, seen by two images or more."""
+    rng = np.random.default_rng(5)
+    rec, corner_xy, _, _ = _scene(rng)
+    cad = _map(tmp_path, corner_xy)
+    segments = _floor_lines(rec, corner_xy, rng)
+    planes = {i: np.zeros(3) for i in segments}
+    rows = facade_rows(rec, segments, planes, cad)
+    assert rows.num_tracks > 20
+    assert len(rows) >= 2 * rows.num_tracks
+    assert np.bincount(rows.track).min() >= 2
+    off = np.abs(rows.height[:, None] - np.array(FLOORS_M)[None]).min(axis=1)
+    assert np.median(off) < 0.1 and np.mean(off < 0.5) > 0.9, rows.height
+    kept = outlier_free(rows, np.r_[np.zeros(len(rows) - 1), 50.0], rows.height)
+    assert len(kept) < len(rows)  # the one far row is gone
+
+
+@pytest.mark.parametrize("facades", [True, False])
+def test_facade_rows_leave_the_block_where_the_map_rows_put_it(tmp_path, facades):
+    """The moved block of the map rows' test, adjusted with the facade rows
+    too: it comes back to the truth as closely as with the map rows alone
+    (the rows measure heights the tracks' own unknowns absorb, and the
+    walls' directions), and the tracks' heights to the floors'."""
+    rec, truth, poses, rows, priors = _perturbed()
+    # _perturbed's scene: the same draw, the true block (the images, and
+    # so their floor lines, do not move with the block)
+    true_rec, corners, _, _ = _scene(np.random.default_rng(3))
+    cad = _map(tmp_path, corners)
+    segments = _floor_lines(true_rec, corners, np.random.default_rng(11))
+    planes = {i: np.zeros(3) for i in segments}
+    if facades:
+        rows.facades = facade_rows(rec, segments, planes, cad)
+        assert len(rows.facades) > 100
+    summary = adjust_block(rec, {}, _verticals(poses), BlockAdjustmentOptions(
+        prior_center_sigma_m=PRIOR_SD_M), rows, priors)  # fmt: skip
+    assert (summary.num_facade_rows > 0) is facades
+    err = _centres(rec) - truth
+    assert np.abs(err[:, :2]).max() < 0.05, err
+    assert np.abs(err[:, 2] - err[:, 2].mean()).max() < 0.05, err

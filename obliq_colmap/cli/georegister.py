@@ -87,6 +87,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "priors' camera heights hold the block's datum (default 1)",
     )  # fmt: skip
     parser.add_argument(
+        "--block_adjustment_facade_rows", type=int, choices=(0, 1), default=1,
+        help="with the map rows, the map's facade edges (horizontal edges on the "
+        "registered walls, matched across the images into tracks of one height) "
+        "as rows too (the obliq solver; default 1)",
+    )  # fmt: skip
+    parser.add_argument(
         "--block_adjustment_map_directions", choices=("vp", "measured"),
         default="measured",
         help="the map rows' segment lines: each segment's own fit (measured, "
@@ -137,6 +143,7 @@ def options_from_args(args: argparse.Namespace) -> GeoregisterOptions:
         block=BlockAdjustmentOptions(
             solver=args.block_adjustment_solver,
             map_rows=bool(args.block_adjustment_map_rows),
+            facade_rows=bool(args.block_adjustment_facade_rows),
             map_measured_directions=args.block_adjustment_map_directions == "measured",
             map_sigma_px=args.block_adjustment_map_sigma_px,
             refine_principal_point=bool(args.block_adjustment_refine_principal_point),

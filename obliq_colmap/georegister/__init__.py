@@ -15,6 +15,8 @@ Modules, in the order a run uses them:
   from two, robust weighted least squares from more; 7-DOF without a
   vertical).
 - ``map_rows``: the map's corner lines as rows of the block adjustment.
+- ``facade_rows``: the map's facade edges, matched across the images into
+  tracks of one height, as rows of the block adjustment.
 - ``block``: the bundle block adjustment (the SfM tracks, control point
   priors by their sigmas, each image's VP as an observation of its
   vertical, the map rows; principal point and distortion refined) in the

@@ -81,6 +81,10 @@ class BlockAdjustmentOptions:
     #: rows farther than this from their lines before the adjustment are
     #: left out (px)
     map_gate_px: float = 5.0
+    #: with the map rows, the map's facade edges (horizontal edges on the
+    #: walls stage 2 registered, matched across the images into tracks of
+    #: one height each, :mod:`.facade_rows`) as rows too (obliq solver)
+    facade_rows: bool = True
     #: the vertical datum where no control point holds it (the automatic
     #: mode): None, the block's mean camera height held where the automatic
     #: mode put it (from the priors' heights; the bundle's gauge row); a
@@ -151,6 +155,9 @@ class BlockAdjustmentSummary:
     termination: str
     #: corner-to-line rows of the map (two per stage-2 inlier pair)
     num_map_rows: int = 0
+    #: facade rows (one per observation of a facade track) and their tracks
+    num_facade_rows: int = 0
+    num_facade_tracks: int = 0
     solver: str = "obliq"
     #: wall time of the whole adjustment (problem built, solved, written back), s
     time_s: float = math.nan
@@ -238,6 +245,15 @@ def adjust_block(
             )
         from .block_ceres import adjust_block_ceres
 
+        if (
+            map_rows is not None
+            and map_rows.facades is not None
+            and len(map_rows.facades)
+        ):
+            logger.warning(
+                "block adjustment (ceres): the facade rows are the obliq "
+                "solver's only; left out"
+            )
         # the obliq solver's gauge without control points (block_bundle)
         hold = not control_point_ids
         summary = adjust_block_ceres(

@@ -20,7 +20,8 @@ solver="obliq"``, the default): the SfM model as a
   corner-to-line rows of stage 2's inlier pairs (:mod:`.map_rows`), points
   at fixed heights on the corners' verticals as in ``register``'s stage 3
   (``corner_heights="fixed"``), at ``map_sigma_px`` with the Cauchy loss at
-  ``loss_scale_px``;
+  ``loss_scale_px``; and (``facade_rows``) the facade tracks' rows
+  (:mod:`.facade_rows`), their heights unknowns, at 1 px with the same loss;
 - the vertical datum without control points (the automatic mode): the
   block's mean camera height held where the placement put it (the
   priors' heights; the bundle's gauge row, ``component_mean_camera_height``:
@@ -29,12 +30,13 @@ solver="obliq"``, the default): the SfM model as a
   one horizontal offset estimated (``BundleOptions.position_prior_sigma_m``,
   ``estimate_prior_offset``).
 
-No height unknowns; with control points no gauge rows (they hold the
-datum), as in the Ceres problem.
+No height unknowns but the facade tracks'; with control points no gauge rows
+(they hold the datum), as in the Ceres problem.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 
 import numpy as np
@@ -50,6 +52,7 @@ from .block import (
     VerticalRow,
     map_row_weighting,
 )
+from .facade_rows import empty_facade_rows, outlier_free
 from .map_rows import MapRows, empty_map_rows
 
 logger = logging.getLogger(__name__)
@@ -140,6 +143,9 @@ def block_problem(
             covs[i] = vp_covariance(row, calibration_matrix(cam.model, cam.params))
     rows = map_rows if map_rows is not None else empty_map_rows()
     rows = rows.select(np.isin(rows.image_id, image_ids))
+    fac = rows.facades.select(image_ids) if rows.facades is not None else None
+    if fac is None or len(fac) == 0:
+        fac = empty_facade_rows()
     centers = None
     if prior_centers:  # every image observed (the bundle wants all or none)
         centers = {
@@ -156,11 +162,11 @@ def block_problem(
         vertical_image=np.array([index[int(i)] for i in rows.image_id], np.int64),
         vertical_corner=np.arange(len(rows)),
         vertical_line=rows.line,
-        facade_heights=np.zeros(0),
-        horizontal_image=np.zeros(0, np.int64),
-        horizontal_height=np.zeros(0, np.int64),
-        horizontal_anchor_xy=np.zeros((0, 2)),
-        horizontal_line=np.zeros((0, 3)),
+        facade_heights=fac.height.copy(),
+        horizontal_image=np.array([index[int(i)] for i in fac.image_id], np.int64),
+        horizontal_height=fac.track,
+        horizontal_anchor_xy=fac.anchor_xy[fac.track],
+        horizontal_line=fac.line,
         prior_centers=centers,
         vertical_vps=vps or None,
         vertical_vp_covariances=covs or None,
@@ -195,20 +201,45 @@ def adjust_block_bundle(
     # without control points (the automatic mode) nothing else holds the
     # height: the mean camera height stays where the placement put it
     hold = not control_point_ids and not use_priors
-    result = solve_bundle(problem, bundle_options(options, use_priors, hold))
-    for cid, cam in result.cameras.items():
-        rec.cameras[cid].params = cam.params
-    for iid, pose in result.poses.items():
-        rec.frame(rec.images[iid].frame_id).rig_from_world = pose.to_rigid3d()
-    for t, pid in enumerate(point_ids):
-        rec.points3D[int(pid)].xyz = result.tie_xyz[t]
+    bopts = bundle_options(options, use_priors, hold)
+    if len(problem.facade_heights):
+        # the tracks' heights come from the images' own grounds: fitted to
+        # the block with the cameras held before the joint solve
+        bopts = dataclasses.replace(bopts, height_initialisation_steps=3)
+    result = solve_bundle(problem, bopts)
+    _write_back(rec, result, point_ids)
+    initial_cost, iterations = result.summary.initial_cost, 0
+    if len(problem.facade_heights):
+        # one outlier round on the facade rows (register's rounds, once),
+        # then the adjustment again from the solved block
+        image_ids = list(problem.image_ids)
+        solved = map_rows.facades.select(image_ids)
+        kept = outlier_free(
+            solved, result.horizontal_residuals_px, result.facade_heights
+        )
+        logger.info(
+            "facade rows: %d of %d kept after the first solve",
+            len(kept), len(solved),
+        )  # fmt: skip
+        problem, point_ids = block_problem(
+            rec,
+            control_point_ids,
+            verticals,
+            dataclasses.replace(map_rows, facades=kept),
+            prior_centers if use_priors else None,
+        )
+        iterations = result.summary.num_iterations
+        result = solve_bundle(problem, bopts)
+        _write_back(rec, result, point_ids)
     s = result.summary
+    iterations += s.num_iterations  # both solves, from the first's start
     n_ctrl = int(np.sum(np.any(np.isfinite(problem.tie_prior_sigma), axis=1)))
     logger.info(
         "block adjustment (obliq): cost %.6g -> %.6g in %d iterations (%d "
-        "control points, %d verticals, %d map rows), %s",
-        s.initial_cost, s.final_cost, s.num_iterations, n_ctrl,
-        len(result.vp_angle_deg), len(problem.corner_xy), s.termination,
+        "control points, %d verticals, %d map rows, %d facade rows), %s",
+        initial_cost, s.final_cost, iterations, n_ctrl,
+        len(result.vp_angle_deg), len(problem.corner_xy),
+        len(problem.horizontal_image), s.termination,
     )  # fmt: skip
     uncertainty = None
     if result.pose_covariance:
@@ -220,12 +251,24 @@ def adjust_block_bundle(
         )
     return BlockAdjustmentSummary(
         uncertainty=uncertainty,
-        initial_cost=float(s.initial_cost),
+        initial_cost=float(initial_cost),
         final_cost=float(s.final_cost),
-        iterations=int(s.num_iterations),
+        iterations=int(iterations),
         num_control_rows=n_ctrl,
         num_vertical_rows=len(result.vp_angle_deg),
         termination=s.termination,
         solver="obliq",
         num_map_rows=len(problem.corner_xy),
+        num_facade_rows=len(problem.horizontal_image),
+        num_facade_tracks=len(problem.facade_heights),
     )
+
+
+def _write_back(rec: pycolmap.Reconstruction, result, point_ids) -> None:
+    """The solved cameras, poses and tie points into ``rec``."""
+    for cid, cam in result.cameras.items():
+        rec.cameras[cid].params = cam.params
+    for iid, pose in result.poses.items():
+        rec.frame(rec.images[iid].frame_id).rig_from_world = pose.to_rigid3d()
+    for t, pid in enumerate(point_ids):
+        rec.points3D[int(pid)].xyz = result.tie_xyz[t]

@@ -24,6 +24,8 @@ from obliq_colmap.adjustment.problem import heights_on_vertical
 from obliq_colmap.geometry import Camera, Pose, lines_through
 from obliq_colmap.registration import RegistrationOptions, register_image
 
+from .facade_rows import FacadeRows, facade_rows
+
 logger = logging.getLogger(__name__)
 
 
@@ -41,13 +43,21 @@ class MapRows:
     height: np.ndarray
     image_id: np.ndarray
     line: np.ndarray
+    #: the map's facade rows from the same images (:mod:`.facade_rows`), or
+    #: None
+    facades: FacadeRows | None = None
 
     def __len__(self) -> int:
         return len(self.xy)
 
     def select(self, keep: np.ndarray) -> MapRows:
+        """The corner rows ``keep`` selects (the facade rows unchanged)."""
         return MapRows(
-            self.xy[keep], self.height[keep], self.image_id[keep], self.line[keep]
+            self.xy[keep],
+            self.height[keep],
+            self.image_id[keep],
+            self.line[keep],
+            self.facades,
         )
 
 
@@ -60,10 +70,13 @@ def empty_map_rows() -> MapRows:
 @dataclass
 class ImagePairs:
     """One image's stage-2 inliers: (K,) corner ids into the map's corners and
-    (K, 2, 2) the segments, UNDISTORTED pixels of the model's camera."""
+    (K, 2, 2) the segments, UNDISTORTED pixels of the model's camera; the
+    ground plane stage 2 found (3,) ``z = a x + b y + c`` in the frame of
+    the pose it registered from, or None."""
 
     corner: np.ndarray
     segments: np.ndarray
+    height_plane: np.ndarray | None = None
 
 
 def _camera(rec: pycolmap.Reconstruction, image_id: int) -> Camera:
@@ -140,9 +153,11 @@ def image_pairs(im, result, measured_directions: bool) -> ImagePairs:
     of an image's rows repeat its VP's direction (and its error, ~0.4 deg
     on the paper block) at many times the VP row's weight."""
     corner = result.inlier_pairs[:, 0].copy()
+    plane = np.asarray(result.height_plane, float).copy()
     if measured_directions and im.segments_free is not None:
-        return ImagePairs(corner, im.segments_free[result.inlier_pairs[:, 1]].copy())
-    return ImagePairs(corner, result.inlier_segments_px.copy())
+        free = im.segments_free[result.inlier_pairs[:, 1]].copy()
+        return ImagePairs(corner, free, plane)
+    return ImagePairs(corner, result.inlier_segments_px.copy(), plane)
 
 
 def pairs_on_map(
@@ -174,3 +189,23 @@ def pairs_on_map(
         len(out), len(vertical.images),
     )  # fmt: skip
     return out
+
+
+def with_facade_rows(
+    rec: pycolmap.Reconstruction,
+    rows: MapRows,
+    vertical,
+    cad,
+    pairs: dict[int, ImagePairs],
+) -> MapRows:
+    """``rows`` with the map's facade rows (:func:`.facade_rows.facade_rows`)
+    from the images that stage 2 registered (``pairs``, their ground
+    planes) and whose first-pass segments stage 1 kept (``vertical``)."""
+    segments = {
+        im.image_id: im.line_segments
+        for im in vertical.images
+        if im.line_segments is not None and len(im.line_segments)
+    }
+    planes = {i: p.height_plane for i, p in pairs.items() if p.height_plane is not None}
+    rows.facades = facade_rows(rec, segments, planes, cad)
+    return rows

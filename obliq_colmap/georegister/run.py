@@ -37,7 +37,13 @@ from .common import (
     upright,
     vertical_report,
 )
-from .map_rows import MapRows, gate_map_rows, map_rows, pairs_on_map
+from .map_rows import (
+    MapRows,
+    gate_map_rows,
+    map_rows,
+    pairs_on_map,
+    with_facade_rows,
+)
 from .options import GeoregisterOptions
 from .similarity import Similarity, similarity_7dof, similarity_upright
 from .uncertainty import block_uncertainty_report
@@ -225,6 +231,8 @@ def _map_rows(
     rows, _ = gate_map_rows(
         rec, map_rows(rec, cad.corner_xy, pairs), options.block.map_gate_px
     )
+    if options.block.facade_rows:
+        rows = with_facade_rows(rec, rows, vertical, cad, pairs)
     return rows
 
 

@@ -31,7 +31,7 @@ from .common import (
     vertical_report,
 )
 from .lines_placement import lines_placement
-from .map_rows import ImagePairs, gate_map_rows, map_rows
+from .map_rows import ImagePairs, gate_map_rows, map_rows, with_facade_rows
 from .map_rows import image_pairs as pairs_of_image
 from .options import GeoregisterOptions
 from .similarity import similarity_upright
@@ -232,6 +232,8 @@ def _adjust_on_map(
     if len(rows) == 0:
         logger.warning("automatic mode: no map rows near the block; not adjusted")
         return None
+    if options.block.facade_rows:
+        rows = with_facade_rows(rec, rows, vertical, cad, image_pairs)
     verticals = {
         im.image_id: (im.down_camera, im.sd_deg)
         for im in vertical.images

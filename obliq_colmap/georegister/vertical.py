@@ -21,6 +21,7 @@ from tqdm import tqdm
 
 from obliq_colmap.geometry import Camera, rotation_aligning
 from obliq_colmap.images import read_image
+from obliq_colmap.lines import Segments
 from obliq_colmap.vanishing import VanishingOptions, VPPrior, detect_vertical_vp
 
 from .options import VerticalOptions
@@ -48,6 +49,9 @@ class ImageVertical:
     #: through the VP; the map rows' lines with
     #: ``BlockAdjustmentOptions.map_measured_directions``)
     segments_free: np.ndarray | None = None
+    #: stage 1's first-pass segments (undistorted pixels of the model's
+    #: camera): the facade edges' source (:mod:`.facade_rows`)
+    line_segments: Segments | None = None
 
 
 @dataclass
@@ -111,6 +115,7 @@ def image_vertical(
         segments=segs,
         K=camera.K,
         segments_free=None if free is None else free.endpoints,
+        line_segments=res.segments,
     )
 
 
