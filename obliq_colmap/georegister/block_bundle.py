@@ -167,6 +167,9 @@ def block_problem(
         horizontal_height=fac.track,
         horizontal_anchor_xy=fac.anchor_xy[fac.track],
         horizontal_line=fac.line,
+        # the facade rows' anchors carry the map's noise across their
+        # edge: an unknown to the precision (the solve keeps them fixed)
+        horizontal_offset_normal=fac.normal[fac.track] if len(fac) else None,
         prior_centers=centers,
         vertical_vps=vps or None,
         vertical_vp_covariances=covs or None,

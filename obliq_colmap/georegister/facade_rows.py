@@ -41,6 +41,10 @@ class FacadeRows:
     line : (H, 3) the segment's unit line in RAW pixels of that image.
     anchor_xy : (J, 2) each track's point on its map edge (m).
     height : (J,) each track's initial height (m; the adjustment refines it).
+    normal : (J, 2) the outward unit normal of each track's map edge: the
+        anchor's position across the edge is the map's (its vertex noise,
+        shared by every row of the edge), which the adjustment's precision
+        counts as an unknown (``BundleProblem.horizontal_offset_normal``).
     """
 
     image_id: np.ndarray
@@ -48,6 +52,7 @@ class FacadeRows:
     line: np.ndarray
     anchor_xy: np.ndarray
     height: np.ndarray
+    normal: np.ndarray
 
     def __len__(self) -> int:
         return len(self.image_id)
@@ -79,6 +84,7 @@ class FacadeRows:
             self.line[keep],
             self.anchor_xy[used],
             h[used],
+            self.normal[used],
         )
 
 
@@ -106,6 +112,7 @@ def empty_facade_rows() -> FacadeRows:
         np.zeros((0, 3)),
         np.zeros((0, 2)),
         np.zeros(0),
+        np.zeros((0, 2)),
     )
 
 
@@ -171,6 +178,7 @@ def facade_rows(
         lines,
         tracks.anchor_xy,
         tracks.height,
+        np.asarray(cad.edge_normal, float)[tracks.edge],
     )
     logger.info(
         "facade rows: %d observations of %d tracks in %d images",
