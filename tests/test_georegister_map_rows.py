@@ -424,7 +424,10 @@ def test_the_block_covariance_is_ceres_covariance_without_a_robust_loss(monkeypa
     pooled = functools.partial(BundleOptions, variance_components=False)
     monkeypatch.setattr(block_bundle, "BundleOptions", pooled)
 
-    options = BlockAdjustmentOptions(loss_scale_px=1e6, function_tolerance=1e-12)
+    # Ceres' problem holds the corners exactly: so does our precision here
+    options = BlockAdjustmentOptions(
+        loss_scale_px=1e6, function_tolerance=1e-12, map_vertex_sigma_m=None
+    )
     rec, _, poses, rows, _ = _perturbed()
     ours = adjust_block(rec, {}, _verticals(poses), options, rows).uncertainty
     rec_c, _, _, rows, _ = _perturbed()
@@ -566,3 +569,28 @@ def test_facade_rows_leave_the_block_where_the_map_rows_put_it(tmp_path, facades
     err = _centres(rec) - truth
     assert np.abs(err[:, :2]).max() < 0.05, err
     assert np.abs(err[:, 2] - err[:, 2].mean()).max() < 0.05, err
+
+
+def test_the_maps_vertex_error_is_shared_by_its_corners_rows():
+    """The map's vertex sd in the block's precision (each corner's offset two
+    unknowns that all its rows share): the cameras' sds grow with it, the
+    solve does not change, and a vertex sd far below the rows' noise gives
+    the corners-known precision back."""
+
+    def adjusted(sigma):
+        rec, _, poses, rows, priors = _perturbed()
+        options = BlockAdjustmentOptions(
+            prior_center_sigma_m=PRIOR_SD_M, map_vertex_sigma_m=sigma
+        )
+        s = adjust_block(rec, {}, _verticals(poses), options, rows, priors)
+        sd = {i: np.sqrt(np.diag(c)[3:5].sum()) for i, c in
+              s.uncertainty.pose_covariance.items()}  # fmt: skip
+        return _centres(rec), sd
+
+    known_c, known = adjusted(None)
+    tiny_c, tiny = adjusted(1e-6)
+    map_c, shared = adjusted(0.15)
+    assert np.allclose(known_c, map_c) and np.allclose(known_c, tiny_c)
+    for i in known:
+        assert tiny[i] == pytest.approx(known[i], rel=1e-3)
+        assert shared[i] > 1.2 * known[i]

@@ -66,6 +66,46 @@ def eliminate_heights(
     return A_red
 
 
+def eliminate_corner_offsets(
+    S: Setup, A_red: np.ndarray, Jc: np.ndarray, w: np.ndarray, prior_w: float
+) -> tuple[np.ndarray, int]:
+    """``A_red`` with each map corner's horizontal offset eliminated: two
+    unknowns per corner (``S.corner``) that all its rows share, prior weight
+    ``prior_w`` (1 / the map's vertex sd squared), one 2 x 2 block each
+    (:func:`eliminate_heights`' factorisation). Returns the matrix and the
+    number of corners.
+
+    Jc : (N, L) camera Jacobian, its columns 3:5 the centre's x and y (a
+    corner's offset moves the row as the opposite move of the camera);
+    w : (N,) weights (zero: a row not in the matrix).
+    """
+    m = (w > 0) & (S.corner >= 0)
+    if not m.any():
+        return A_red, 0
+    n, L = S.n_red, S.L
+    ids, cid = np.unique(S.corner[m], return_inverse=True)
+    nc = len(ids)
+    wm = w[m]
+    jx, jy = -Jc[m, 3], -Jc[m, 4]
+    a = np.bincount(cid, wm * jx * jx, nc) + prior_w
+    b = np.bincount(cid, wm * jx * jy, nc)
+    c = np.bincount(cid, wm * jy * jy, nc) + prior_w
+    det = a * c - b * b
+    l11 = np.sqrt(c / det)
+    l21 = -b / det / l11
+    l22 = np.sqrt(1.0 / c)
+    vals = np.concatenate(
+        [
+            Jc[m] * (wm * (jx * l11[cid] + jy * l21[cid]))[:, None],
+            Jc[m] * (wm * jy * l22[cid])[:, None],
+        ]
+    ).ravel()
+    rows = np.tile(S.cols[m].ravel(), 2)
+    cols = np.repeat(np.r_[cid, cid + nc], L)
+    G = sp.csr_matrix((vals, (rows, cols)), (n + 1, 2 * nc))
+    return A_red - (G @ G.T).toarray()[:n, :n], nc
+
+
 def gauge_cofactor(S: Setup, A_red: np.ndarray) -> np.ndarray:
     """(n_red, n_red) cofactor matrix of the gauge-constrained solution: the
     camera block of the inverse of ``[[A_red, A^T], [A, 0]]`` (the datum is

@@ -133,6 +133,12 @@ class BundleOptions:
     #: whitened 2-vector: a VP on a wrong pencil (degrees off) loses its pull.
     #: ``math.inf``: no robust loss (plain least squares).
     vp_loss_scale: float = 3.0
+    #: The map's vertex error (m, each axis) as two unknowns per map corner
+    #: in the precision (the solve keeps the corners fixed): every row of a
+    #: corner, in every image, shares its error, which independent rows
+    #: would count as averaging out. None: the corners known exactly (with
+    #: ``corner_heights="fixed"`` only).
+    map_corner_sigma_m: float | None = None
     #: With ``vp_observations``: the VP rows enter the fit. False: they are
     #: only evaluated against the fit without them (``BundleResult.vp_loo``,
     #: ``vp_test``: their factor and tests before they get any weight).
@@ -189,6 +195,8 @@ class BundleOptions:
             raise ValueError("principal_point_prior_sigma must be > 0 or None")
         if self.horizontal_offset_sigma_m <= 0:
             raise ValueError("horizontal_offset_sigma_m must be > 0")
+        if self.map_corner_sigma_m is not None and not self.map_corner_sigma_m > 0:
+            raise ValueError("map_corner_sigma_m must be > 0 or None")
         if not (self.vp_sigma_scale > 0 and np.isfinite(self.vp_sigma_scale)):
             raise ValueError("vp_sigma_scale must be a finite number > 0")
         if not (self.vp_loss_scale > 0):

@@ -544,6 +544,12 @@ def _observation_groups(
         offsets = heights & np.any(S.offset_dir != 0, axis=1)
         private = len(np.unique(S.hidx[heights])) + len(np.unique(S.hidx[offsets]))
         wss, rows = float(np.sum(wm * r * r)), int(m.sum())
+        if name == "map corners" and opts.map_corner_sigma_m is not None:
+            # two unknowns per corner with their two prior rows (at zero)
+            normal, nc = covariance.eliminate_corner_offsets(
+                S, normal, Jc, wm, 1.0 / opts.map_corner_sigma_m**2
+            )
+            private, rows = private + 2 * nc, rows + 2 * nc
         if heights.any() and prior_w:  # the corner heights' prior rows
             dh = (st.heights - heights0)[prior_mask]
             wss, rows = wss + prior_w * float(dh @ dh), rows + int(prior_mask.sum())

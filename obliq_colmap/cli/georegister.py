@@ -87,6 +87,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "priors' camera heights hold the block's datum (default 1)",
     )  # fmt: skip
     parser.add_argument(
+        "--block_adjustment_map_vertex_sigma", type=float, default=0.15, metavar="M",
+        help="the map's vertex accuracy (m, each axis): the block's covariance "
+        "counts each corner's error as shared by all its rows; 0: the corners "
+        "known exactly (default 0.15)",
+    )  # fmt: skip
+    parser.add_argument(
         "--block_adjustment_facade_rows", type=int, choices=(0, 1), default=1,
         help="with the map rows, the map's facade edges (horizontal edges on the "
         "registered walls, matched across the images into tracks of one height) "
@@ -144,6 +150,7 @@ def options_from_args(args: argparse.Namespace) -> GeoregisterOptions:
             solver=args.block_adjustment_solver,
             map_rows=bool(args.block_adjustment_map_rows),
             facade_rows=bool(args.block_adjustment_facade_rows),
+            map_vertex_sigma_m=args.block_adjustment_map_vertex_sigma or None,
             map_measured_directions=args.block_adjustment_map_directions == "measured",
             map_sigma_px=args.block_adjustment_map_sigma_px,
             refine_principal_point=bool(args.block_adjustment_refine_principal_point),

@@ -81,6 +81,11 @@ class BlockAdjustmentOptions:
     #: rows farther than this from their lines before the adjustment are
     #: left out (px)
     map_gate_px: float = 5.0
+    #: the map's stated vertex accuracy (m, each axis): in the adjustment's
+    #: precision every map corner's offset is an unknown with this sd, which
+    #: all its rows share (the solve keeps the corners); None: the corners
+    #: known exactly
+    map_vertex_sigma_m: float | None = 0.15
     #: with the map rows, the map's facade edges (horizontal edges on the
     #: walls stage 2 registered, matched across the images into tracks of
     #: one height each, :mod:`.facade_rows`) as rows too (obliq solver)
@@ -103,6 +108,8 @@ class BlockAdjustmentOptions:
             and self.map_gate_px > 0
         ):
             raise ValueError("map_sigma_px and map_gate_px must be > 0")
+        if self.map_vertex_sigma_m is not None and not self.map_vertex_sigma_m > 0:
+            raise ValueError("map_vertex_sigma_m must be > 0 or None")
         if self.prior_center_sigma_m is not None and not self.prior_center_sigma_m > 0:
             raise ValueError("prior_center_sigma_m must be > 0 or None")
         if self.solver not in BLOCK_SOLVERS:

@@ -90,6 +90,7 @@ def bundle_options(
         max_iterations=options.max_num_iterations,
         function_tolerance=options.function_tolerance,
         compute_precision=options.covariance,
+        map_corner_sigma_m=options.map_vertex_sigma_m,
     )
 
 
