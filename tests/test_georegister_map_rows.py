@@ -547,25 +547,23 @@ def test_facade_rows_match_the_floor_lines_across_images(tmp_path):
     assert len(kept) < len(rows)  # the one far row is gone
 
 
-@pytest.mark.parametrize("facades", [True, False])
-def test_facade_rows_leave_the_block_where_the_map_rows_put_it(tmp_path, facades):
-    """The moved block of the map rows' test, adjusted with the facade rows
-    too: it comes back to the truth as closely as with the map rows alone
-    (the rows measure heights the tracks' own unknowns absorb, and the
-    walls' directions), and the tracks' heights to the floors'."""
+def test_facade_rows_leave_the_block_where_the_map_rows_put_it(tmp_path):
+    """The moved block of the map rows' test (which the map rows alone bring
+    back within 5 cm: ``test_map_rows_hold_a_block_without_control_points``),
+    adjusted with the facade rows too, their track heights free: it comes
+    back as closely, so the rows are consistent with the block they were
+    matched on (a wrong anchor, height datum or raw line would pull it)."""
     rec, truth, poses, rows, priors = _perturbed()
     # _perturbed's scene: the same draw, the true block (the images, and
     # so their floor lines, do not move with the block)
     true_rec, corners, _, _ = _scene(np.random.default_rng(3))
     cad = _map(tmp_path, corners)
     segments = _floor_lines(true_rec, corners, np.random.default_rng(11))
-    planes = {i: np.zeros(3) for i in segments}
-    if facades:
-        rows.facades = facade_rows(rec, segments, planes, cad)
-        assert len(rows.facades) > 100
+    rows.facades = facade_rows(rec, segments, {i: np.zeros(3) for i in segments}, cad)
+    assert len(rows.facades) > 100
     summary = adjust_block(rec, {}, _verticals(poses), BlockAdjustmentOptions(
         prior_center_sigma_m=PRIOR_SD_M), rows, priors)  # fmt: skip
-    assert (summary.num_facade_rows > 0) is facades
+    assert summary.num_facade_rows > 100
     err = _centres(rec) - truth
     assert np.abs(err[:, :2]).max() < 0.05, err
     assert np.abs(err[:, 2] - err[:, 2].mean()).max() < 0.05, err

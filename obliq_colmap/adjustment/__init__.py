@@ -54,6 +54,7 @@ from obliq_colmap.adjustment.problem import (
     build_bundle_problem,
     facade_stage,
     heights_on_vertical,
+    raw_lines,
     vertical_constraints,
 )
 from obliq_colmap.adjustment.rounds import (
@@ -62,6 +63,7 @@ from obliq_colmap.adjustment.rounds import (
     vp_components,
     with_track_lines,
     with_variance_components,
+    within_robust_bound,
     without_outliers,
 )
 from obliq_colmap.adjustment.tie_options import TiePointOptions
@@ -109,9 +111,11 @@ __all__ = [
     "rejected_images",
     "tie_points",
     "triangulate_tracks",
+    "raw_lines",
     "vertical_constraints",
     "with_track_lines",
     "vp_components",
     "with_variance_components",
+    "within_robust_bound",
     "without_outliers",
 ]

@@ -179,7 +179,7 @@ def _in_camera(prior: Camera, camera: Camera, segments: np.ndarray) -> np.ndarra
     return camera.undistort_pixels(raw).reshape(segments.shape)
 
 
-def _raw_lines(camera: Camera, segments_undistorted: np.ndarray) -> np.ndarray:
+def raw_lines(camera: Camera, segments_undistorted: np.ndarray) -> np.ndarray:
     """(N, 3) unit lines through segments' endpoints in RAW (distorted) pixels."""
     ends = camera.distort_pixels(segments_undistorted.reshape(-1, 2)).reshape(-1, 2, 2)
     return lines_through(ends[:, 0], ends[:, 1])
@@ -259,7 +259,7 @@ def vertical_constraints(
         parts["xy"].append(xy)
         parts["height"].append(h)
         parts["image"].append(np.full(len(xy), k))
-        parts["line"].append(np.repeat(_raw_lines(prior_cam, ends), 2, axis=0))
+        parts["line"].append(np.repeat(raw_lines(prior_cam, ends), 2, axis=0))
         parts["corner"].append(np.repeat(c, 2))
     if not parts["xy"]:
         return dict(

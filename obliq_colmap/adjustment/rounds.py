@@ -646,7 +646,7 @@ def without_outliers(
     """
 
     def keep(r: np.ndarray, floor: np.ndarray | float) -> np.ndarray:
-        return np.abs(r) <= np.maximum(factor * _robust_sigma(r, 0.0), floor)
+        return within_robust_bound(r, factor, floor)
 
     rh = result.horizontal_residuals_px
     scale = 1.0 if horizontal_pixel_scale is None else horizontal_pixel_scale
@@ -704,6 +704,15 @@ def without_outliers(
         len(p.tie_image),
     )
     return reduced, kv, kh
+
+
+def within_robust_bound(
+    r: np.ndarray, factor: float, floor_px: np.ndarray | float
+) -> np.ndarray:
+    """(N,) bool: the residuals ``r`` (px) within ``factor`` robust standard
+    deviations (1.4826 MAD) of all of them and ``floor_px`` (a number or
+    (N,)): the outlier rounds' test (:func:`without_outliers`)."""
+    return np.abs(r) <= np.maximum(factor * _robust_sigma(r, 0.0), floor_px)
 
 
 def _solved_lines(result: BundleResult) -> dict[str, np.ndarray]:

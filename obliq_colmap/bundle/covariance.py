@@ -70,8 +70,9 @@ def eliminate_corner_offsets(
     S: Setup, A_red: np.ndarray, Jc: np.ndarray, w: np.ndarray, prior_w: float
 ) -> tuple[np.ndarray, int]:
     """``A_red`` with each map corner's horizontal offset eliminated: two
-    unknowns per corner (``S.corner``) that all its rows share, prior weight
-    ``prior_w`` (1 / the map's vertex sd squared), one 2 x 2 block each
+    unknowns per corner (its rows, in every image, are the vertical rows at
+    its position ``S.xy``) that all its rows share, prior weight ``prior_w``
+    (1 / the map's vertex sd squared), one 2 x 2 block each
     (:func:`eliminate_heights`' factorisation). Returns the matrix and the
     number of corners.
 
@@ -79,12 +80,13 @@ def eliminate_corner_offsets(
     corner's offset moves the row as the opposite move of the camera);
     w : (N,) weights (zero: a row not in the matrix).
     """
-    m = (w > 0) & (S.corner >= 0)
+    m = (w > 0) & (S.kind == 0)
     if not m.any():
         return A_red, 0
     n, L = S.n_red, S.L
-    ids, cid = np.unique(S.corner[m], return_inverse=True)
-    nc = len(ids)
+    _, cid = np.unique(np.round(S.xy[m], 4), axis=0, return_inverse=True)
+    cid = cid.ravel()
+    nc = int(cid.max()) + 1
     wm = w[m]
     jx, jy = -Jc[m, 3], -Jc[m, 4]
     a = np.bincount(cid, wm * jx * jx, nc) + prior_w

@@ -84,12 +84,6 @@ class Setup:
             [nJ + P.vertical_corner if free else np.full(nv, -1), h_height]
         )
         zfix = np.concatenate([P.corner_heights[P.vertical_corner], np.zeros(nh)])
-        # One id per map corner (its rows in every image), -1 for facade rows.
-        corner = np.full(nv + nh, -1, np.int64)
-        if nv:
-            corner[:nv] = np.unique(
-                np.round(P.corner_xy[P.vertical_corner], 4), axis=0, return_inverse=True
-            )[1].ravel()
         offset = np.zeros((nv + nh, 2))
         if P.horizontal_offset_normal is not None and nh:
             offset[nv:] = P.horizontal_offset_normal
@@ -107,7 +101,6 @@ class Setup:
         self.img, self.kind, self.xy = img[order], kind[order], xy[order]
         self.line, self.hidx, self.zfix = line[order], hidx[order], zfix[order]
         self.offset_dir = offset[order]  # (N, 2), zero: no offset unknown
-        self.corner = corner[order]  # (N,) map corner id, -1: a facade row
         self.cam = self.img_cam[self.img]
         self.n_heights = nJ + (len(P.corner_xy) if free else 0)
         self.has_h = self.hidx >= 0

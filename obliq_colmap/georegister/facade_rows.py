@@ -26,8 +26,10 @@ from obliq_colmap.adjustment import (
     MatchingOptions,
     facade_edges,
     match_facade_edges,
+    raw_lines,
+    within_robust_bound,
 )
-from obliq_colmap.geometry import Camera, Pose, lines_through
+from obliq_colmap.geometry import Camera, Pose
 
 logger = logging.getLogger(__name__)
 
@@ -97,12 +99,12 @@ def outlier_free(
 ) -> FacadeRows:
     """``rows`` without the observations whose residual (px, (H,), in the
     rows' order) exceeds ``factor`` robust sds of all of them (and
-    ``floor_px``): ``register``'s outlier rounds (``AdjustmentOptions.
-    outlier_factor``, ``outlier_floor_px``) once; wrong matches of one
-    facade's repeated floor lines sit a floor off."""
-    r = np.abs(np.asarray(residuals_px, float))
-    sd = 1.4826 * float(np.median(r)) if len(r) else 0.0
-    return rows.subset(r <= max(factor * sd, floor_px), heights)
+    ``floor_px``): ``register``'s outlier test
+    (:func:`~obliq_colmap.adjustment.within_robust_bound`) once; wrong
+    matches of one facade's repeated floor lines sit a floor off. The
+    tracks' ``heights`` (J,) e.g. the solve's."""
+    keep = within_robust_bound(np.asarray(residuals_px, float), factor, floor_px)
+    return rows.subset(keep, heights)
 
 
 def empty_facade_rows() -> FacadeRows:
@@ -169,9 +171,7 @@ def facade_rows(
         sel = np.flatnonzero(tracks.image == k)
         if len(sel) == 0:
             continue
-        und = edges[k].endpoints[tracks.row[sel]]
-        raw = camera.distort_pixels(und.reshape(-1, 2)).reshape(-1, 2, 2)
-        lines[sel] = lines_through(raw[:, 0], raw[:, 1])
+        lines[sel] = raw_lines(camera, edges[k].endpoints[tracks.row[sel]])
     rows = FacadeRows(
         np.asarray(ids, np.int64)[tracks.image],
         tracks.track.astype(np.int64),
