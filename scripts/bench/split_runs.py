@@ -272,6 +272,12 @@ def run_once(scene: Path, seed: int, args) -> dict:
         "max_px": full.deviation_max_px,
         "across_median_px": across.deviation_median_px,
         "camera_offset_median_px": cameras.deviation_median_px,
+        # issue 26: no written image with a rotation error above 0.1 deg.
+        "rotation_deg": {
+            e.name: e.rotation_error_deg
+            for e in evaluations[0].images
+            if e.name in name_to_id
+        },
         "reregistered": again,
         "written_over_5px": wrong,
         "left_out": sorted(outcomes[i].name for i in registered - set(state.poses)),
