@@ -50,9 +50,11 @@ from .block import (
     BlockAdjustmentSummary,
     BlockUncertainty,
     VerticalRow,
+    facade_outlier_round,
+    facade_row_weighting,
     map_row_weighting,
 )
-from .facade_rows import empty_facade_rows, outlier_free
+from .facade_rows import empty_facade_rows
 from .map_rows import MapRows, empty_map_rows
 
 logger = logging.getLogger(__name__)
@@ -68,6 +70,7 @@ def bundle_options(
     map rows where given; the priors' centres or the mean camera height as
     the vertical datum where asked)."""
     map_sigma, map_scale = map_row_weighting(options)
+    facade_sigma, _ = facade_row_weighting(options)  # at the map rows' scale
     return BundleOptions(
         loss="cauchy",
         loss_scale_px=map_scale,  # the map rows' (the tracks have their own)
@@ -80,6 +83,7 @@ def bundle_options(
         gauge="component_mean_camera_height" if hold_mean_height else "none",
         corner_heights="fixed",
         vertical_sigma_px=map_sigma,
+        horizontal_sigma_px=facade_sigma,
         position_prior_sigma_m=(
             options.prior_center_sigma_m if prior_centers else None
         ),
@@ -216,20 +220,17 @@ def adjust_block_bundle(
     if len(problem.facade_heights):
         # one outlier round on the facade rows (register's rounds, once),
         # then the adjustment again from the solved block
-        image_ids = list(problem.image_ids)
-        solved = map_rows.facades.select(image_ids)
-        kept = outlier_free(
-            solved, result.horizontal_residuals_px, result.facade_heights
+        kept = facade_outlier_round(
+            map_rows,
+            problem.image_ids,
+            result.horizontal_residuals_px,
+            result.facade_heights,
         )
-        logger.info(
-            "facade rows: %d of %d kept after the first solve",
-            len(kept), len(solved),
-        )  # fmt: skip
         problem, point_ids = block_problem(
             rec,
             control_point_ids,
             verticals,
-            dataclasses.replace(map_rows, facades=kept),
+            kept,
             prior_centers if use_priors else None,
         )
         iterations = result.summary.num_iterations
