@@ -232,14 +232,30 @@ def test_measured_directions_take_each_segments_own_fit():
     assert np.array_equal(image_pairs(im, result, True).segments, through[[3, 1]])
 
 
-def _adjusted_both(control: bool, **options):
+def _with_facades(tmp_path):
+    """:func:`_perturbed` with the facade rows of its floor lines (as
+    ``test_facade_rows_leave_the_block_where_the_map_rows_put_it``)."""
+    rec, truth, poses, rows, priors = _perturbed()
+    # _perturbed's scene: the same draw, the true block
+    true_rec, corners, _, _ = _scene(np.random.default_rng(3))
+    cad = _map(tmp_path, corners)
+    segments = _floor_lines(true_rec, corners, np.random.default_rng(11))
+    rows.facades = facade_rows(rec, segments, {i: np.zeros(3) for i in segments}, cad)
+    return rec, truth, poses, rows, priors
+
+
+def _adjusted_both(control: bool, facades_in=None, **options):
     """The moved block adjusted by each solver on the same problem (map rows,
     VPs; with ``control`` two tie points observed at 1 cm as control
-    points, else the mean camera height held), both to a relative cost
+    points, else the mean camera height held; with ``facades_in`` (a
+    folder for the map) the facade rows too), both to a relative cost
     change of 1e-12. Returns {solver: (rec, summary)} and the truth."""
     out = {}
     for solver in ("obliq", "ceres"):
-        rec, truth, poses, rows, _ = _perturbed()
+        if facades_in is None:
+            rec, truth, poses, rows, _ = _perturbed()
+        else:
+            rec, truth, poses, rows, _ = _with_facades(facades_in)
         ctrl = {}
         if control:
             ids = sorted(rec.point3D_ids())
@@ -254,8 +270,11 @@ def _adjusted_both(control: bool, **options):
     return out, truth
 
 
+@pytest.mark.parametrize("facades", [False, True])
 @pytest.mark.parametrize("control, focal", [(False, True), (True, False)])
-def test_ceres_with_the_map_rows_reaches_the_same_optimum(control, focal):
+def test_ceres_with_the_map_rows_reaches_the_same_optimum(
+    control, focal, facades, tmp_path
+):
     """The map rows in Ceres (a pyceres cost per image, the Cauchy loss
     inside) and in the project's bundle: the same start cost (the same
     problem), the same final cost and the same cameras and lens, to far
@@ -263,11 +282,19 @@ def test_ceres_with_the_map_rows_reaches_the_same_optimum(control, focal):
     mean camera height held: a hard constraint in the bundle, a stiff row
     in Ceres, the focal refined; and with control points instead, the focal
     held: with it refined, fy and cy wander off along a weak mode of this
-    8-image block and neither solver converges in 100 iterations)."""
+    8-image block and neither solver converges in 100 iterations). With
+    the facade rows too (their tracks' heights unknowns, a first solve, one
+    outlier round, a second solve): the same rows kept and the same
+    optimum."""
     pytest.importorskip("pyceres", reason="the Ceres check needs pyceres")
-    out, truth = _adjusted_both(control, refine_focal_length=focal)
+    out, truth = _adjusted_both(
+        control, tmp_path if facades else None, refine_focal_length=focal
+    )
     (rec_o, s_o), (rec_c, s_c) = out["obliq"], out["ceres"]
     assert s_o.num_map_rows == s_c.num_map_rows > 400
+    assert s_o.num_facade_rows == s_c.num_facade_rows
+    assert s_o.num_facade_tracks == s_c.num_facade_tracks
+    assert (s_c.num_facade_rows > 100) == facades
     assert s_o.initial_cost == pytest.approx(s_c.initial_cost, rel=1e-9)
     assert s_o.final_cost < 0.5 * s_o.initial_cost
     assert s_o.final_cost == pytest.approx(s_c.final_cost, rel=1e-8)
@@ -333,6 +360,105 @@ def test_the_map_line_cost_jacobians_match_finite_differences():
         assert np.allclose(J_par[:, k], num, rtol=1e-4, atol=1e-8)
     # the cost is the bundle's: 1/2 rho(r^2) / sigma^2 with Cauchy at 2 px
     raw = cost.raw_residuals(pose, params)
+    assert np.allclose(r0**2, 4.0 * np.log1p(raw**2 / 4.0) / 1.5**2)
+
+
+def _tangent_steps(pose: np.ndarray, eps: float) -> list[tuple[np.ndarray, ...]]:
+    """Per rotation axis the pose block turned by +-eps about it (the unit
+    quaternion's tangent: ``q <- Exp(+-eps e_k) q``)."""
+    q = pycolmap.Rotation3d(pose[:4])
+    out = []
+    for k in range(3):
+        e = np.zeros(3)
+        e[k] = eps
+        pair = []
+        for s in (1, -1):
+            p = pose.copy()
+            p[:4] = (pycolmap.Rotation3d(s * e) * q).quat
+            pair.append(p)
+        out.append(tuple(pair))
+    return out
+
+
+@pytest.mark.parametrize("model", ["PINHOLE", "OPENCV"])
+def test_the_facade_cost_jacobians_match_finite_differences(tmp_path, model):
+    """:class:`FacadeRowsCost`' Jacobians (pose block along the quaternion's
+    tangent and the translation, the camera's parameters, each track's
+    height) against central differences of its own residuals, rows well
+    inside and far out on the Cauchy loss, a pinhole camera and one with
+    radial and tangential distortion (the rows' lines the pinhole's:
+    residuals of some px); its raw rows are the bundle's
+    ``dist_z`` (:func:`~obliq_colmap.bundle.residuals.horizontal_residuals`)
+    and its cost the bundle's."""
+    pytest.importorskip("pyceres", reason="the Ceres check needs pyceres")
+    from obliq_colmap.bundle.residuals import horizontal_residuals
+    from obliq_colmap.georegister.block_ceres import FacadeRowsCost
+
+    rec, _, _, rows, _ = _with_facades(tmp_path)
+    fac = rows.facades
+    image = rec.images[int(fac.image_id[0])]
+    sel = np.flatnonzero(fac.image_id == image.image_id)
+    tracks, local = np.unique(fac.track[sel], return_inverse=True)
+    assert len(sel) > 10 and len(tracks) > 3
+    line = fac.line[sel].copy()
+    line[::5, 2] += 6.0 * np.hypot(line[::5, 0], line[::5, 1])  # 6 px off
+    params = np.array(image.camera.params, float)
+    if model == "OPENCV":
+        params = np.r_[params, 0.03, -0.01, 1e-3, -5e-4]
+    P = len(params)
+    cost = FacadeRowsCost(
+        fac.anchor_xy[fac.track[sel]], local, line, model, P, 1.5, 2.0
+    )
+    pose = np.array(rec.frame(image.frame_id).rig_from_world.params, float)
+    heights = fac.height[tracks] + 0.3  # off the start too
+    n, T = cost.num_residuals(), len(tracks)
+
+    def evaluate(pose, params, heights, jac=False):
+        r = np.empty(n)
+        J = None
+        if jac:
+            J = [np.empty(n * 7), np.empty(n * P)] + [np.empty(n) for _ in range(T)]
+        blocks = [pose, params] + [np.array([h]) for h in heights]
+        assert cost.Evaluate(blocks, r, J)
+        if not jac:
+            return r
+        return r, J[0].reshape(n, 7), J[1].reshape(n, P), np.stack(J[2:], axis=1)
+
+    r0, J_pose, J_par, J_h = evaluate(pose, params, heights, jac=True)
+    for p1, p2 in _tangent_steps(pose, 1e-6):
+        num = (evaluate(p1, params, heights) - evaluate(p2, params, heights)) / 2e-6
+        ana = J_pose[:, :4] @ ((p1 - p2)[:4] / 2e-6)
+        assert np.allclose(ana, num, rtol=1e-5, atol=1e-6 * np.abs(num).max())
+    for k in range(3):  # translation
+        p1, p2 = pose.copy(), pose.copy()
+        p1[4 + k] += 1e-5
+        p2[4 + k] -= 1e-5
+        num = (evaluate(p1, params, heights) - evaluate(p2, params, heights)) / 2e-5
+        assert np.allclose(J_pose[:, 4 + k], num, rtol=1e-5, atol=1e-8)
+    for k in range(P):
+        h = 1e-5 * max(1.0, abs(params[k])) if k < 4 else 1e-7
+        a, b = params.copy(), params.copy()
+        a[k] += h
+        b[k] -= h
+        num = (evaluate(pose, a, heights) - evaluate(pose, b, heights)) / (2 * h)
+        assert np.allclose(J_par[:, k], num, rtol=1e-4, atol=1e-6 * np.abs(num).max())
+    for k in range(T):
+        a, b = heights.copy(), heights.copy()
+        a[k] += 1e-6
+        b[k] -= 1e-6
+        num = (evaluate(pose, params, a) - evaluate(pose, params, b)) / 2e-6
+        assert np.allclose(J_h[:, k], num, rtol=1e-5, atol=1e-8)
+        assert np.all(J_h[local != k, k] == 0) and np.any(J_h[local == k, k] != 0)
+    # its rows are the bundle's, its cost 1/2 rho(r^2) / sigma^2 with Cauchy
+    # at 2 px
+    raw = cost.raw_residuals(pose, params, heights)
+    R = pycolmap.Rotation3d(pose[:4]).matrix()
+    X = np.c_[fac.anchor_xy[fac.track[sel]], heights[local]]
+    bundle = horizontal_residuals(
+        model, params, np.repeat(R[None], n, 0),
+        np.repeat((-R.T @ pose[4:])[None], n, 0), X, line, jacobians=False,
+    ).residuals  # fmt: skip
+    assert np.allclose(raw, bundle, rtol=0, atol=1e-9) and np.abs(raw).max() > 5.0
     assert np.allclose(r0**2, 4.0 * np.log1p(raw**2 / 4.0) / 1.5**2)
 
 

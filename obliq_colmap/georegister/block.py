@@ -21,7 +21,8 @@ Two solvers of the same problem (``BlockAdjustmentOptions.solver``):
 tie points eliminated by their 3x3 blocks, the control points' coordinates
 as rows on those blocks; :mod:`.block_bundle`), the default; "ceres",
 pycolmap's Ceres adjuster with pyceres cost functions for the priors, the
-VPs, the map rows and the automatic mode's gauge (:mod:`.block_ceres`),
+VPs, the map rows, the facade rows and the automatic mode's gauge
+(:mod:`.block_ceres`),
 kept as the check. The obliq solver also returns each camera's pose
 covariance (:class:`BlockUncertainty`).
 """
@@ -38,6 +39,7 @@ from typing import Any
 import numpy as np
 import pycolmap
 
+from .facade_rows import outlier_free
 from .map_rows import MapRows
 
 logger = logging.getLogger(__name__)
@@ -88,7 +90,7 @@ class BlockAdjustmentOptions:
     map_vertex_sigma_m: float | None = 0.15
     #: with the map rows, the map's facade edges (horizontal edges on the
     #: walls stage 2 registered, matched across the images into tracks of
-    #: one height each, :mod:`.facade_rows`) as rows too (obliq solver)
+    #: one height each, :mod:`.facade_rows`) as rows too (both solvers)
     facade_rows: bool = True
     #: the vertical datum where no control point holds it (the automatic
     #: mode): None, the block's mean camera height held where the automatic
@@ -125,6 +127,32 @@ def map_row_weighting(options: BlockAdjustmentOptions) -> tuple[float, float]:
     camera's rows at 6 px would all sit far out on a 1 px Cauchy)."""
     sigma = 1.0 if options.map_sigma_px is None else float(options.map_sigma_px)
     return sigma, max(float(options.loss_scale_px), sigma)
+
+
+def facade_row_weighting(options: BlockAdjustmentOptions) -> tuple[float, float]:
+    """The facade rows' a priori sd and their Cauchy scale (px), the same in
+    both solvers: 1 px (their segments' noise; the bundle's
+    ``horizontal_sigma_px``) and the map rows' scale."""
+    return 1.0, map_row_weighting(options)[1]
+
+
+def facade_outlier_round(
+    map_rows: MapRows,
+    image_ids,
+    residuals_px: np.ndarray,
+    heights: np.ndarray,
+) -> MapRows:
+    """``map_rows`` with its facade rows after one outlier round (both
+    solvers, between their two solves): the rows of ``image_ids`` (as
+    ``FacadeRows.select`` orders them, the order the solve had them in)
+    without those :func:`.facade_rows.outlier_free` finds at the solve's
+    (H,) residuals (px) and (J,) track heights."""
+    solved = map_rows.facades.select(image_ids)
+    kept = outlier_free(solved, residuals_px, heights)
+    logger.info(
+        "facade rows: %d of %d kept after the first solve", len(kept), len(solved)
+    )
+    return dataclasses.replace(map_rows, facades=kept)
 
 
 @dataclass
@@ -252,15 +280,6 @@ def adjust_block(
             )
         from .block_ceres import adjust_block_ceres
 
-        if (
-            map_rows is not None
-            and map_rows.facades is not None
-            and len(map_rows.facades)
-        ):
-            logger.warning(
-                "block adjustment (ceres): the facade rows are the obliq "
-                "solver's only; left out"
-            )
         # the obliq solver's gauge without control points (block_bundle)
         hold = not control_point_ids
         summary = adjust_block_ceres(

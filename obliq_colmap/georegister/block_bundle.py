@@ -50,12 +50,18 @@ from .block import (
     BlockAdjustmentSummary,
     BlockUncertainty,
     VerticalRow,
+    facade_outlier_round,
+    facade_row_weighting,
     map_row_weighting,
 )
-from .facade_rows import empty_facade_rows, outlier_free
+from .facade_rows import empty_facade_rows
 from .map_rows import MapRows, empty_map_rows
 
 logger = logging.getLogger(__name__)
+
+#: Gauss-Newton steps on the facade tracks' heights alone (the cameras
+#: held) before the joint solve (``BundleOptions.height_initialisation_steps``)
+FACADE_HEIGHT_STEPS = 3
 
 
 def bundle_options(
@@ -68,6 +74,7 @@ def bundle_options(
     map rows where given; the priors' centres or the mean camera height as
     the vertical datum where asked)."""
     map_sigma, map_scale = map_row_weighting(options)
+    facade_sigma, _ = facade_row_weighting(options)  # at the map rows' scale
     return BundleOptions(
         loss="cauchy",
         loss_scale_px=map_scale,  # the map rows' (the tracks have their own)
@@ -80,6 +87,7 @@ def bundle_options(
         gauge="component_mean_camera_height" if hold_mean_height else "none",
         corner_heights="fixed",
         vertical_sigma_px=map_sigma,
+        horizontal_sigma_px=facade_sigma,
         position_prior_sigma_m=(
             options.prior_center_sigma_m if prior_centers else None
         ),
@@ -184,6 +192,34 @@ def block_problem(
     return problem, point_ids
 
 
+def initial_facade_heights(
+    rec: pycolmap.Reconstruction,
+    control_point_ids: dict[int, tuple[np.ndarray, np.ndarray]],
+    verticals: dict[int, VerticalRow],
+    options: BlockAdjustmentOptions,
+    map_rows: MapRows,
+) -> MapRows:
+    """``map_rows`` with its facade rows those of rec's registered images
+    (``FacadeRows.select``) and their tracks' heights fitted to the block
+    with the cameras held: the start of the obliq solver's first solve
+    (its ``FACADE_HEIGHT_STEPS`` height steps, the bundle's own, run with
+    no joint iteration), for the Ceres solver to start from the same
+    heights. The Cauchy loss makes the start matter: from the images' own
+    grounds Ceres' joint steps left tracks matched a floor off in another
+    minimum (paper block, automatic: 7987.6 against 7975.8)."""
+    problem, _ = block_problem(rec, control_point_ids, verticals, map_rows)
+    bopts = dataclasses.replace(
+        bundle_options(options),
+        height_initialisation_steps=FACADE_HEIGHT_STEPS,
+        max_iterations=0,
+        compute_precision=False,
+    )
+    result = solve_bundle(problem, bopts)
+    facades = map_rows.facades.select(problem.image_ids)
+    facades.height = np.array(result.facade_heights, float)
+    return dataclasses.replace(map_rows, facades=facades)
+
+
 def adjust_block_bundle(
     rec: pycolmap.Reconstruction,
     control_point_ids: dict[int, tuple[np.ndarray, np.ndarray]],
@@ -209,27 +245,26 @@ def adjust_block_bundle(
     if len(problem.facade_heights):
         # the tracks' heights come from the images' own grounds: fitted to
         # the block with the cameras held before the joint solve
-        bopts = dataclasses.replace(bopts, height_initialisation_steps=3)
+        bopts = dataclasses.replace(
+            bopts, height_initialisation_steps=FACADE_HEIGHT_STEPS
+        )
     result = solve_bundle(problem, bopts)
     _write_back(rec, result, point_ids)
     initial_cost, iterations = result.summary.initial_cost, 0
     if len(problem.facade_heights):
         # one outlier round on the facade rows (register's rounds, once),
         # then the adjustment again from the solved block
-        image_ids = list(problem.image_ids)
-        solved = map_rows.facades.select(image_ids)
-        kept = outlier_free(
-            solved, result.horizontal_residuals_px, result.facade_heights
+        kept = facade_outlier_round(
+            map_rows,
+            problem.image_ids,
+            result.horizontal_residuals_px,
+            result.facade_heights,
         )
-        logger.info(
-            "facade rows: %d of %d kept after the first solve",
-            len(kept), len(solved),
-        )  # fmt: skip
         problem, point_ids = block_problem(
             rec,
             control_point_ids,
             verticals,
-            dataclasses.replace(map_rows, facades=kept),
+            kept,
             prior_centers if use_priors else None,
         )
         iterations = result.summary.num_iterations

@@ -5,20 +5,24 @@ pycolmap's Ceres bundle adjuster on the model itself (the SfM tracks, C++
 reprojection costs through its camera models, Cauchy loss), plus the rows
 it lacks as pyceres Python cost functions: a prior on each control point's
 coordinates, each image's vertical VP, the map's corner-to-line rows (one
-block per image, :class:`MapLineRows`) and, without control points, the
-block's mean camera height held (:class:`MeanCameraHeight`, the project's
-gauge as a stiff row). ``pyceres.solve`` releases the GIL. The priors'
-centres (``prior_center_sigma_m``) are the obliq solver's only.
+block per image, :class:`MapLineRows`), the facade rows (one block per
+image, :class:`FacadeRowsCost`, on one height block per facade track; two
+solves around the obliq solver's outlier round) and, without control
+points, the block's mean camera height held (:class:`MeanCameraHeight`,
+the project's gauge as a stiff row). ``pyceres.solve`` releases the GIL.
+The priors' centres (``prior_center_sigma_m``) are the obliq solver's only.
 """
 
 from __future__ import annotations
 
 import logging
+from dataclasses import dataclass
 
 import numpy as np
 import pyceres
 import pycolmap
 
+from obliq_colmap.bundle.residuals import horizontal_residuals
 from obliq_colmap.geometry import (
     calibration_matrix,
     rotation_from_quat_xyzw,
@@ -30,8 +34,11 @@ from .block import (
     BlockAdjustmentOptions,
     BlockAdjustmentSummary,
     VerticalRow,
+    facade_outlier_round,
+    facade_row_weighting,
     map_row_weighting,
 )
+from .facade_rows import FacadeRows
 from .map_rows import MapRows
 
 logger = logging.getLogger(__name__)
@@ -142,21 +149,34 @@ def _line_jacobian_by_point(
     return out
 
 
+def robust_rows(
+    r: np.ndarray, scale_px: float, sigma_px: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """Raw rows ``r`` (px) to residuals whose squares are the bundle's cost
+    of each, ``rho(r^2) / sigma^2`` with Cauchy's ``rho`` at ``scale_px``:
+    ``sign(r) sqrt(rho(r^2)) / sigma``, and their derivatives by ``r``
+    (``rho'(r^2) r / s``, 1 / sigma at r = 0). The robust loss inside the
+    residual rather than a Ceres loss function, which acts on the norm of
+    a whole residual block: one block per image keeps the Python callbacks
+    to a few dozen per evaluation (one block per row: thousands). The
+    cost, hence the optimum, is the bundle's; Ceres' Gauss-Newton model of
+    it differs (no Triggs correction)."""
+    b = float(scale_px) ** 2
+    r2 = r * r
+    s = np.sign(r) * np.sqrt(b * np.log1p(r2 / b))
+    small = np.abs(r) < 1e-9
+    f = np.where(small, 1.0, r / np.where(small, 1.0, s)) / (1.0 + r2 / b)
+    return s / sigma_px, f / sigma_px
+
+
 class MapLineRows(pyceres.CostFunction):
     """The map's corner-to-line rows of ONE image (:mod:`.map_rows`), as the
     project's bundle has them: each row ``r = n . pi(R X + t) + c`` (px, the
     fixed point ``X`` on the corner's vertical projected through the
     camera's model against the segment's unit line ``(n, c)``), its cost
-    ``1/2 rho(r^2) / sigma^2`` with Cauchy's ``rho`` at ``scale`` px.
-
-    The robust loss is applied inside (each row's residual is
-    ``sign(r) sqrt(rho(r^2)) / sigma``, whose square is that cost) rather
-    than by a Ceres loss function, which acts on the norm of a whole
-    residual block: one block per image keeps the Python callbacks to a few
-    dozen per evaluation (one block per row: thousands). The cost, hence the
-    optimum, is the bundle's; Ceres' Gauss-Newton model of it differs (no
-    Triggs correction). On pycolmap's pose block ``[qx qy qz qw tx ty tz]``
-    and the camera's parameter block.
+    ``1/2 rho(r^2) / sigma^2`` with Cauchy's ``rho`` at ``scale`` px, the
+    loss inside the residual (:func:`robust_rows`). On pycolmap's pose
+    block ``[qx qy qz qw tx ty tz]`` and the camera's parameter block.
     """
 
     def __init__(
@@ -178,7 +198,7 @@ class MapLineRows(pyceres.CostFunction):
             height=camera.height,
             params=np.array(camera.params),
         )
-        self.sigma, self.b = float(sigma_px), float(scale_px) ** 2
+        self.sigma, self.scale = float(sigma_px), float(scale_px)
         self.set_num_residuals(len(self.X))
         self.set_parameter_block_sizes([7, len(camera.params)])
 
@@ -201,16 +221,9 @@ class MapLineRows(pyceres.CostFunction):
         r, Xc = self._rows(q, t, params)
         if not np.all(np.isfinite(r)):
             return False  # a point behind the camera: Ceres rejects the step
-        r2 = r * r
-        rho = self.b * np.log1p(r2 / self.b)
-        s = np.sign(r) * np.sqrt(rho)
-        residuals[:] = s / self.sigma
+        residuals[:], f = robust_rows(r, self.scale, self.sigma)
         if jacobians is None:
             return True
-        # d s / d r = rho'(r^2) r / s, 1 at r = 0
-        small = np.abs(r) < 1e-9
-        f = np.where(small, 1.0, r / np.where(small, 1.0, s)) / (1.0 + r2 / self.b)
-        f /= self.sigma
         if jacobians[0] is not None:
             d_pt = _line_jacobian_by_point(self.camera, Xc, self.lines[:, :2])
             J = np.empty((len(r), 7))
@@ -229,6 +242,113 @@ class MapLineRows(pyceres.CostFunction):
                 J[:, k] = (up - down) / (2.0 * h)
             self.camera.params = params
             jacobians[1][:] = (J * f[:, None]).ravel()
+        return True
+
+
+def _pose_chain(q: np.ndarray, t: np.ndarray, d_pose: np.ndarray) -> np.ndarray:
+    """(N, 7) derivative by pycolmap's pose block ``[q, t]`` of rows whose
+    derivative by the bundle's pose parameters ``(omega, c)`` is ``d_pose``
+    (N, 6): ``R <- Exp(omega) R`` and the centre ``c = -R^T t``. Along the
+    quaternion's tangent (all that Ceres' manifold uses) ``dR = [omega]x R``
+    with ``[omega]x = dR R^T``, and ``dc = -dR^T t``; ``dc / dt = -R^T``."""
+    R = rotation_from_quat_xyzw(q)
+    # dR[k][:, j] = d (R e_j) / d q_k
+    dR = quaternion_rotation_jacobian(q, np.eye(3)).transpose(2, 1, 0)  # (4, 3, 3)
+    M = dR @ R.T
+    omega = 0.5 * np.stack(
+        [M[:, 2, 1] - M[:, 1, 2], M[:, 0, 2] - M[:, 2, 0], M[:, 1, 0] - M[:, 0, 1]],
+        axis=1,
+    )  # (4, 3)
+    dc = -np.einsum("kji,j->ki", dR, np.asarray(t, float))  # (4, 3)
+    out = np.empty((len(d_pose), 7))
+    out[:, :4] = d_pose[:, :3] @ omega.T + d_pose[:, 3:] @ dc.T
+    out[:, 4:] = -d_pose[:, 3:] @ R.T
+    return out
+
+
+class FacadeRowsCost(pyceres.CostFunction):
+    """The facade rows of ONE image (:mod:`.facade_rows`) as the project's
+    bundle has them (``BundleProblem.horizontal_*``, its residual
+    :func:`~obliq_colmap.bundle.residuals.horizontal_residuals`, called
+    here): each row the point ``(anchor_xy, h)`` at its track's height over
+    the track's anchor, projected through the camera's model, its distance
+    (px) to the segment's line in raw pixels measured along the projected
+    vertical (eq. 3's ``dist_z``), its cost ``1/2 rho(r^2) / sigma^2``
+    with Cauchy's ``rho`` at ``scale`` px inside the residual
+    (:func:`robust_rows`).
+
+    Parameter blocks: pycolmap's pose ``[qx qy qz qw tx ty tz]``, the
+    camera's parameters, then one height (1 double) per track the image
+    sees, in the order of ``track`` (0 .. T-1 here). Analytic Jacobians:
+    the bundle's by ``(omega, c)``, the parameters and the height, the pose
+    chained to the block by :func:`_pose_chain`.
+    """
+
+    def __init__(
+        self,
+        anchor_xy: np.ndarray,
+        track: np.ndarray,
+        lines: np.ndarray,
+        model: str,
+        num_params: int,
+        sigma_px: float,
+        scale_px: float,
+    ) -> None:
+        super().__init__()
+        self.anchor = np.asarray(anchor_xy, float).reshape(-1, 2)
+        self.track = np.asarray(track, np.int64)
+        self.lines = np.asarray(lines, float).reshape(-1, 3)
+        self.model = model
+        self.num_tracks = int(self.track.max()) + 1 if len(self.track) else 0
+        self.sigma, self.scale = float(sigma_px), float(scale_px)
+        self.set_num_residuals(len(self.track))
+        self.set_parameter_block_sizes([7, num_params] + [1] * self.num_tracks)
+
+    def _rows(self, pose, params, heights, jacobians: bool):
+        """The bundle's rows (:class:`ResidualJacobians`) and the points'
+        depths, at a pose block, camera params and (T,) heights."""
+        pose = np.asarray(pose, float)
+        R = rotation_from_quat_xyzw(pose[:4])
+        c = -R.T @ pose[4:]
+        X = np.c_[self.anchor, np.asarray(heights, float)[self.track]]
+        n = len(X)
+        rows = horizontal_residuals(
+            self.model,
+            np.asarray(params, float),
+            np.broadcast_to(R, (n, 3, 3)),
+            np.broadcast_to(c, (n, 3)),
+            X,
+            self.lines,
+            jacobians,
+        )
+        return rows, (X - c) @ R[2]
+
+    def raw_residuals(self, pose, params, heights) -> np.ndarray:
+        """(N,) the rows' distances (px) at a pose block, camera params and
+        (T,) heights of this image's tracks."""
+        return self._rows(pose, params, heights, False)[0].residuals
+
+    def Evaluate(self, parameters, residuals, jacobians):  # noqa: N802 - Ceres' name
+        pose = np.asarray(parameters[0], float)
+        heights = np.array([parameters[2 + k][0] for k in range(self.num_tracks)])
+        rows, depth = self._rows(pose, parameters[1], heights, jacobians is not None)
+        r = rows.residuals
+        if not (np.all(depth > 0) and np.all(np.isfinite(r))):
+            return False  # a point behind the camera: Ceres rejects the step
+        residuals[:], f = robust_rows(r, self.scale, self.sigma)
+        if jacobians is None:
+            return True
+        if jacobians[0] is not None:
+            J = _pose_chain(pose[:4], pose[4:], rows.d_pose)
+            jacobians[0][:] = (J * f[:, None]).ravel()
+        if jacobians[1] is not None:
+            jacobians[1][:] = (rows.d_params * f[:, None]).ravel()
+        # each height's column: its track's rows, zero elsewhere
+        dh = np.zeros((self.num_tracks, len(r)))
+        dh[self.track, np.arange(len(r))] = rows.d_height * f
+        for k in range(self.num_tracks):
+            if jacobians[2 + k] is not None:
+                jacobians[2 + k][:] = dh[k]
         return True
 
 
@@ -299,6 +419,65 @@ def _hold_mean_height(
     return cost
 
 
+@dataclass
+class _FacadeBlocks:
+    """The facade rows in one Ceres problem: one cost per image, one height
+    block per track (kept alive with the problem)."""
+
+    rows: FacadeRows
+    costs: list[tuple[FacadeRowsCost, np.ndarray, list[np.ndarray]]]
+    heights: list[np.ndarray]
+
+    def heights_now(self) -> np.ndarray:
+        return np.array([h[0] for h in self.heights])
+
+    def raw_residuals(self, rec: pycolmap.Reconstruction) -> np.ndarray:
+        """(H,) every row's distance (px) in the rows' order, at rec's
+        cameras and poses and the height blocks."""
+        out = np.full(len(self.rows), np.nan)
+        for cost, sel, blocks in self.costs:
+            image = rec.images[int(self.rows.image_id[sel[0]])]
+            pose = rec.frame(image.frame_id).rig_from_world.params
+            params = rec.cameras[image.camera_id].params
+            out[sel] = cost.raw_residuals(pose, params, [b[0] for b in blocks])
+        return out
+
+
+def _add_facade_rows(
+    problem: pyceres.Problem,
+    rec: pycolmap.Reconstruction,
+    rows: FacadeRows,
+    options: BlockAdjustmentOptions,
+) -> _FacadeBlocks:
+    """One height block per track (at ``rows.height``) and one
+    :class:`FacadeRowsCost` per image with rows (and a pose in the
+    problem)."""
+    sigma, scale = facade_row_weighting(options)
+    heights = [np.array([h], float) for h in rows.height]
+    costs = []
+    for image_id in np.unique(rows.image_id):
+        image = rec.images[int(image_id)]
+        pose = rec.frame(image.frame_id).rig_from_world.params
+        params = rec.cameras[image.camera_id].params
+        if not problem.has_parameter_block(pose):
+            continue
+        sel = np.flatnonzero(rows.image_id == image_id)
+        tracks, local = np.unique(rows.track[sel], return_inverse=True)
+        cost = FacadeRowsCost(
+            rows.anchor_xy[rows.track[sel]],
+            local,
+            rows.line[sel],
+            image.camera.model.name,
+            len(params),
+            sigma,
+            scale,
+        )
+        blocks = [heights[t] for t in tracks]
+        problem.add_residual_block(cost, None, [pose, params, *blocks])
+        costs.append((cost, sel, blocks))
+    return _FacadeBlocks(rows, costs, heights)
+
+
 def adjust_block_ceres(
     rec: pycolmap.Reconstruction,
     control_point_ids: dict[int, tuple[np.ndarray, np.ndarray]],
@@ -308,8 +487,70 @@ def adjust_block_ceres(
     hold_mean_height: bool = False,
 ) -> BlockAdjustmentSummary:
     """:func:`~obliq_colmap.georegister.block.adjust_block` in Ceres; with
-    ``map_rows`` the map's rows, with ``hold_mean_height`` the block's mean
-    camera height held (the obliq solver's gauge without control points)."""
+    ``map_rows`` the map's rows (and its facade rows, their track heights
+    unknowns: a first solve, one outlier round as the obliq solver's,
+    :func:`.block.facade_outlier_round`, and a second solve from the
+    first's block), with ``hold_mean_height`` the block's mean camera
+    height held (the obliq solver's gauge without control points)."""
+    image_ids = sorted(rec.reg_image_ids())
+    facades = start = None
+    if map_rows is not None and map_rows.facades is not None:
+        facades = map_rows.facades.select(image_ids)
+        if len(facades):
+            from .block_bundle import initial_facade_heights
+
+            start = initial_facade_heights(
+                rec, control_point_ids, verticals, options, map_rows
+            ).facades.height
+    first = _solve(
+        rec, control_point_ids, verticals, options, map_rows, facades,
+        hold_mean_height, start,
+    )  # fmt: skip
+    summary, iterations = first.summary, first.iterations
+    if first.facades is not None and len(first.facades.rows):
+        # one outlier round on the facade rows, then the adjustment again
+        # from the solved block (the obliq solver's procedure)
+        kept = facade_outlier_round(
+            map_rows,
+            image_ids,
+            first.facades.raw_residuals(rec),
+            first.facades.heights_now(),
+        )
+        second = _solve(
+            rec, control_point_ids, verticals, options, kept, kept.facades,
+            hold_mean_height,
+        )  # fmt: skip
+        summary.final_cost = second.summary.final_cost
+        summary.termination = second.summary.termination
+        summary.num_map_rows = second.summary.num_map_rows
+        summary.num_facade_rows = second.summary.num_facade_rows
+        summary.num_facade_tracks = second.summary.num_facade_tracks
+        iterations += second.iterations
+    summary.iterations = iterations
+    return summary
+
+
+@dataclass
+class _Solved:
+    summary: BlockAdjustmentSummary
+    iterations: int
+    facades: _FacadeBlocks | None
+
+
+def _solve(
+    rec: pycolmap.Reconstruction,
+    control_point_ids: dict[int, tuple[np.ndarray, np.ndarray]],
+    verticals: dict[int, VerticalRow],
+    options: BlockAdjustmentOptions,
+    map_rows: MapRows | None,
+    facades: FacadeRows | None,
+    hold_mean_height: bool,
+    start_heights: np.ndarray | None = None,
+) -> _Solved:
+    """One Ceres solve of the block in place (see
+    :func:`adjust_block_ceres`); the facade rows' height blocks hold the
+    solved heights. With ``start_heights`` (J,) the solve starts from
+    those (its initial cost still the one at ``facades.height``)."""
     ba = pycolmap.BundleAdjustmentOptions()
     ba.refine_focal_length = options.refine_focal_length
     ba.refine_principal_point = options.refine_principal_point
@@ -340,29 +581,66 @@ def adjust_block_ceres(
     line_costs = []
     if map_rows is not None and len(map_rows):
         line_costs = _add_map_rows(problem, rec, map_rows, options)
+    fac = None
+    if facades is not None and len(facades) and map_rows is not None:
+        fac = _add_facade_rows(problem, rec, facades, options)
     gauge = _hold_mean_height(problem, rec) if hold_mean_height else None
     solver = pyceres.SolverOptions()
     solver.linear_solver_type = pyceres.LinearSolverType.SPARSE_SCHUR
+    if fac is not None:
+        # each image's facade block holds all its tracks' heights: Ceres
+        # cannot eliminate them with the points (no independent set), and
+        # the reduced system they stay in is slow to factor (the paper
+        # block, automatic: 73 s of 86 in the linear solver); conjugate
+        # gradients on it, Schur-Jacobi preconditioned: 10 s. To a relative
+        # residual of 1e-3 (Ceres' default 0.1 left the test block's weak
+        # focal mode unconverged after 100 iterations; 1e-3: 53)
+        solver.linear_solver_type = pyceres.LinearSolverType.ITERATIVE_SCHUR
+        solver.preconditioner_type = pyceres.PreconditionerType.SCHUR_JACOBI
+        solver.eta = 1e-3
     solver.max_num_iterations = options.max_num_iterations
     solver.function_tolerance = options.function_tolerance
     solver.num_threads = 1
+    initial_cost = None
+    if fac is not None and start_heights is not None:
+        # the cost at the given heights, then the start's
+        solver.max_num_iterations = 0
+        summary = pyceres.SolverSummary()
+        pyceres.solve(solver, problem, summary)
+        initial_cost = summary.initial_cost
+        solver.max_num_iterations = options.max_num_iterations
+        for block, h in zip(fac.heights, start_heights, strict=True):
+            block[0] = h
     summary = pyceres.SolverSummary()
     pyceres.solve(solver, problem, summary)
+    if initial_cost is not None:
+        summary.initial_cost = initial_cost
     n_map = sum(c.num_residuals() for c in line_costs)
+    n_fac = 0 if fac is None else sum(c.num_residuals() for c, _, _ in fac.costs)
+    n_tracks = 0 if fac is None else len(fac.heights)
     logger.info(
         "block adjustment (ceres): cost %.6g -> %.6g in %d iterations (%d "
-        "control points, %d verticals, %d map rows%s)",
+        "control points, %d verticals, %d map rows, %d facade rows of %d "
+        "tracks%s)",
         summary.initial_cost, summary.final_cost, summary.num_successful_steps,
-        n_ctrl, n_vert, n_map, ", mean camera height held" if gauge else "",
+        n_ctrl, n_vert, n_map, n_fac, n_tracks,
+        ", mean camera height held" if gauge else "",
     )  # fmt: skip
     del adjuster  # after the solve: the problem refers to rec's arrays
-    return BlockAdjustmentSummary(
-        initial_cost=float(summary.initial_cost),
-        final_cost=float(summary.final_cost),
-        iterations=int(summary.num_successful_steps + summary.num_unsuccessful_steps),
-        num_control_rows=n_ctrl,
-        num_vertical_rows=n_vert,
-        termination=str(summary.termination_type),
-        solver="ceres",
-        num_map_rows=n_map,
+    iterations = int(summary.num_successful_steps + summary.num_unsuccessful_steps)
+    return _Solved(
+        BlockAdjustmentSummary(
+            initial_cost=float(summary.initial_cost),
+            final_cost=float(summary.final_cost),
+            iterations=iterations,
+            num_control_rows=n_ctrl,
+            num_vertical_rows=n_vert,
+            termination=str(summary.termination_type),
+            solver="ceres",
+            num_map_rows=n_map,
+            num_facade_rows=n_fac,
+            num_facade_tracks=n_tracks,
+        ),
+        iterations,
+        fac,
     )

@@ -364,7 +364,10 @@ def print_result(mode: str, res: dict) -> None:
             f"{c['point_difference_m_max']:.1e} m, intrinsics "
             f"{max(c['params_difference_max'].values()):.1e}; iterations "
             f"{c['summaries']['obliq']['iterations']} / "
-            f"{c['summaries']['ceres']['iterations']}; {c['num_map_rows']} map rows"
+            f"{c['summaries']['ceres']['iterations']}; {c['num_map_rows']} map rows, "
+            f"facade rows {c['num_facade_rows']['obliq']} / "
+            f"{c['num_facade_rows']['ceres']} of {c['num_facade_tracks']['obliq']} / "
+            f"{c['num_facade_tracks']['ceres']} tracks"
         )
 
 

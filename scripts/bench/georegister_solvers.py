@@ -102,11 +102,7 @@ def compare_solvers(
     block = dataclasses.replace(inputs.block, covariance=False)
     if function_tolerance is not None:
         block = dataclasses.replace(block, function_tolerance=function_tolerance)
-    kwargs = dict(inputs.kwargs)
-    if kwargs.get("map_rows") is not None:
-        # the facade rows are the obliq solver's only: the same problem
-        # for both is the one without them
-        kwargs["map_rows"] = dataclasses.replace(kwargs["map_rows"], facades=None)
+    kwargs = dict(inputs.kwargs)  # the map rows with their facade rows
     times = {"obliq": [], "ceres": []}
     summaries, states = {}, {}
     for _ in range(repeats):
@@ -138,6 +134,8 @@ def compare_solvers(
             sum(p.track.length() for p in inputs.rec.points3D.values())
         ),
         "num_map_rows": 0 if rows is None else len(rows),
+        "num_facade_rows": {s: v.num_facade_rows for s, v in summaries.items()},
+        "num_facade_tracks": {s: v.num_facade_tracks for s, v in summaries.items()},
         "function_tolerance": block.function_tolerance,
         "time_s": med,
         "time_s_all": times,
