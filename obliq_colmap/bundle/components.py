@@ -25,7 +25,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["Group", "component_factors", "sandwich_covariance"]
+__all__ = ["Group", "component_factors", "sandwich_covariance", "shared_meat"]
 
 
 @dataclass
@@ -42,6 +42,10 @@ class Group:
     rows: int
     #: The unknowns only it observes (tie points, facade heights).
     private: int = 0
+    #: (n, n) what errors its rows share add between the cofactors
+    #: (``covariance.corner_offset_meat``: the map corners' own error), in
+    #: the stated units, not scaled by the group's factor; None: none.
+    shared: np.ndarray | None = None
 
     def redundancy(self, Q: np.ndarray) -> float:
         """Its share of the redundancy: rows less its own unknowns and its
@@ -63,12 +67,19 @@ def component_factors(
     return out
 
 
+def shared_meat(groups: list[Group], n: int) -> np.ndarray:
+    """(n, n) the sum of the groups' ``shared`` terms (zero without any)."""
+    return sum((g.shared for g in groups if g.shared is not None), np.zeros((n, n)))
+
+
 def sandwich_covariance(
     groups: list[Group], Q: np.ndarray, factors: dict[str, tuple[float, float]]
 ) -> np.ndarray:
-    """(n, n) ``Q (sum_g v_g N_g) Q``: the camera block's covariance with
+    """(n, n) ``Q (sum_g v_g N_g + S) Q``: the camera block's covariance with
     each group's noise at its factor ``v_g`` (``factors``' first entries)
-    times its stated variance."""
+    times its stated variance, and the errors shared by rows ``S``
+    (:func:`shared_meat`)."""
     M = sum(factors[g.name][0] * g.normal for g in groups)
+    M = M + shared_meat(groups, len(Q))
     C = Q @ M @ Q
     return 0.5 * (C + C.T)

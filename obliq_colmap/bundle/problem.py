@@ -133,11 +133,11 @@ class BundleOptions:
     #: whitened 2-vector: a VP on a wrong pencil (degrees off) loses its pull.
     #: ``math.inf``: no robust loss (plain least squares).
     vp_loss_scale: float = 3.0
-    #: The map's vertex error (m, each axis) as two unknowns per map corner
-    #: in the precision (the solve keeps the corners fixed): every row of a
-    #: corner, in every image, shares its error, which independent rows
-    #: would count as averaging out. None: the corners known exactly (with
-    #: ``corner_heights="fixed"`` only).
+    #: The map's vertex error (m, each axis), propagated into the precision
+    #: as an error every row of a corner, in every image, shares (the solve
+    #: keeps the corners fixed; ``covariance.corner_offset_meat``), which
+    #: independent rows would count as averaging out. None: the corners
+    #: known exactly (with ``corner_heights="fixed"`` only).
     map_corner_sigma_m: float | None = None
     #: With ``vp_observations``: the VP rows enter the fit. False: they are
     #: only evaluated against the fit without them (``BundleResult.vp_loo``,

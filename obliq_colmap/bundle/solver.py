@@ -45,7 +45,7 @@ import numpy as np
 from ..geometry import Camera, Pose, rotation_exp
 from . import camera_block, covariance
 from .blocks import EliminatedBlocks
-from .components import Group, component_factors, sandwich_covariance
+from .components import Group, component_factors, sandwich_covariance, shared_meat
 from .facade_lines import FacadeLineRows
 from .loss import robust_loss
 from .priors import (
@@ -544,16 +544,13 @@ def _observation_groups(
         offsets = heights & np.any(S.offset_dir != 0, axis=1)
         private = len(np.unique(S.hidx[heights])) + len(np.unique(S.hidx[offsets]))
         wss, rows = float(np.sum(wm * r * r)), int(m.sum())
+        shared = None
         if name == "map corners" and opts.map_corner_sigma_m is not None:
-            # two unknowns per corner with their two prior rows (at zero)
-            normal, nc = covariance.eliminate_corner_offsets(
-                S, normal, Jc, wm, 1.0 / opts.map_corner_sigma_m**2
-            )
-            private, rows = private + 2 * nc, rows + 2 * nc
+            shared = covariance.corner_offset_meat(S, Jc, wm, opts.map_corner_sigma_m)
         if heights.any() and prior_w:  # the corner heights' prior rows
             dh = (st.heights - heights0)[prior_mask]
             wss, rows = wss + prior_w * float(dh @ dh), rows + int(prior_mask.sum())
-        groups.append(Group(name, normal, wss, rows, private))
+        groups.append(Group(name, normal, wss, rows, private, shared))
     for p in pose_priors:
         normal = _dense_terms(S, lambda H, p=p: p.add_to(H, np.zeros(n + 1), st))
         groups.append(
@@ -616,7 +613,9 @@ def _precision(
             ", ".join(f"{k} {v:.3g} ({r:.0f})" for k, (v, r) in components.items()),
         )
     else:
-        components, C = {}, variance_factor * cofactor
+        components = {}
+        shared = shared_meat(groups, len(cofactor))
+        C = variance_factor * cofactor + cofactor @ shared @ cofactor
     return covariance.image_precision(S, st, C), variance_factor, components, C
 
 
