@@ -96,7 +96,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--block_adjustment_facade_rows", type=int, choices=(0, 1), default=1,
         help="with the map rows, the map's facade edges (horizontal edges on the "
         "registered walls, matched across the images into tracks of one height) "
-        "as rows too (the obliq solver; default 1)",
+        "as rows too (both solvers; default 1)",
     )  # fmt: skip
     parser.add_argument(
         "--block_adjustment_map_directions", choices=("vp", "measured"),
