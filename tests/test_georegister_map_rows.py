@@ -728,6 +728,7 @@ def test_the_maps_vertex_error_is_shared_by_its_corners_rows():
         assert shared[i] > 1.2 * known[i]
 
 
+@pytest.mark.slow
 def test_the_precision_predicts_the_spread_the_maps_vertex_error_causes():
     """Against a Monte Carlo of the solve itself: the map's corners redrawn
     with their stated vertex sd (each corner's error shared by all its rows),
