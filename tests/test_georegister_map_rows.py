@@ -270,7 +270,10 @@ def _adjusted_both(control: bool, facades_in=None, **options):
     return out, truth
 
 
-@pytest.mark.parametrize("facades", [False, True])
+@pytest.mark.parametrize(
+    "facades",
+    [False, pytest.param(True, marks=pytest.mark.slow)],  # 0.8-1.6 s
+)
 @pytest.mark.parametrize("control, focal", [(False, True), (True, False)])
 def test_ceres_with_the_map_rows_reaches_the_same_optimum(
     control, focal, facades, tmp_path
