@@ -383,6 +383,16 @@ class MeanCameraHeight(pyceres.CostFunction):
         return True
 
 
+def _posed_images(problem: pyceres.Problem, rec: pycolmap.Reconstruction, image_ids):
+    """(image_id, image, pose block, camera params block) of each distinct
+    image of ``image_ids`` whose pose is in ``problem``."""
+    for image_id in np.unique(image_ids):
+        image = rec.images[int(image_id)]
+        pose = rec.frame(image.frame_id).rig_from_world.params
+        if problem.has_parameter_block(pose):
+            yield image_id, image, pose, rec.cameras[image.camera_id].params
+
+
 def _add_map_rows(
     problem: pyceres.Problem,
     rec: pycolmap.Reconstruction,
@@ -393,12 +403,7 @@ def _add_map_rows(
     the problem); the cost functions, kept alive with the problem."""
     sigma, scale = map_row_weighting(options)
     costs = []
-    for image_id in np.unique(rows.image_id):
-        image = rec.images[int(image_id)]
-        pose = rec.frame(image.frame_id).rig_from_world.params
-        params = rec.cameras[image.camera_id].params
-        if not problem.has_parameter_block(pose):
-            continue
+    for image_id, image, pose, params in _posed_images(problem, rec, rows.image_id):
         sel = rows.image_id == image_id
         X = np.c_[rows.xy[sel], rows.height[sel]]
         cost = MapLineRows(X, rows.line[sel], image.camera, sigma, scale)
@@ -455,12 +460,7 @@ def _add_facade_rows(
     sigma, scale = facade_row_weighting(options)
     heights = [np.array([h], float) for h in rows.height]
     costs = []
-    for image_id in np.unique(rows.image_id):
-        image = rec.images[int(image_id)]
-        pose = rec.frame(image.frame_id).rig_from_world.params
-        params = rec.cameras[image.camera_id].params
-        if not problem.has_parameter_block(pose):
-            continue
+    for image_id, image, pose, params in _posed_images(problem, rec, rows.image_id):
         sel = np.flatnonzero(rows.image_id == image_id)
         tracks, local = np.unique(rows.track[sel], return_inverse=True)
         cost = FacadeRowsCost(
