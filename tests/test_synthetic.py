@@ -532,6 +532,7 @@ def test_buildings_table_and_terrain(small_scene):
     assert np.allclose(city.terrain.height(g[:, 0], g[:, 1]), g[:, 2], atol=1e-3)
 
 
+@pytest.mark.slow  # 3.6 s: the whole generator through the CLI
 def test_cli_synth(tmp_path):
     out = tmp_path / "scene"
     code = main(
