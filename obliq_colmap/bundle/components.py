@@ -67,9 +67,10 @@ def component_factors(
     return out
 
 
-def shared_meat(groups: list[Group], n: int) -> np.ndarray:
-    """(n, n) the sum of the groups' ``shared`` terms (zero without any)."""
-    return sum((g.shared for g in groups if g.shared is not None), np.zeros((n, n)))
+def shared_meat(groups: list[Group]) -> np.ndarray | None:
+    """(n, n) the sum of the groups' ``shared`` terms; None without any."""
+    terms = [g.shared for g in groups if g.shared is not None]
+    return sum(terms[1:], terms[0]) if terms else None
 
 
 def sandwich_covariance(
@@ -80,6 +81,8 @@ def sandwich_covariance(
     times its stated variance, and the errors shared by rows ``S``
     (:func:`shared_meat`)."""
     M = sum(factors[g.name][0] * g.normal for g in groups)
-    M = M + shared_meat(groups, len(Q))
+    shared = shared_meat(groups)
+    if shared is not None:
+        M = M + shared
     C = Q @ M @ Q
     return 0.5 * (C + C.T)

@@ -614,8 +614,10 @@ def _precision(
         )
     else:
         components = {}
-        shared = shared_meat(groups, len(cofactor))
-        C = variance_factor * cofactor + cofactor @ shared @ cofactor
+        C = variance_factor * cofactor
+        shared = shared_meat(groups)
+        if shared is not None:
+            C = C + cofactor @ shared @ cofactor
     return covariance.image_precision(S, st, C), variance_factor, components, C
 
 

@@ -89,8 +89,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--block_adjustment_map_vertex_sigma", type=float, default=0.15, metavar="M",
         help="the map's vertex accuracy (m, each axis): the block's covariance "
-        "counts each corner's error as shared by all its rows; 0: the corners "
-        "known exactly (default 0.15)",
+        "carries each corner's error, shared by all its rows, through the "
+        "adjustment; 0: the corners known exactly (default 0.15)",
     )  # fmt: skip
     parser.add_argument(
         "--block_adjustment_facade_rows", type=int, choices=(0, 1), default=1,
