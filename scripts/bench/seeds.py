@@ -79,7 +79,8 @@ def main(argv: list[str] | None = None) -> int:
                 f" {row['camera_offset_median_px']:.3f}); registered again"
                 f" {row['reregistered'] or 'none'}, left out"
                 f" {row['left_out'] or 'none'}, written > 5 px off"
-                f" {row['written_over_5px'] or 'none'}; {wall:.0f} s",
+                f" {row['written_over_5px'] or 'none'}, > 2 px without a warning"
+                f" {row['written_over_2px_unwarned'] or 'none'}; {wall:.0f} s",
                 flush=True,
             )
     if rows:
