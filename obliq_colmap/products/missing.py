@@ -356,6 +356,7 @@ def find_missing(
     heights,
     views: list[RoofView],
     options: MissingOptions,
+    num_workers: int = 0,
 ) -> tuple[dict, dict]:
     """Buildings the images show where the map has none.
 
@@ -409,12 +410,11 @@ def find_missing(
             roof_cell_sigma_m=round(s_cell, 3),
             plane_tol_m=round(tol, 3),
         )
-        edges = None
+        feats = _judge(groups, xyz, h, terrain, mapped, views, ncc_min, tol, options)
         if options.walls and all(v.path is not None for v in views):
-            edges = _EdgeMaps(views)
-        feats = _judge(
-            groups, xyz, h, terrain, mapped, views, ncc_min, tol, options, edges
-        )
+            _walls(feats, views, options, num_workers)
+    for f in feats:
+        f.pop("_walls", None)
     o = c.georef.origin
     out = []
     for f in feats:
@@ -462,9 +462,7 @@ def _roof_region(patch, terrain, views, sees, top, ncc_min, tol, options):
     return dict(cen=cen, gz=gz, best=best, peak=peak, agree=agree, up=up, on=on)
 
 
-def _judge(
-    groups, xyz, h, terrain, mapped, views, ncc_min, tol, options, edges=None
-) -> list[dict]:
+def _judge(groups, xyz, h, terrain, mapped, views, ncc_min, tol, options) -> list[dict]:
     """One feature (dict with its ``polygon``, model frame) per candidate
     not already inside a reported one. The patch grows (by ``patch_m``)
     while the roof plane's cells reach its edge, up to ``max_grow`` times."""
@@ -536,25 +534,58 @@ def _judge(
                     frac * min(1.0, area / (2 * options.min_area_m2)), 3
                 )
             roof = area >= options.min_area_m2 and frac >= options.min_plane_fraction
-            if roof and edges is not None:
-                vi = np.flatnonzero(sees)
+            if roof:  # what the walls' test needs (:func:`_walls`)
                 g0 = float(np.min(r["gz"][on]))
                 g1 = g0 + float(props["height_above_ground_m"])
-                dm = [edges(i) for i in vi]
-                vs = [views[i] for i in vi]
-                n, k = wall_evidence(poly, g0, g1, dm, vs, options)
-                away = shapely.buffer(poly, options.wall_null_m, join_style="mitre")
-                n0, k0 = wall_evidence(away, g0, g1, dm, vs, options)
-                props.update(corner_views=n, walls_seen=k)
-                props["_null"] = (n0, k0)
+                props["_walls"] = (np.flatnonzero(sees), g0, g1)
             props["reported"] = bool(roof)
         if props["reported"]:
             taken = taken.union(poly)
         props["polygon"] = poly
         feats.append(props)
-    if edges is not None:
-        _walls_verdict(feats, options)
     return feats
+
+
+def _edge_map(task: tuple) -> np.ndarray:
+    """One image's distance (px) to its vertical segments, full resolution
+    (:func:`.support.vertical_edge_distance`); task = (path, camera, pose)."""
+    from obliq_colmap.images import read_image
+    from obliq_colmap.products.discrepancy_options import DiscrepancyOptions
+    from obliq_colmap.products.support import vertical_edge_distance
+
+    path, camera, pose = task
+    gray, _ = read_image(path)
+    return vertical_edge_distance(gray, camera, pose, DiscrepancyOptions())
+
+
+def _walls(
+    feats: list[dict], views: list[RoofView], options: MissingOptions, workers: int
+) -> None:
+    """The walls' test of every reported roof (:func:`wall_evidence` at its
+    rectangle and, for chance, at the rectangle grown by ``wall_null_m``),
+    the edge maps of the views that see one made in worker processes; then
+    :func:`_walls_verdict`."""
+    from obliq_colmap.parallel import WorkerPool, available_cores
+
+    todo = [f for f in feats if "_walls" in f]
+    need = sorted({int(i) for f in todo for i in f["_walls"][0]})
+    if not need:
+        return
+    tasks = [(views[i].path, views[i].camera, views[i].pose) for i in need]
+    n = min(workers or available_cores(), len(tasks))
+    with WorkerPool(n) as pool:
+        maps = dict(zip(need, pool.map(_edge_map, tasks, "walls"), strict=True))
+    for f in todo:
+        vi, g0, g1 = f.pop("_walls")
+        dm = [maps[int(i)] for i in vi]
+        vs = [views[i] for i in vi]
+        rect = f["polygon"]
+        f["corner_views"], f["walls_seen"] = wall_evidence(
+            rect, g0, g1, dm, vs, options
+        )
+        away = shapely.buffer(rect, options.wall_null_m, join_style="mitre")
+        f["_null"] = wall_evidence(away, g0, g1, dm, vs, options)
+    _walls_verdict(feats, options)
 
 
 def _walls_verdict(feats: list[dict], options: MissingOptions) -> None:
@@ -632,24 +663,3 @@ def wall_evidence(
         total += int(use.sum())
         seen += int((use & (sup >= 0.5)).sum())
     return total, seen
-
-
-class _EdgeMaps:
-    """Each view's distance to its vertical segments, made when first
-    asked (:func:`.support.vertical_edge_distance`, full resolution)."""
-
-    def __init__(self, views: list[RoofView]) -> None:
-        self.views, self.cache = views, {}
-
-    def __call__(self, i: int) -> np.ndarray:
-        if i not in self.cache:
-            from obliq_colmap.images import read_image
-            from obliq_colmap.products.discrepancy_options import DiscrepancyOptions
-            from obliq_colmap.products.support import vertical_edge_distance
-
-            gray, _ = read_image(self.views[i].path)
-            v = self.views[i]
-            self.cache[i] = vertical_edge_distance(
-                gray, v.camera, v.pose, DiscrepancyOptions()
-            )
-        return self.cache[i]

@@ -162,7 +162,7 @@ def make_products(
         )
         if options.find_missing:
             miss, miss_summary = find_missing(
-                input_path, c, terrain, h, views, options.missing
+                input_path, c, terrain, h, views, options.missing, options.num_workers
             )
     summary = {
         "vertical_datum": "the result model's (georef.json): the priors' heights",
