@@ -558,3 +558,39 @@ def test_a_building_the_map_lacks_is_reported_a_crown_is_not():
     ]
     _walls_verdict(feats, o)
     assert [f["walls_confirmed"] for f in feats] == [True, False]
+
+
+def test_the_walls_of_a_reported_roof_are_looked_for_in_its_images(tmp_path):
+    """The walls' test runs from the images' files (edge maps made by the
+    worker pool, here in-process): the box's corners face every head. Its
+    walls are noise on noise, so no vertical segment is found there: this
+    checks the plumbing and the counts, not the edges' detection."""
+    import cv2
+
+    from obliq_colmap.products.missing import MissingOptions, _judge, _walls
+
+    views = _oblique_views(10.0)
+    for i, v in enumerate(views):
+        v.path = tmp_path / f"v{i}.png"
+        cv2.imwrite(str(v.path), np.clip(v.gray, 0, 255).astype(np.uint8))
+    o = MissingOptions(ref_buildings=0)
+    pts = np.array([[1.0, -1.0, 10.0]])
+    feats = _judge(
+        [np.array([0])],
+        pts,
+        pts[:, 2],
+        lambda q: np.zeros(len(q)),
+        Polygon(),
+        views,
+        0.3,
+        0.5,
+        o,
+    )
+    assert feats[0]["reported"] and "_walls" in feats[0]
+    _walls(feats, views, o, 1)
+    f = feats[0]
+    assert "_walls" not in f and "_null" not in f
+    # 4 views, each facing two or three of the box's corners
+    assert 8 <= f["corner_views"] <= 12
+    assert 0 <= f["walls_seen"] <= f["corner_views"]
+    assert 0.0 <= f["walls_chance"] <= 1.0
