@@ -12,22 +12,33 @@ by ``map_margin_m``: walls, eaves and overhangs of mapped buildings) are
 linked when closer than ``link_m`` and the groups with at least
 ``min_points`` points are the candidates.
 
-A candidate is told from a tree by its roof (:func:`roof_cells`): a height
-sweep of a patch around its points (``patch_m``), cut into cells of
-``cell_m``; each cell's height is where the views agree best on its
-texture (the mean NCC over view pairs). A roof is a plane (or, pitched,
-one of its planes) on which the cells agree within ``plane_tol_m`` (twice
-the sweep's step: a cell's height is known to about a step) at one height,
-while a crown's cells scatter and agree poorly (leaves move between views,
-light passes through). The threshold on the agreement is measured on the
-block's own mapped roofs (:func:`roof_reference`): the ``ref_quantile`` of
-their cells' peak NCC. A candidate is reported when at least
-``min_area_m2`` of plane cells stand ``min_height_m`` above the ground and
-make at least ``min_plane_fraction`` of its agreeing cells.
+A candidate is judged by its roof (:func:`roof_cells`): a height sweep of
+a patch around its points (``patch_m``, minus the mapped footprints), cut
+into cells of ``cell_m``; each cell's height is where the views agree best
+on its texture (the mean NCC over view pairs). Cells count where their
+agreement reaches the ``ref_quantile`` of the block's own mapped roofs'
+cells swept alike (:func:`roof_reference`, :func:`reference_thresholds`).
+The roof is the plane (:func:`roof_plane`; a pitched roof: one of its
+planes) holding the most counted cells ``min_height_m`` above the ground
+within ``plane_sigmas`` times the height noise of a mapped roof's cells
+about their plane (measured there too). The patch grows while that plane
+reaches its edge (``max_grow``). A candidate is reported when the plane
+covers ``min_area_m2`` and ``min_plane_fraction`` of its elevated counted
+cells. The size is what tells most trees apart: a crown's cells agree as
+well as a roof's in the renders measured, and a crown's top or a ring of
+its cells is level too, but over less than a dwelling's roof (houses-102:
+where crowns touch they reach one; see the journal).
+
+The walls (:func:`wall_evidence`, ``walls``): at each corner of a reported
+roof's rectangle, in each view facing it, is a vertical edge seen along
+the corner's vertical? Chance is measured on the same rectangles grown by
+``wall_null_m``; ``walls_confirmed`` where a binomial tail under it is
+below ``wall_alpha``. It does not decide ``reported``: where the plane is
+only part of the building, its rectangle's corners miss the walls.
 
 Each candidate becomes a GeoJSON feature (the plane cells' minimum rotated
-rectangle) with its score, the height above the ground, and the evidence
-counts.
+rectangle) with its score, the roof plane's height above the ground, and
+the evidence counts.
 """
 
 from __future__ import annotations
