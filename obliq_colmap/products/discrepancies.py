@@ -352,6 +352,7 @@ def roof_views(block, image_path: Path, options: DiscrepancyOptions) -> list[Roo
                     np.clip(np.rint(g), 0, 255).astype(np.uint8),
                     block.cameras[im.camera_id],
                     im.cam_from_world,
+                    image_path / im.name,
                 )
             )
     return views
@@ -364,14 +365,16 @@ def find_discrepancies(
     heights,
     options: DiscrepancyOptions,
     num_workers: int = 0,
+    views: list[RoofView] | None = None,
 ) -> dict:
     """The discrepancy layer (GeoJSON dict, absolute coordinates) of one
-    registration: one feature per judged footprint with its score."""
+    registration: one feature per judged footprint with its score.
+    ``views``: the blurred images (:func:`roof_views`), if already read."""
     block = read_model(input_path)
     cad = c.cadastre
     image_path = Path(image_path)
     zg = heights.ground_z[cad.corner_building]
-    rv = roof_views(block, image_path, options)
+    rv = views if views is not None else roof_views(block, image_path, options)
     top = eaveless_tops(cad.polygons, heights.ground_z, heights.eave_z, rv, options)
     top = top[cad.corner_building]
     common = {

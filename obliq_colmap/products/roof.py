@@ -13,6 +13,7 @@ intensities) at each height of a sweep; :func:`stands` reads it.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from pathlib import Path
 
 import cv2
 import numpy as np
@@ -32,11 +33,13 @@ __all__ = [
 
 @dataclass
 class RoofView:
-    """One image for the sweep: blurred grey (float32), camera, pose."""
+    """One image for the sweep: blurred grey (float32), camera, pose, and
+    the image file (for the full-resolution edges of :mod:`.missing`)."""
 
     gray: np.ndarray
     camera: Camera
     pose: Pose
+    path: Path | None = None
 
 
 def blurred(gray: np.ndarray, sigma_px: float) -> np.ndarray:

@@ -11,6 +11,9 @@ vertical datum, i.e. the priors', as ``georef.json`` says):
   extruded from the ground to the eave.
 * ``discrepancies.geojson`` (with ``image_path``): the footprints the images
   contradict, with a score (:mod:`.discrepancies`).
+* ``missing.geojson`` (with ``image_path``): buildings the images show where
+  the map has none, found from the tie points and told from trees by their
+  roofs and walls (:mod:`.missing`).
 * ``products.json``: what was made, the datum, counts and options.
 """
 
@@ -26,6 +29,7 @@ from typing import Any
 import numpy as np
 import shapely
 
+from obliq_colmap.colmap_io import read_model
 from obliq_colmap.files import AtomicFolder
 from obliq_colmap.products.buildings import (
     BuildingHeights,
@@ -34,8 +38,13 @@ from obliq_colmap.products.buildings import (
 )
 from obliq_colmap.products.cityjson import city_model
 from obliq_colmap.products.constraints import ModelConstraints, load_constraints
-from obliq_colmap.products.discrepancies import DiscrepancyOptions, find_discrepancies
+from obliq_colmap.products.discrepancies import (
+    DiscrepancyOptions,
+    find_discrepancies,
+    roof_views,
+)
 from obliq_colmap.products.esri import ascii_grid_text, esri_wkt
+from obliq_colmap.products.missing import MissingOptions, find_missing
 from obliq_colmap.products.terrain import TerrainOptions, estimate_terrain, terrain_grid
 
 __all__ = ["ProductsOptions", "make_products"]
@@ -50,6 +59,9 @@ class ProductsOptions:
     terrain: TerrainOptions = field(default_factory=TerrainOptions)
     heights: HeightOptions = field(default_factory=HeightOptions)
     discrepancies: DiscrepancyOptions = field(default_factory=DiscrepancyOptions)
+    missing: MissingOptions = field(default_factory=MissingOptions)
+    #: search the buildings missing from the map (with the images).
+    find_missing: bool = True
     #: worker processes for the discrepancy search (0: all cores).
     num_workers: int = 0
 
@@ -135,11 +147,23 @@ def make_products(
         options.heights,
     )
     wkt = esri_wkt(c.cadastre.crs)
-    disc = None
+    disc = miss = None
     if image_path is not None:
+        block = read_model(input_path)
+        views = roof_views(block, Path(image_path), options.discrepancies)
         disc = find_discrepancies(
-            input_path, image_path, c, h, options.discrepancies, options.num_workers
+            input_path,
+            image_path,
+            c,
+            h,
+            options.discrepancies,
+            options.num_workers,
+            views,
         )
+        if options.find_missing:
+            miss, miss_summary = find_missing(
+                input_path, c, terrain, h, views, options.missing, options.num_workers
+            )
     summary = {
         "vertical_datum": "the result model's (georef.json): the priors' heights",
         "crs": c.cadastre.crs,
@@ -161,6 +185,8 @@ def make_products(
             "flagged": sum(f["properties"]["flagged"] for f in disc["features"]),
             "scored": len(disc["features"]),
         }
+    if miss is not None:
+        summary["missing"] = miss_summary
     with out as tmp:
         (tmp / "terrain.asc").write_text(
             ascii_grid_text(grid.Z + o[2], grid.x0 + o[0], grid.y0 + o[1], grid.cell)
@@ -174,6 +200,8 @@ def make_products(
         )
         if disc is not None:
             (tmp / "discrepancies.geojson").write_text(json.dumps(disc) + "\n")
+        if miss is not None:
+            (tmp / "missing.geojson").write_text(json.dumps(miss) + "\n")
         (tmp / "products.json").write_text(json.dumps(summary, indent=2) + "\n")
     logger.info(
         "products: terrain %d x %d cells of %g m, %d of %d buildings with eaves",

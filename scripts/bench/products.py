@@ -20,7 +20,14 @@ external one (``../shared/data/external_oblique/*``: ``gt_terrain.npz``,
   p90 of the absolute error, and how many got a height;
 * discrepancies (``discrepancies.geojson``): positives = mapped buildings
   absent from the scene or shifted by > 0.5 m; precision and recall over the
-  judged footprints, and recall over all positives with constrained points.
+  judged footprints, and recall over all positives with constrained points;
+* buildings missing from the map (``missing.geojson``): precision = the
+  reported features that overlap a true missing building's footprint (the
+  others are labelled by what they overlap: a tree crown, a mapped
+  building, nothing); recall = the missing buildings the block sees (the
+  footprint's centre at its eave in >= 3 true images) that a reported
+  feature overlaps; the same for the reported features whose walls are
+  confirmed too (``walls_confirmed``).
 """
 
 from __future__ import annotations
@@ -88,6 +95,103 @@ def truth(scene: Path):
     return terrain, b
 
 
+def missing_truth(scene: Path):
+    """(missing footprints, their eave z, tree crowns, other buildings), all
+    absolute; shapely geometries."""
+    import shapely
+
+    if (scene / "gt_buildings.json").is_file() and (scene / "gt_terrain.npz").is_file():
+        gb = json.loads((scene / "gt_buildings.json").read_text())
+
+        def poly(b):
+            return shapely.Polygon(b["footprint"][0], b["footprint"][1:])
+
+        miss = [b for b in gb["buildings"] if b["state"] == "missing"]
+        other = [poly(b) for b in gb["buildings"] if b["state"] != "missing"]
+        trees = [shapely.Point(t[:2]).buffer(t[3]) for t in gb["trees"]]
+        return [poly(b) for b in miss], [b["eave_z"] for b in miss], trees, other
+    from obliq_colmap.synthetic.scene_io import load_scene
+
+    sc = load_scene(scene)
+    o = sc.origin
+    miss, eave, other = [], [], []
+    for b in sc.city.buildings:
+        fp = shapely.affinity.translate(b.footprint, o[0], o[1])
+        if b.in_scene and not b.in_map:
+            miss.append(fp)
+            eave.append(b.base_z + b.height_m + o[2])
+        elif b.in_scene:
+            other.append(fp)
+    # the rebuilt city keeps no trees (only its mesh has them): a false
+    # report on a synthetic scene is labelled "nothing" then.
+    return miss, eave, [], other
+
+
+def seen_by(scene: Path, xyz: np.ndarray, min_images: int = 3) -> np.ndarray:
+    """(N,) bool: at least ``min_images`` true cameras (``scene/gt``) have
+    the absolute point in front and inside the image."""
+    import pycolmap
+
+    rec = pycolmap.Reconstruction(str(scene / "gt"))
+    n = np.zeros(len(xyz), int)
+    for im in rec.images.values():
+        cam = rec.cameras[im.camera_id]
+        T = im.cam_from_world()
+        Xc = xyz @ T.rotation.matrix().T + T.translation
+        front = Xc[:, 2] > 0
+        uv = np.full((len(xyz), 2), -1.0)
+        if front.any():
+            uv[front] = cam.img_from_cam(Xc[front])
+        n += (
+            front
+            & (uv[:, 0] >= 0)
+            & (uv[:, 0] < cam.width)
+            & (uv[:, 1] >= 0)
+            & (uv[:, 1] < cam.height)
+        )
+    return n >= min_images
+
+
+def score_missing(scene: Path, prod: Path) -> dict:
+    import shapely
+
+    doc = json.loads((prod / "missing.geojson").read_text())
+    miss, eave, trees, other = missing_truth(scene)
+    cen = np.array(
+        [[*p.centroid.coords[0], z] for p, z in zip(miss, eave, strict=True)]
+    )
+    seen = seen_by(scene, cen.reshape(-1, 3)) if len(miss) else np.zeros(0, bool)
+    res = {"missing_in_scene": len(miss), "missing_seen": int(seen.sum())}
+    for name, sel in (
+        ("reported", lambda p: p["reported"]),
+        ("walls_confirmed", lambda p: p["reported"] and p["walls_confirmed"]),
+    ):
+        feats = [f for f in doc["features"] if sel(f["properties"])]
+        hit: set[int] = set()
+        labels = {"missing": 0, "tree": 0, "mapped": 0, "nothing": 0}
+        for f in feats:
+            g = shapely.geometry.shape(f["geometry"])
+            k = [i for i, m in enumerate(miss) if m.intersects(g)]
+            hit |= set(k)
+            if k:
+                labels["missing"] += 1
+            elif any(o.intersects(g) for o in other):
+                labels["mapped"] += 1
+            elif any(t.intersects(g) for t in trees):
+                labels["tree"] += 1
+            else:
+                labels["nothing"] += 1
+        found = sum(bool(seen[i]) for i in hit)
+        res[name] = {
+            "features": len(feats),
+            "precision": round(labels["missing"] / max(len(feats), 1), 3),
+            "labels": labels,
+            "missing_found": len(hit),
+            "recall_seen": round(found / max(int(seen.sum()), 1), 3),
+        }
+    return res
+
+
 def score(model: Path, scene: Path, prod: Path) -> dict:
     terrain, gt = truth(scene)
     c = load_constraints(model, scene / "cadastre.geojson")
@@ -152,6 +256,8 @@ def score(model: Path, scene: Path, prod: Path) -> dict:
             "recall_judged": round(tp / max(len(jp), 1), 3),
             "recall_seen": round(tp / max(len(pos & seen_ids), 1), 3),
         }
+    if (prod / "missing.geojson").is_file():
+        res["missing_from_map"] = score_missing(scene, prod)
     return res
 
 
