@@ -143,6 +143,17 @@ class BundleOptions:
     #: only evaluated against the fit without them (``BundleResult.vp_loo``,
     #: ``vp_test``: their factor and tests before they get any weight).
     vp_in_fit: bool = True
+    #: Each scalar facade row (``facade_lines`` False) weighted by its own
+    #: segment's line fit where the row reads it: the row is the segment's
+    #: line at the projection of its track's anchor, which can lie outside
+    #: the segment; a line fitted to edge points spread over its length L
+    #: has, at a distance s from its midpoint, the offset variance
+    #: ``sigma^2 (1 + 12 s^2 / L^2)`` (least squares on uniform points).
+    #: Each row's sd is ``horizontal_sigma_px`` times the square root of that
+    #: factor over the factors' median (computed at each solve's start from
+    #: ``BundleProblem.horizontal_ends``; rows without ends: factor 1). False:
+    #: every facade row has ``horizontal_sigma_px``.
+    facade_row_extrapolation: bool = False
     #: A priori standard deviation (px) of a tie point's observation
     #: (``BundleProblem.tie_xy``, each axis); cost weight 1 / sigma^2.
     tie_sigma_px: float = 1.0

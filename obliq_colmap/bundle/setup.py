@@ -138,6 +138,13 @@ class Setup:
                 opts.vertical_direction_sigma_px / opts.vertical_sigma_px
             )
 
+        if opts.facade_row_extrapolation and nh:
+            sd = facade_row_sd(P)
+            q = np.flatnonzero(order >= nv)  # the facade rows, sorted order
+            r = order[q] - nv
+            self.weight[q] /= sd[r] ** 2
+            self.loss_scale[q] *= sd[r]
+
         # Active images and cameras; parameter columns of the camera block.
         # an image is active with map rows or tie observations
         counts = np.bincount(self.img, minlength=K)
@@ -243,6 +250,42 @@ class Setup:
             self.n_red,
             sparse=self.sparse_camera,
         )
+
+
+#: Offset variance of a least-squares line through points spread evenly over
+#: its length L, at a distance s from their centre: (1 + 12 s^2 / L^2) times
+#: that at the centre (var(intercept) + s^2 var(slope), var(slope) = 12
+#: sigma^2 / (n L^2)).
+_LINE_FIT_SLOPE_FACTOR = 12.0
+
+
+def facade_row_sd(P: BundleProblem) -> np.ndarray:
+    """(H,) relative sd of each scalar facade row: its segment's line fit
+    read at the projection of the row's anchor point (at the problem's start
+    poses and cameras), ``sqrt(1 + 12 s^2 / L^2)`` over its median
+    (``BundleOptions.facade_row_extrapolation``). Rows without segment ends
+    (``horizontal_ends`` None) or with a degenerate one: 1."""
+    H = len(P.horizontal_image)
+    ends = P.horizontal_ends
+    if ends is None or H == 0:
+        return np.ones(H)
+    length = np.linalg.norm(ends[:, 1] - ends[:, 0], axis=1)
+    ok = length > 1e-9
+    u = (ends[:, 1] - ends[:, 0]) / np.where(ok, length, 1.0)[:, None]
+    mid = ends.mean(axis=1)
+    s = np.zeros(H)
+    for k, i in enumerate(P.image_ids):
+        m = np.flatnonzero(P.horizontal_image == k)
+        if not len(m):
+            continue
+        X = np.column_stack(
+            [P.horizontal_anchor_xy[m], P.facade_heights[P.horizontal_height[m]]]
+        )
+        x = P.cameras[P.image_camera[i]].img_from_cam(P.poses[i].transform(X))
+        s[m] = np.sum((x - mid[m]) * u[m], axis=1) / np.where(ok[m], length[m], 1.0)
+    s = np.where(ok & np.isfinite(s), s, 0.0)
+    sd = np.sqrt(1.0 + _LINE_FIT_SLOPE_FACTOR * s * s)
+    return sd / np.median(sd)
 
 
 def work_buffer(S: Setup, name: str, shape: tuple[int, ...]) -> np.ndarray:
