@@ -26,16 +26,15 @@ class AdjustmentOptions:
     #: principal point is held near the priors' with 1 % of the image size (an
     #: uncalibrated camera's tolerance): free, it followed the weak vertical
     #: mode of whole heads by up to 250 px on scenes of another renderer.
-    #: Each facade row weighted by its segment's line fit where it reads it
-    #: (``facade_row_extrapolation``; a quarter of the rows read the line
-    #: beyond 0.37 of its length from its middle).
+    #: The facade rows' line-fit weighting (``facade_row_extrapolation``) is
+    #: off: better on our generator's scenes, worse on the external
+    #: renderer's houses (journal, stage 3, 2026-12-06 session of 19:59).
     bundle: BundleOptions = field(
         default_factory=lambda: BundleOptions(
             loss="cauchy",
             loss_scale_px=1.0,
             refine_extra_params=True,
             principal_point_prior_sigma=0.01,
-            facade_row_extrapolation=True,
         )
     )
     #: Bundle rounds after the first that drop the constraints whose residual
