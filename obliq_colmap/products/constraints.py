@@ -42,6 +42,10 @@ class ModelConstraints:
     facade_xyz : (F, 3) facade track points (x_j, y_j, h_j).
     facade_building : (P, 2) int pairs (facade point, cadastre building).
     facade_edge : (P,) int, the map edge (wall) of each pair.
+    other_xyz : (T, 3) the other points (the bundle's tie points).
+    other_error : (T,) their reprojection errors (px).
+    other_m_per_px : (T,) metres per pixel at each of them (depth in its
+        first observation's image over that camera's focal length).
     """
 
     georef: Georef
@@ -51,16 +55,35 @@ class ModelConstraints:
     facade_xyz: np.ndarray
     facade_building: np.ndarray
     facade_edge: np.ndarray
+    other_xyz: np.ndarray
+    other_error: np.ndarray
+    other_m_per_px: np.ndarray
 
 
-def read_points(model_path: Path) -> np.ndarray:
-    """(N, 3) points3D of a COLMAP model (binary or text), model frame."""
+def read_points(model_path: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """points3D of a COLMAP model (binary or text), model frame: xyz (N, 3),
+    reprojection error (N,) px, and metres per pixel at each point (N,):
+    its depth in its first observation's image over that camera's mean
+    focal length."""
     try:
         rec = pycolmap.Reconstruction(str(model_path))
     except Exception as exc:  # pycolmap raises plain RuntimeError / ValueError
         raise InputError(model_path, f"not a readable COLMAP model: {exc}") from None
-    pts = [p.xyz for p in rec.points3D.values()]
-    return np.asarray(pts, float).reshape(-1, 3)
+    pts = list(rec.points3D.values())
+    xyz = np.asarray([p.xyz for p in pts], float).reshape(-1, 3)
+    err = np.asarray([p.error for p in pts], float)
+    if not pts:
+        return xyz, err, np.zeros(0)
+    first = np.asarray([p.track.elements[0].image_id for p in pts], int)
+    ids = np.asarray(sorted(rec.images), int)
+    R = np.stack([rec.images[i].cam_from_world().rotation.matrix() for i in ids])
+    t = np.stack([rec.images[i].cam_from_world().translation for i in ids])
+    f = np.asarray(
+        [rec.cameras[rec.images[i].camera_id].mean_focal_length() for i in ids]
+    )
+    k = np.searchsorted(ids, first)
+    depth = np.einsum("nj,nj->n", R[k, 2], xyz) + t[k, 2]
+    return xyz, err, depth / f[k]
 
 
 def split_points(
@@ -117,7 +140,7 @@ def load_constraints(
         raise InputError(input_path, "no georef.json: not an obliq-colmap result model")
     georef = read_georef(input_path)
     cadastre = load_cadastre(cadastre_path, origin=georef.origin)
-    xyz = read_points(input_path)
+    xyz, err, m_per_px = read_points(input_path)
     corner_index, pairs, on_edge = split_points(cadastre, xyz)
     is_corner = corner_index >= 0
     if not is_corner.any() and not on_edge.any():
@@ -143,4 +166,7 @@ def load_constraints(
         facade_xyz=xyz[facade_ids],
         facade_building=np.column_stack([remap[pairs[:, 0]], pairs[:, 1]]),
         facade_edge=pairs[:, 2],
+        other_xyz=xyz[~is_corner & ~on_edge],
+        other_error=err[~is_corner & ~on_edge],
+        other_m_per_px=m_per_px[~is_corner & ~on_edge],
     )

@@ -365,12 +365,14 @@ def find_discrepancies(
     heights,
     options: DiscrepancyOptions,
     num_workers: int = 0,
+    block=None,
     views: list[RoofView] | None = None,
 ) -> dict:
     """The discrepancy layer (GeoJSON dict, absolute coordinates) of one
     registration: one feature per judged footprint with its score.
-    ``views``: the blurred images (:func:`roof_views`), if already read."""
-    block = read_model(input_path)
+    ``block`` (:func:`~obliq_colmap.colmap_io.read_model` of ``input_path``)
+    and ``views`` (its blurred images, :func:`roof_views`), if already read."""
+    block = block if block is not None else read_model(input_path)
     cad = c.cadastre
     image_path = Path(image_path)
     zg = heights.ground_z[cad.corner_building]

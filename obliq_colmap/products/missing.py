@@ -257,6 +257,11 @@ def roof_plane(
     return best
 
 
+def _mad_sd(r: np.ndarray) -> float:
+    """The sd of ``r`` from its median absolute deviation (normal errors)."""
+    return 1.4826 * float(np.median(np.abs(r - np.median(r))))
+
+
 def _sweep_heights(lo: float, hi: float, step: float) -> np.ndarray:
     return np.arange(lo, hi + 1e-9, step)
 
@@ -333,35 +338,10 @@ def reference_thresholds(
         res.append(best[k][on] - A @ coef)
     if not res:
         return ncc_min, options.sweep_step_m, len(pk)
-    r = np.concatenate(res)
-    sigma = 1.4826 * float(np.median(np.abs(r - np.median(r))))
-    return ncc_min, sigma, len(pk)
-
-
-def tie_points(model_path) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Every point3D's xyz (N, 3), reprojection error (px) and mean depth
-    over focal length of its observations (m per px)."""
-    import pycolmap
-
-    rec = pycolmap.Reconstruction(str(model_path))
-    pts = list(rec.points3D.values())
-    xyz = np.array([p.xyz for p in pts], float).reshape(-1, 3)
-    err = np.array([p.error for p in pts], float)
-    # metres per pixel at each point, from its first observation's image
-    first = np.array([p.track.elements[0].image_id for p in pts], int)
-    ids = np.array(sorted(rec.images), int)
-    R = np.stack([rec.images[i].cam_from_world().rotation.matrix() for i in ids])
-    t = np.stack([rec.images[i].cam_from_world().translation for i in ids])
-    f = np.array(
-        [rec.cameras[rec.images[i].camera_id].mean_focal_length() for i in ids]
-    )
-    k = np.searchsorted(ids, first)
-    depth = np.einsum("nj,nj->n", R[k, 2], xyz) + t[k, 2]
-    return xyz, err, depth / f[k]
+    return ncc_min, _mad_sd(np.concatenate(res)), len(pk)
 
 
 def find_missing(
-    input_path,
     c,
     terrain,
     heights,
@@ -382,20 +362,15 @@ def find_missing(
     The GeoJSON layer (absolute coordinates) and a summary (counts, the
     measured noise and thresholds).
     """
-    from obliq_colmap.products.constraints import split_points
-
     cad = c.cadastre
-    xyz, err, mpp = tie_points(input_path)
-    ci, _, on_edge = split_points(cad, xyz)
-    tie = (ci < 0) & ~on_edge
-    xyz, err, mpp = xyz[tie], err[tie], mpp[tie]
-    summary: dict = {"tie_points": int(tie.sum())}
+    xyz, err, mpp = c.other_xyz, c.other_error, c.other_m_per_px
+    summary: dict = {"tie_points": len(xyz)}
     feats: list[dict] = []
-    if tie.sum() and len(c.ground_xyz):
+    if len(xyz) and len(c.ground_xyz):
         h = xyz[:, 2] - terrain(xyz[:, :2])
         # the measured noise of a point's height above the grid
         rg = c.ground_xyz[:, 2] - terrain(c.ground_xyz[:, :2])
-        s_grid = 1.4826 * float(np.median(np.abs(rg - np.median(rg))))
+        s_grid = _mad_sd(rg)
         s_pt = float(np.median(np.maximum(err, 0.0) * mpp))
         sigma = float(np.hypot(s_grid, s_pt))
         min_h = options.min_height_m + options.sigmas * sigma

@@ -158,11 +158,12 @@ def make_products(
             h,
             options.discrepancies,
             options.num_workers,
+            block,
             views,
         )
         if options.find_missing:
             miss, miss_summary = find_missing(
-                input_path, c, terrain, h, views, options.missing, options.num_workers
+                c, terrain, h, views, options.missing, options.num_workers
             )
     summary = {
         "vertical_datum": "the result model's (georef.json): the priors' heights",

@@ -107,7 +107,7 @@ def run_options(scene: Path, args: argparse.Namespace) -> pl.PipelineOptions:
     (``PATH=VALUE``, VALUE a Python literal or text; ``refine_segments=on``
     for the default ``RefineOptions``)."""
     info = json.loads((scene / "scene.json").read_text())
-    if "options" in info and not getattr(args, "register_defaults", False):
+    if "options" in info and not args.register_defaults:
         noise = info["options"]
         registration = RegistrationOptions(
             prior_position_sigma_m=noise["prior_position_m"],
