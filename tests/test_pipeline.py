@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import copy
+import dataclasses
 import json
 import re
 import shutil
@@ -894,14 +895,20 @@ def test_imprecise_images_against_the_block_median():
     assert imprecise_images(few, 2.5) == []  # no median from three images
 
 
-def _block_stage_inputs(initial_run):
+def _block_stage_inputs(initial_run, reregister_rejected=False):
     """The sample's options (one worker, no tie points), inputs, tasks and a
     private copy of its stage-2 outcomes in the tasks' order, for tests of
-    ``block_stage``'s bookkeeping."""
+    ``block_stage``'s bookkeeping (the second registration of the images it
+    leaves out off unless ``reregister_rejected``)."""
     from obliq_colmap import pipeline as pl
 
     _, run = initial_run
-    options = PipelineOptions(num_workers=1, progress=False, adjustment=NO_TIES)
+    options = PipelineOptions(
+        num_workers=1,
+        progress=False,
+        adjustment=NO_TIES,
+        reregister_rejected=reregister_rejected,
+    )
     inputs = pl.load_inputs(
         SAMPLE / "images", SAMPLE / "cadastre.geojson", SAMPLE / "priors", options
     )
@@ -1257,3 +1264,115 @@ def test_without_the_block_an_image_without_its_own_vertical_is_warned():
     assert outcomes[0].message == "" and outcomes[3].message == ""
     assert "low confidence" in outcomes[1].message
     assert "not found" in outcomes[2].message
+
+
+def _rejected_first(x, y=None):
+    """``rejected_images`` that rejects image ``x`` in the first bundle and,
+    after it, ``y`` (if given) with whatever the real verdict says."""
+    from obliq_colmap.adjustment import verdicts
+
+    real, calls = verdicts.rejected_images, []
+
+    def rejected(stage3, min_kept):
+        calls.append(1)
+        if len(calls) == 1:
+            return [x.image_id]
+        return sorted({*real(stage3, min_kept), *([y.image_id] if y else [])})
+
+    return rejected
+
+
+@pytest.mark.slow
+def test_an_image_the_bundle_rejects_is_registered_again_against_the_block(
+    initial_run, monkeypatch
+):
+    """The first bundle rejects N_01 (stubbed: the verdict; its stage-2 pose
+    is turned 3 deg and moved 12 m, as a wrong consensus would leave it). It
+    is left out, registered again against the block solved without it (its
+    head's solved camera, the block's ground) and the bundle solved again
+    with it: written, as close to the truth as the block's other images."""
+    from obliq_colmap import pipeline as pl
+    from obliq_colmap.adjustment import verdicts
+    from obliq_colmap.geometry import Pose, rotation_angle_deg, rotation_from_axis_angle
+
+    options, inputs, tasks, outcomes = _block_stage_inputs(initial_run, True)
+    x = next(o for o in outcomes if o.name == "N_01.jpg")
+    r = x.registration
+    turn = rotation_from_axis_angle(np.radians([3.0, 0.0, 0.0]))
+    wrong = Pose.from_center(
+        turn @ r.cam_from_world.rotation, r.cam_from_world.center + [0, 12.0, 0]
+    )
+    x.registration = dataclasses.replace(r, cam_from_world=wrong)
+    monkeypatch.setattr(verdicts, "rejected_images", _rejected_first(x))
+    state, result, _, again = pl.block_stage(
+        inputs, tasks, outcomes, options, {}, (1, ())
+    )
+    assert again == ["N_01.jpg"] and x.reregistered and x.registered
+    assert x.image_id in state.poses and result is not None
+    truth = read_model(SAMPLE / "gt").images
+    origin = np.r_[inputs.cadastre.origin[:2], 0.0]
+    errors = {
+        i: (
+            rotation_angle_deg(p.rotation, truth[i].cam_from_world.rotation),
+            np.linalg.norm(
+                p.center[:2] - (truth[i].cam_from_world.center - origin)[:2]
+            ),
+        )
+        for i, p in result.poses.items()
+    }
+    worst = np.max([e for i, e in errors.items() if i != x.image_id], axis=0)
+    assert errors[x.image_id][0] <= worst[0] and errors[x.image_id][1] <= worst[1]
+
+
+@pytest.mark.slow
+def test_a_second_registration_of_a_rejected_image_that_spoils_the_block_is_undone(
+    initial_run, monkeypatch
+):
+    """As above, but the bundle with N_01 registered again rejects E_10,
+    which the block held (stubbed): the block without N_01 stands, N_01
+    stays left out and its message names E_10."""
+    from obliq_colmap import pipeline as pl
+    from obliq_colmap.adjustment import verdicts
+
+    options, inputs, tasks, outcomes = _block_stage_inputs(initial_run, True)
+    x = next(o for o in outcomes if o.name == "N_01.jpg")
+    y = next(o for o in outcomes if o.name == "E_10.jpg")
+    monkeypatch.setattr(verdicts, "rejected_images", _rejected_first(x, y))
+    state, result, _, again = pl.block_stage(
+        inputs, tasks, outcomes, options, {}, (1, ())
+    )
+    assert again == [] and result is not None
+    assert not x.registered and x.image_id not in state.poses
+    assert "left out" in x.message and "E_10.jpg" in x.message
+    assert y.registered and y.image_id in state.poses
+
+
+@pytest.mark.slow
+def test_an_image_registered_again_must_keep_its_map_rows(initial_run, monkeypatch):
+    """The bundle with N_01 registered again keeps only half of N_01's map
+    rows (stubbed): its second chance is refused whatever its tie points
+    say, the block without it stands and its message says why."""
+    from obliq_colmap import pipeline as pl
+    from obliq_colmap.adjustment import verdicts
+    from obliq_colmap.pipeline import block
+
+    options, inputs, tasks, outcomes = _block_stage_inputs(initial_run, True)
+    x = next(o for o in outcomes if o.name == "N_01.jpg")
+    real, calls = block.bundle_stage, []
+
+    def bundle(*args, **kwargs):
+        state, result, stage3 = real(*args, **kwargs)
+        calls.append(1)
+        if len(calls) == 2:
+            stage3.constraints_kept[x.image_id] = 0.5
+        return state, result, stage3
+
+    monkeypatch.setattr(block, "bundle_stage", bundle)
+    monkeypatch.setattr(verdicts, "ties_confirm", lambda stage3: {x.image_id})
+    monkeypatch.setattr(verdicts, "rejected_images", _rejected_first(x))
+    state, result, _, again = pl.block_stage(
+        inputs, tasks, outcomes, options, {}, (1, ())
+    )
+    assert len(calls) == 2 and again == [] and result is not None
+    assert not x.registered and x.image_id not in state.poses
+    assert "rejected 50% of N_01.jpg's" in x.message
