@@ -18,7 +18,7 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from obliq_colmap.adjustment import Stage3, TiePoints, bundle_stage
+from obliq_colmap.adjustment import Stage3, TiePoints, Verdicts, bundle_stage
 from obliq_colmap.bundle import BundleResult
 from obliq_colmap.errors import InputError
 from obliq_colmap.geometry import (
@@ -117,12 +117,10 @@ def block_stage(
                 len(reregistered),
                 ", ".join(reregistered),
             )
-            first_bundle = timings["bundle"]
-            state, bundle_result, stage3 = bundle_stage(
-                inputs, by_id, state, options.adjustment, timings, ties
+            state, bundle_result, stage3, verdicts = _solve_again(
+                inputs, by_id, state, options, timings, ties
             )
-            timings["bundle"] += first_bundle
-            again, imprecise_again, misplaced_again = block_verdicts(stage3, options)
+            again, imprecise_again, misplaced_again = verdicts
             new = {o.image_id for o in outcomes if o.name in reregistered}
             # Spoiled: rejected now, accepted before. Not the precision
             # verdict: an image it flags is left out of the second block,
@@ -409,6 +407,24 @@ def reregister_failed(
     return BlockState(poses, cameras, planes, state.shared, solved), names
 
 
+def _solve_again(
+    inputs: Inputs,
+    by_id: dict[int, ImageOutcome],
+    state: BlockState,
+    options: PipelineOptions,
+    timings: dict[str, float],
+    ties: TiePoints | None,
+) -> tuple[BlockState, BundleResult | None, Stage3, Verdicts]:
+    """The bundle solved again on ``state`` (its time added to the
+    earlier solves') and its verdicts (:func:`block_verdicts`)."""
+    before = timings["bundle"]
+    state, result, stage3 = bundle_stage(
+        inputs, by_id, state, options.adjustment, timings, ties
+    )
+    timings["bundle"] += before
+    return state, result, stage3, block_verdicts(stage3, options)
+
+
 def _leave_out(
     state: BlockState,
     stage3: Stage3,
@@ -478,12 +494,10 @@ def _register_left_out(
         len(names),
         ", ".join(names),
     )
-    solved_before = timings["bundle"]
-    new_state, result, stage3 = bundle_stage(
-        inputs, by_id, again_state, options.adjustment, timings, ties
+    new_state, result, stage3, verdicts = _solve_again(
+        inputs, by_id, again_state, options, timings, ties
     )
-    timings["bundle"] += solved_before
-    rejected, imprecise, misplaced = block_verdicts(stage3, options)
+    rejected, imprecise, misplaced = verdicts
     new = {o.image_id for o in outcomes if o.name in names}
     spoiled = sorted((set(rejected) | set(misplaced)) & set(state.poses))
     # Its second chance stands on its map rows: the tie points that may
