@@ -295,7 +295,9 @@ def reregister_failed(
     block (:func:`~obliq_colmap.pipeline.resection.tie_resections`) starts
     from that pose instead, with tight prior sigmas and the vertical it
     gives (:data:`TIE_START_SIGMAS`), whether its head has confident images
-    or not. ``only``: these image ids instead of the failed and weak ones.
+    or not; with ``options.reregister_placed`` so does every other image its
+    tie points place. ``only``: these image ids instead of the failed and
+    weak ones (and no others).
 
     Returns
     -------
@@ -312,6 +314,9 @@ def reregister_failed(
 
     def chosen(o: ImageOutcome) -> bool:
         return weak(o) if only is None else o.image_id in only
+
+    def placed(o: ImageOutcome) -> bool:  # tried where its tie points place it
+        return chosen(o) or (only is None and options.reregister_placed)
 
     confident = [i for i in state.poses if by_id[i].registered and not weak(by_id[i])]
     head_camera = {head_of[i]: state.cameras[i] for i in state.poses}
@@ -331,7 +336,7 @@ def reregister_failed(
         candidates = {
             o.image_id: camera_of[o.image_id]
             for o in outcomes
-            if o.registration is not None and chosen(o)
+            if o.registration is not None and placed(o)
         }
         new_head = frozenset(i for i in candidates if head_of[i] not in head_camera)
         starts = tie_resections(state, ties, candidates, new_head)
@@ -339,11 +344,13 @@ def reregister_failed(
         k
         for k, o in enumerate(outcomes)
         if o.registration is not None
-        and chosen(o)
         and len(o.segments) >= options.registration.min_segments
         and (
-            o.image_id in starts
-            or any(head_of[i] == tasks[k].camera.camera_id for i in confident)
+            (placed(o) and o.image_id in starts)
+            or (
+                chosen(o)
+                and any(head_of[i] == tasks[k].camera.camera_id for i in confident)
+            )
         )
     ]
     if not todo:
