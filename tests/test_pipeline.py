@@ -172,6 +172,7 @@ def test_head_focal_pass_gives_each_head_one_focal_near_the_truth(tmp_path):
     assert np.all(dev < 2.0) and np.median(dev) < 0.6, dev
 
 
+@pytest.mark.slow
 def test_bundle_makes_the_images_agree_in_height(initial_run, bundle_run):
     """Stage 2 leaves every image in its own height datum (the prior camera
     height is held; tens of px along the verticals); the bundle over facade
@@ -213,6 +214,7 @@ def test_bundle_makes_the_images_agree_in_height(initial_run, bundle_run):
     assert np.median(sd) / 4 < np.median(dev) < 2 * np.median(sd)
 
 
+@pytest.mark.slow
 def test_bundle_output_has_facade_points_seen_by_several_images(bundle_run):
     """points3D: map corners and, after the bundle, the facade tracks' points
     (on or near a map edge, not at a corner)."""
@@ -842,6 +844,7 @@ def test_end_offset_ratios_need_both_ends_off_the_same_way():
     assert misplaced_images(SimpleNamespace(end_offset_px=few), 6.0) == []
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("prior", ["rotation", "centre"])
 def test_the_bundle_holds_the_priors_poses_when_given_their_sigma(initial_run, prior):
     """``rotation_prior_sigma_deg`` and ``position_prior_sigma_m`` reach every
@@ -1117,6 +1120,7 @@ def test_overlays_are_drawn_from_the_written_poses_with_a_legend(tmp_path):
     assert np.median(d) < 3.0, np.median(d)
 
 
+@pytest.mark.slow
 def test_one_point_per_physical_corner_with_its_error_and_colour(bundle_run):
     """Vertices shared by two footprints are one corner: no two points of the
     written model lie within 5 cm of each other; every point carries its
@@ -1149,6 +1153,7 @@ def test_one_point_per_physical_corner_with_its_error_and_colour(bundle_run):
     assert np.corrcoef(stored.ravel(), first.ravel())[0, 1] > 0.5
 
 
+@pytest.mark.slow
 def test_matched_corners_are_observed_where_measured(bundle_run):
     """A map corner that stage 2 matched to a vertical segment is observed on
     that segment's line in the raw image (its error is the line residual),

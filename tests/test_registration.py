@@ -622,6 +622,7 @@ def _random_verticals(block, num: int, seed: int) -> np.ndarray:
     return np.stack([start, start + length[:, None] * unit], axis=1)
 
 
+@pytest.mark.slow
 def test_chance_consensus_fails_and_a_true_one_passes(block):
     """Segments that match the map only by chance: the search alone still
     finds a consensus; the same search with the segments mirrored finds as
@@ -968,6 +969,7 @@ def test_t_interval_brute_force():
         assert want.any() and not want.all()
 
 
+@pytest.mark.slow
 def test_head_focal_from_the_consensus_of_its_images(tmp_path):
     """Three images of one lens registered with the priors' focal 3 % off and
     held (on ``paper`` each image's refinement keeps 45-86 % of its head's
