@@ -308,6 +308,7 @@ def test_a_corrupt_image_is_left_out_and_the_rest_written(tmp_path, caplog):
     assert any(bad.name in r.message for r in caplog.records)
 
 
+@pytest.mark.slow
 @pytest.mark.colmap
 @pytest.mark.skipif(
     shutil.which("colmap") is None,
@@ -974,6 +975,7 @@ def test_a_reregistration_that_spoils_the_block_is_undone(
     assert failed or x.message.startswith("written with a warning")
 
 
+@pytest.mark.slow
 def test_images_placed_by_tie_points_outvote_an_image_the_bundle_now_rejects(
     initial_run, monkeypatch
 ):
