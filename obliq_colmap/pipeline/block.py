@@ -111,14 +111,8 @@ def block_stage(
             )
         timings["reregistration"] = time.perf_counter() - t0
         if reregistered:
-            logger.info(
-                "%d image(s) registered against the solved block (%s): "
-                "the bundle is solved again",
-                len(reregistered),
-                ", ".join(reregistered),
-            )
             state, bundle_result, stage3, verdicts = _solve_again(
-                inputs, by_id, state, options, timings, ties
+                inputs, by_id, state, options, timings, ties, reregistered
             )
             again, imprecise_again, misplaced_again = verdicts
             new = {o.image_id for o in outcomes if o.name in reregistered}
@@ -421,9 +415,17 @@ def _solve_again(
     options: PipelineOptions,
     timings: dict[str, float],
     ties: TiePoints | None,
+    joined: Sequence[str],
 ) -> tuple[BlockState, BundleResult | None, Stage3, Verdicts]:
-    """The bundle solved again on ``state`` (its time added to the
-    earlier solves') and its verdicts (:func:`block_verdicts`)."""
+    """The bundle solved again on ``state``, which the images ``joined``
+    (by name) joined registered against the solved block (its time added
+    to the earlier solves'), and its verdicts (:func:`block_verdicts`)."""
+    logger.info(
+        "%d image(s) registered against the solved block (%s): "
+        "the bundle is solved again",
+        len(joined),
+        ", ".join(joined),
+    )
     before = timings["bundle"]
     state, result, stage3 = bundle_stage(
         inputs, by_id, state, options.adjustment, timings, ties
@@ -495,14 +497,8 @@ def _register_left_out(
         )
     if not names:
         return state, first_result, first_stage3, []
-    logger.info(
-        "%d image(s) the bundle left out registered again against the solved"
-        " block (%s): the bundle is solved again",
-        len(names),
-        ", ".join(names),
-    )
     new_state, result, stage3, verdicts = _solve_again(
-        inputs, by_id, again_state, options, timings, ties
+        inputs, by_id, again_state, options, timings, ties, names
     )
     rejected, imprecise, misplaced = verdicts
     new = {o.image_id for o in outcomes if o.name in names}
