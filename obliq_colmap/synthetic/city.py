@@ -377,6 +377,7 @@ class _MeshBuilder:
     def __init__(self) -> None:
         self.tris: list[np.ndarray] = []  # (m, 3, 3)
         self.tri_surf: list[np.ndarray] = []
+        self.tri_hint: list[np.ndarray] = []  # (m, 3); zero: no hint
         self.surf: dict[str, list] = {
             k: []
             for k in (
@@ -423,17 +424,26 @@ class _MeshBuilder:
         return len(s["material"]) - 1
 
     def triangles(self, tris: np.ndarray, surf, normal_hint: np.ndarray | None = None):
-        """Add (m, 3, 3) triangles; flip those whose normal opposes the hint."""
-        tris = np.asarray(tris, float).reshape(-1, 3, 3).copy()
-        if normal_hint is not None:
-            n = np.cross(tris[:, 1] - tris[:, 0], tris[:, 2] - tris[:, 0])
-            hint = np.broadcast_to(np.asarray(normal_hint, float), n.shape)
-            flip = np.einsum("ij,ij->i", n, hint) < 0
-            tris[flip] = tris[flip][:, [0, 2, 1]]
+        """Add (m, 3, 3) triangles; those whose normal opposes the hint (3,)
+        or (m, 3) are flipped in :meth:`oriented` (one pass over the whole
+        mesh: a building adds its walls a few triangles at a time)."""
+        tris = np.asarray(tris, float).reshape(-1, 3, 3)
         self.tris.append(tris)
         self.tri_surf.append(
             np.broadcast_to(np.asarray(surf, np.int32), (len(tris),)).copy()
         )
+        hint = np.zeros(3) if normal_hint is None else normal_hint
+        self.tri_hint.append(np.broadcast_to(np.asarray(hint, float), (len(tris), 3)))
+
+    def oriented(self) -> np.ndarray:
+        """(T, 3, 3) every triangle added, wound so that its normal does not
+        oppose its hint (triangles without a hint as given)."""
+        tris = np.concatenate(self.tris)
+        hint = np.concatenate(self.tri_hint)
+        n = np.cross(tris[:, 1] - tris[:, 0], tris[:, 2] - tris[:, 0])
+        flip = np.einsum("ij,ij->i", n, hint) < 0
+        tris[flip] = tris[flip][:, [0, 2, 1]]
+        return tris
 
     def convex(self, pts: np.ndarray, surf: int, normal_hint) -> None:
         """Fan-triangulate a convex planar polygon (n, 3)."""
@@ -1498,7 +1508,7 @@ def _assemble(
 def _city_from_builder(
     mb, options, seed, extent, terrain, layout, buildings, box_corners, box_z
 ) -> City:
-    tris = np.concatenate(mb.tris)
+    tris = mb.oriented()
     n = np.cross(tris[:, 1] - tris[:, 0], tris[:, 2] - tris[:, 0])
     norm = np.linalg.norm(n, axis=1)
     keep = norm > 1e-9
