@@ -658,6 +658,7 @@ def test_register_option_out_of_range_is_one_line(tmp_path, capsys, option, mess
     assert not (tmp_path / "out").exists()
 
 
+@pytest.mark.slow
 def test_the_bundle_flags_an_image_whose_facade_edges_disagree(
     initial_run, bundle_run, monkeypatch
 ):
@@ -921,6 +922,7 @@ def _block_stage_inputs(initial_run, reregister_rejected=False):
     return options, inputs, tasks, outcomes
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("failed", [True, False], ids=["failed", "weak"])
 def test_a_reregistration_that_spoils_the_block_is_undone(
     initial_run, monkeypatch, failed
