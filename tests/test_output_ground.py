@@ -59,3 +59,51 @@ def test_corner_ground_follows_the_final_pose_not_the_stale_plane():
     # the unmatched corner: the plane through the measured ones (a 1 m^2
     # ridge on its slopes)
     np.testing.assert_allclose(z[4], _ground(corner_xy[4:])[0], atol=1e-3)
+
+
+def test_facade_points_are_observed_on_their_segments_kept_by_the_bundle():
+    """A facade track's point is observed on the line of the segment that
+    measured it (moved across from its projection, so its reprojection
+    error is the line residual), in the images the output keeps, only for
+    the observations the last solve kept, and once per image (the nearer of
+    two segments of one track)."""
+    from obliq_colmap.pipeline.output import _facade_observations
+
+    cam = Camera("PINHOLE", 2000, 1500, [1500.0, 1500.0, 1000.0, 750.0], 1)
+    s = np.sqrt(0.5)
+    R = np.array([[1.0, 0.0, 0.0], [0.0, -s, -s], [0.0, s, -s]])
+    poses = [Pose.from_center(R, np.array([x, -60.0, 160.0])) for x in (0.0, 20.0)]
+    block = Block(
+        {1: cam},
+        {i + 1: ImageRecord(i + 1, f"{i}.jpg", 1, p) for i, p in enumerate(poses)},
+    )
+    F = np.array([[0.0, 10.0, 108.0], [5.0, 12.0, 104.0]])  # two tracks
+    # observations (image index, track): the second image holds track 0
+    # twice (the first segment 2 px off, the second 0.5 px) and track 1 once
+    image = np.array([0, 0, 1, 1, 1])
+    track = np.array([0, 1, 0, 0, 1])
+    offset = np.array([0.3, -0.4, 2.0, 0.5, 0.7])  # px, across the segment
+    ends = np.zeros((5, 2, 2))
+    for h in range(5):
+        p = cam.img_from_cam(poses[image[h]].transform(F[track[h]][None]))[0]
+        ends[h] = [p + [-20.0, 1.0 + offset[h]], p + [20.0, -1.0 + offset[h]]]
+    tracks = SimpleNamespace(image=image, track=track, num_observations=5)
+    stage3 = SimpleNamespace(
+        ids=(1, 2),
+        tracks=tracks,
+        ends_raw=ends,
+        kept_observations=np.array([0, 2, 3, 4]),  # obs 1: an outlier
+    )
+    fobs = _facade_observations(block, stage3, F)
+
+    assert [i for i, _ in fobs[0]] == [1, 2] and [i for i, _ in fobs[1]] == [2]
+    for j, h_of in ((0, {1: 0, 2: 3}), (1, {2: 4})):
+        for i, xy in fobs[j]:
+            h = h_of[i]
+            d = ends[h, 1] - ends[h, 0]
+            n = np.array([-d[1], d[0]]) / np.linalg.norm(d)
+            assert abs(np.dot(xy - ends[h, 0], n)) < 1e-9  # on the segment's line
+            proj = cam.img_from_cam(poses[i - 1].transform(F[j][None]))[0]
+            # moved straight across from the projection, by the residual
+            assert abs(abs(np.dot(xy - proj, n)) - np.linalg.norm(xy - proj)) < 1e-9
+            assert 0.1 < np.linalg.norm(xy - proj) < 1.0

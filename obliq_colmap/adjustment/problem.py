@@ -89,6 +89,9 @@ class Stage3:
     #: The last solve's problem (its tie rows go into the output with the
     #: solved points), None before a solve.
     bundle_problem: BundleProblem | None = None
+    #: The track observations (indices into ``tracks``) that the last solve
+    #: kept as rows, sorted; None before a solve.
+    kept_observations: np.ndarray | None = None
 
     def report(self, outcomes: dict[int, ImageOutcome]) -> dict[str, Any]:
         t = self.tracks

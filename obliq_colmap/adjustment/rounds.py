@@ -199,6 +199,7 @@ def bundle_stage(
             result = None
         else:
             stage3.bundle_problem = problem
+            stage3.kept_observations = np.unique(obs[obs >= 0])
             state = state.with_bundle(result, problem.image_camera)
             stage3.bundle_rms = _rms_per_image(problem, result)
             stage3.constraints_kept = _kept_share(initial, problem)

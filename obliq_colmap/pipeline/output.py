@@ -121,13 +121,48 @@ def _measured(
     camera = inputs.priors.cameras[inputs.priors.images[outcome.image_id].camera_id]
     ends = camera.distort_pixels(reg.inlier_segments_px[rows[has]].reshape(-1, 2))
     ends = ends.reshape(-1, 2, 2)
-    d = ends[:, 1] - ends[:, 0]
-    d /= np.maximum(np.linalg.norm(d, axis=1, keepdims=True), 1e-12)
-    n = np.stack([-d[:, 1], d[:, 0]], axis=1)
     out = px.copy()
-    across = np.sum((px[has] - ends[:, 0]) * n, axis=1)
-    out[has] = px[has] - across[:, None] * n
+    out[has] = onto_lines(px[has], ends)
     return out
+
+
+def onto_lines(px: np.ndarray, ends: np.ndarray) -> np.ndarray:
+    """(K, 2) points ``px`` moved across onto the lines through the segments
+    ``ends`` (K, 2, 2), along each line's normal."""
+    d = ends[:, 1] - ends[:, 0]
+    d = d / np.maximum(np.linalg.norm(d, axis=1, keepdims=True), 1e-12)
+    n = np.stack([-d[:, 1], d[:, 0]], axis=1)
+    across = np.sum((px - ends[:, 0]) * n, axis=1)
+    return px - across[:, None] * n
+
+
+def _facade_observations(
+    block: Block, stage3: Stage3, F: np.ndarray
+) -> list[list[tuple[int, np.ndarray]]]:
+    """Per facade track point ``F`` (J, 3): its observations, (image id, raw
+    px) in every image of the track that the output keeps, each where the
+    bundle measured it: the point's projection moved across onto the line of
+    that image's segment (its reprojection error is then the line residual).
+    Only the observations the last solve kept (not its outliers); where an
+    image holds two of one track, the one nearest the projection."""
+    t = stage3.tracks
+    kept = stage3.kept_observations
+    use = np.zeros(t.num_observations, bool)
+    use[np.arange(t.num_observations) if kept is None else kept] = True
+    fobs: list[list[tuple[int, np.ndarray]]] = [[] for _ in range(len(F))]
+    for k, i in enumerate(stage3.ids):
+        if i not in block.images:  # left out after the bundle
+            continue
+        sel = np.flatnonzero((t.image == k) & use)
+        keep, px = _observations(block, i, F[t.track[sel]])
+        sel = sel[keep]
+        on = onto_lines(px, stage3.ends_raw[sel])
+        # nearest first, then the first of each track
+        order = np.argsort(np.linalg.norm(on - px, axis=1), kind="stable")
+        _, first = np.unique(t.track[sel][order], return_index=True)
+        for h in order[first]:
+            fobs[t.track[sel[h]]].append((i, on[h]))
+    return fobs
 
 
 def _segment_bottoms(
@@ -277,9 +312,10 @@ def constrained_points(
       every image in which the corner is potentially visible
       (:func:`cadastre.visible_corners`: inside the image, an adjacent wall
       facing the camera). Occlusion by other buildings is not tested.
-    * After the bundle, every facade track's point ``x_j + h_j z``, observed
-      where it projects in the images of the track (with the facade lines,
-      the line's point nearest the anchor ``x_j``).
+    * After the bundle, every facade track's point ``x_j + h_j z`` (with the
+      facade lines, the line's point nearest the anchor ``x_j``), observed
+      on its segment's line in the images of the track
+      (:func:`_facade_observations`).
 
     Points seen in fewer than two images are dropped (COLMAP's dense stages
     need shared points).
@@ -321,14 +357,7 @@ def constrained_points(
             normal = rotate(inputs.cadastre.edge_normal[t.edge], bundle.facade_angles)
             xy = xy + bundle.facade_offsets[:, None] * normal
         F = np.column_stack([xy, bundle.facade_heights])
-        fobs: list[list[tuple[int, np.ndarray]]] = [[] for _ in range(len(F))]
-        for k, i in enumerate(stage3.ids):
-            if i not in block.images:  # left out after the bundle
-                continue
-            tr = np.unique(t.track[t.image == k])
-            keep, px = _observations(block, i, F[tr])
-            for j, p in zip(tr[keep], px, strict=True):
-                fobs[j].append((i, p))
+        fobs = _facade_observations(block, stage3, F)
         points += [Point3D(F[j], o) for j, o in enumerate(fobs) if len(o) >= 2]
     return points
 
