@@ -27,7 +27,7 @@ from obliq_colmap.bundle.facade_lines import rotate
 from obliq_colmap.cadastre import visible_corners
 from obliq_colmap.colmap_io import Block, Georef, ImageRecord, Point3D, write_result
 from obliq_colmap.errors import InputError
-from obliq_colmap.geometry import Camera
+from obliq_colmap.geometry import Camera, lines_through, point_line_distance
 from obliq_colmap.images import read_image
 from obliq_colmap.report import uncertainty_report
 from obliq_colmap.state import BlockState, ImageOutcome, Inputs, json_float
@@ -122,18 +122,15 @@ def _measured(
     ends = camera.distort_pixels(reg.inlier_segments_px[rows[has]].reshape(-1, 2))
     ends = ends.reshape(-1, 2, 2)
     out = px.copy()
-    out[has] = onto_lines(px[has], ends)
+    out[has] = _onto_lines(px[has], ends)
     return out
 
 
-def onto_lines(px: np.ndarray, ends: np.ndarray) -> np.ndarray:
+def _onto_lines(px: np.ndarray, ends: np.ndarray) -> np.ndarray:
     """(K, 2) points ``px`` moved across onto the lines through the segments
     ``ends`` (K, 2, 2), along each line's normal."""
-    d = ends[:, 1] - ends[:, 0]
-    d = d / np.maximum(np.linalg.norm(d, axis=1, keepdims=True), 1e-12)
-    n = np.stack([-d[:, 1], d[:, 0]], axis=1)
-    across = np.sum((px - ends[:, 0]) * n, axis=1)
-    return px - across[:, None] * n
+    lines = lines_through(ends[:, 0], ends[:, 1])
+    return px - point_line_distance(px, lines)[:, None] * lines[:, :2]
 
 
 def _facade_observations(
@@ -156,7 +153,7 @@ def _facade_observations(
         sel = np.flatnonzero((t.image == k) & use)
         keep, px = _observations(block, i, F[t.track[sel]])
         sel = sel[keep]
-        on = onto_lines(px, stage3.ends_raw[sel])
+        on = _onto_lines(px, stage3.ends_raw[sel])
         # nearest first, then the first of each track
         order = np.argsort(np.linalg.norm(on - px, axis=1), kind="stable")
         _, first = np.unique(t.track[sel][order], return_index=True)
