@@ -48,10 +48,15 @@ def read_gray(path: Path) -> np.ndarray | None:
     return np.ascontiguousarray(bitmap.to_array())
 
 
-def sift(gray: np.ndarray, num_threads: int = 1) -> Features:
-    """pycolmap SIFT (COLMAP's defaults) on a (H, W) uint8 image."""
+def sift(
+    gray: np.ndarray, num_threads: int = 1, max_num_features: int = 8192
+) -> Features:
+    """pycolmap SIFT (COLMAP's defaults) on a (H, W) uint8 image. A lower
+    ``max_num_features`` keeps the coarsest keypoints: a subset of the
+    default's, at the same positions."""
     opts = pycolmap.FeatureExtractionOptions()
     opts.num_threads = num_threads
+    opts.sift.max_num_features = max_num_features
     extractor = pycolmap.FeatureExtractor.create(opts)
     kp, desc = extractor.extract_from_uint8_array(gray)
     xy = np.array([[k.x, k.y] for k in kp], float).reshape(-1, 2)
