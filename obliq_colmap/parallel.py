@@ -16,6 +16,7 @@ import hashlib
 import os
 import signal
 import threading
+import time
 from collections.abc import Callable, Iterator, Sequence
 from concurrent.futures import ProcessPoolExecutor
 from contextlib import contextmanager
@@ -41,7 +42,7 @@ def image_seed(name: str, seed: int = 0) -> int:
     return int.from_bytes(digest, "little") >> 1  # 63 bits: a valid numpy seed
 
 
-def _start_worker(initializer: Callable | None, initargs: tuple) -> None:
+def _start_worker(initializer: Callable | None, initargs: tuple, parent: int) -> None:
     # Ctrl-C reaches the whole process group; the calling process answers it
     # (it cancels what has not started and joins the workers), so a worker
     # ignores it instead of printing its own traceback. It was started with
@@ -49,9 +50,25 @@ def _start_worker(initializer: Callable | None, initargs: tuple) -> None:
     # still importing is pending, and ignoring it before unblocking drops it.
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT})
+    _exit_with_parent(parent)
     limit_threads()
     if initializer is not None:
         initializer(*initargs)
+
+
+def _exit_with_parent(parent: int, poll_s: float = 1.0) -> None:
+    """End this worker when ``parent``, the process that started it, is
+    gone (killed without a chance to shut its pool down, e.g. SIGKILL): an
+    idle worker would wait on its pipe for ever, holding its memory. The
+    parent's pid comes from the parent: one killed while this worker was
+    still importing has already handed it to another."""
+
+    def watch() -> None:
+        while os.getppid() == parent:
+            time.sleep(poll_s)
+        os._exit(1)
+
+    threading.Thread(target=watch, name="exit-with-parent", daemon=True).start()
 
 
 @contextmanager
@@ -120,7 +137,7 @@ class WorkerPool:
                 self.num_workers,
                 mp_context=get_context("spawn"),
                 initializer=_start_worker,
-                initargs=(initializer, initargs),
+                initargs=(initializer, initargs, os.getpid()),
             )
         elif local_initializer is not None:
             local_initializer()
