@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import json
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -58,6 +58,11 @@ class RunResult:
     outcomes: dict[int, ImageOutcome]
     report: dict[str, Any]
     bundle: BundleResult | None = None
+    #: Per image id, the lens stage 2 started from after the per-image
+    #: stages (the head's median lens once the head pass ran, None: the
+    #: priors'), from which the block stage places the images it lacks: with
+    #: ``outcomes``, what the block stage starts from.
+    starts: dict[int, Camera | None] = field(default_factory=dict)
 
 
 def result_block(inputs: Inputs, state: BlockState) -> Block:

@@ -86,6 +86,7 @@ def run_register(
         workers, init_args, cad, options.progress, options.dask_scheduler
     ) as pool:
         outcomes, _, rescued = initial_stage(pool, tasks, options, timings)
+        starts = {t.image_id: t.start for t in tasks}  # the head pass sets them
         if outcomes and all(o.status == "unreadable" for o in outcomes):
             # a folder of which no image reads is the user's input, not a
             # failed registration
@@ -188,4 +189,4 @@ def run_register(
         "max_prior_rejected_fraction": options.max_prior_rejected_fraction,
     }
     report["num_points3D"] = len(points)
-    return RunResult(block, georef, points, by_id, report, bundle_result)
+    return RunResult(block, georef, points, by_id, report, bundle_result, starts)

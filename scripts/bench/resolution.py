@@ -263,7 +263,7 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     for scene in scenes:
         options = run_options(scene, args)
-        inputs, outcomes, wall = stage12(scene, options, Path(args.cache_path))
+        inputs, outcomes, _, wall = stage12(scene, options, Path(args.cache_path))
         cam = next(iter(inputs.priors.cameras.values()))
         print(
             f"{scene.name} ({cam.width}x{cam.height}): stages 1-2"

@@ -162,11 +162,13 @@ def _as_before_the_block(outcomes: dict) -> dict:
 
 
 def stage12(scene: Path, options: pl.PipelineOptions, cache: Path):
-    """Inputs and the per-image outcomes (cached by the stage 1-2 options)
-    as a full run has them before its block stage, and the wall time of
-    stages 1-2 (None: from the cache)."""
+    """Inputs, the per-image outcomes and start lenses
+    (:attr:`~obliq_colmap.pipeline.RunResult.starts`) as a full run has them
+    before its block stage (cached by the stage 1-2 options), and the wall
+    time of stages 1-2 (None: from the cache)."""
     key = repr(
         (
+            "outcomes and starts",  # the cache's format
             str(scene.resolve()),
             options.vanishing,
             options.refine_segments,
@@ -181,15 +183,16 @@ def stage12(scene: Path, options: pl.PipelineOptions, cache: Path):
         scene / "images", scene / "cadastre.geojson", scene / "priors", options
     )
     if path.is_file():
-        return inputs, _as_before_the_block(pickle.loads(path.read_bytes())), None
+        outcomes, starts = pickle.loads(path.read_bytes())
+        return inputs, _as_before_the_block(outcomes), starts, None
     t0 = time.perf_counter()
     run = pl.run_register(
         scene / "images", scene / "cadastre.geojson", scene / "priors", options
     )
     wall = time.perf_counter() - t0
     cache.mkdir(parents=True, exist_ok=True)
-    path.write_bytes(pickle.dumps(run.outcomes))
-    return inputs, _as_before_the_block(run.outcomes), wall
+    path.write_bytes(pickle.dumps((run.outcomes, run.starts)))
+    return inputs, _as_before_the_block(run.outcomes), run.starts, wall
 
 
 # --------------------------------------------------------------------------
@@ -249,7 +252,7 @@ def run_once(scene: Path, seed: int, args) -> dict:
     alone), scored in the scene-datum measure. ``args``: ``scene_parser``'s
     options with ``base_set`` (the overrides) and ``bundle_only``."""
     options = seed_options(scene, seed, args)
-    inputs, outcomes, _ = stage12(scene, options, Path(args.cache_path))
+    inputs, outcomes, starts, _ = stage12(scene, options, Path(args.cache_path))
     gt, _, _ = truth_local(scene, inputs)
     registered = {i for i, o in outcomes.items() if o.registered}
     if args.bundle_only:
@@ -265,7 +268,11 @@ def run_once(scene: Path, seed: int, args) -> dict:
     else:
         # What ``register`` does after stage 2: the bundle, the failed images
         # registered again against the block, the disagreeing ones left out.
-        tasks = pl.image_tasks(inputs, options)
+        # the tasks as the per-image stages left them (the head pass's lens)
+        tasks = [
+            dataclasses.replace(t, start=starts.get(t.image_id))
+            for t in pl.image_tasks(inputs, options)
+        ]
         origin3 = np.r_[inputs.cadastre.origin[:2], 0.0]
         init_args = (inputs.cadastre_path, options.cadastre, origin3)
         try:

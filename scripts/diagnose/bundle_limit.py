@@ -171,7 +171,7 @@ def _exact_lines(problem: BundleProblem, inputs, stage3, gt, gtb, by_name):
 def run_scene(scene: Path, args: argparse.Namespace) -> None:
     """All variants of one scene, printed."""
     options = sr.run_options(scene, args)
-    inputs, outcomes, _ = sr.stage12(scene, options, Path(args.cache_path))
+    inputs, outcomes, _, _ = sr.stage12(scene, options, Path(args.cache_path))
     gt, gtb, by_name = sr.truth_local(scene, inputs)
     state, new, stage3, (P, opts, _) = _final_problem(inputs, outcomes, options)
     print(f"{scene.name}" + (f"; overrides {args.set}" if args.set else ""))

@@ -129,7 +129,7 @@ def main(argv: list[str] | None = None) -> int:
     for scene in scenes:
         for seed in args.seeds:
             options = seed_options(scene, seed, args)
-            inputs, outcomes, _ = stage12(scene, options, Path(args.cache_path))
+            inputs, outcomes, _, _ = stage12(scene, options, Path(args.cache_path))
             _, gtb, by_name = truth_local(scene, inputs)
             _TRUTH.update(block=gtb, by_name=by_name)
             state = adj.BlockState.from_outcomes(
