@@ -77,6 +77,7 @@ from obliq_colmap.pipeline.output import (
 )
 from obliq_colmap.pipeline.run import run_register
 from obliq_colmap.pipeline.verdicts import (
+    UNCONFIRMED_VERTICAL_NOTE,
     block_verdicts,
     leave_out_rejected,
     unsupported_placements,
@@ -121,6 +122,7 @@ __all__ = [
     "unsupported_placements",
     "warn_imprecise",
     "warn_unconfirmed_vertical",
+    "UNCONFIRMED_VERTICAL_NOTE",
     "warn_vp_disagreement",
     "load_inputs",
     "overlay_name",

@@ -22,6 +22,7 @@ from obliq_colmap.pipeline.options import PipelineOptions
 from obliq_colmap.state import BlockState, ImageOutcome
 
 __all__ = [
+    "UNCONFIRMED_VERTICAL_NOTE",
     "block_verdicts",
     "leave_out_rejected",
     "unsupported_placements",
@@ -31,6 +32,10 @@ __all__ = [
 ]
 
 logger = logging.getLogger(__name__)
+
+#: How :func:`warn_unconfirmed_vertical`'s note begins (only a run that stops
+#: after stage 2 writes it; the split benchmarks take it out again).
+UNCONFIRMED_VERTICAL_NOTE = "written with a warning: its vertical vanishing point was"
 
 
 def block_verdicts(stage3: Stage3, options: PipelineOptions) -> Verdicts:
@@ -270,7 +275,7 @@ def warn_unconfirmed_vertical(outcomes: Sequence[ImageOutcome]) -> list[str]:
         status = "not found" if o.vp_status == "no_vp" else "of low confidence"
         _add_note(
             o,
-            f"written with a warning: its vertical vanishing point was {status},"
+            f"{UNCONFIRMED_VERTICAL_NOTE} {status},"
             " so its tilt rests on the prior and the map corners alone and it may"
             " be more than 2 px off (the full run checks it against the block)",
         )

@@ -145,18 +145,17 @@ def seed_options(scene: Path, seed: int, args) -> pl.PipelineOptions:
     return run_options(scene, run_args)
 
 
-#: What ``register --stop_after initial`` adds to the message of an image
-#: without a confirmed VP (``pipeline.warn_unconfirmed_vertical``); a full
-#: run does not, so the cached outcomes must not carry it (it made such
-#: images count as warned in the runs' "written > 2 px off without a
-#: warning").
-INITIAL_ONLY_NOTE = "its vertical vanishing point was"
-
-
 def _as_before_the_block(outcomes: dict) -> dict:
-    """The outcomes with the notes only a stage-2 run writes taken out."""
+    """The outcomes with the note only a stage-2 run writes taken out
+    (``pipeline.warn_unconfirmed_vertical``'s, on images without a confirmed
+    VP): a full run does not write it, and kept it made such images count as
+    warned in "written > 2 px off without a warning"."""
     for o in outcomes.values():
-        notes = [n for n in o.message.split("; ") if INITIAL_ONLY_NOTE not in n]
+        notes = [
+            n
+            for n in o.message.split("; ")
+            if not n.startswith(pl.UNCONFIRMED_VERTICAL_NOTE)
+        ]
         o.message = "; ".join(notes)
     return outcomes
 
