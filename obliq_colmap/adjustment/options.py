@@ -23,9 +23,14 @@ class AdjustmentOptions:
     #: many scales out and must lose its pull. The distortion terms of a model
     #: that has them are refined (a lens the priors do not describe bends every
     #: vertical); ``refine_extra_params=False`` holds a calibrated lens. Each
-    #: principal point is held near the priors' with 1 % of the image size (an
-    #: uncalibrated camera's tolerance): free, it followed the weak vertical
-    #: mode of whole heads by up to 250 px on scenes of another renderer.
+    #: principal point is held near the priors' with 0.4 % of the larger image
+    #: side (8 px at 2004 px): through a long lens a shift of the principal
+    #: point is nearly a turn of the camera, so a head's images hardly
+    #: separate the two and the prior decides. At 1 % the heads' principal
+    #: points followed the weak vertical mode (pitch, height and focal traded)
+    #: 26-62 px from a truth within 10 px of the centre; held at the centre,
+    #: the wide lens of our `paper` scenes, whose data do separate them, lost
+    #: half its accuracy (journal, independent scenes, 2026-12-07 06:00).
     #: The facade rows' line-fit weighting (``facade_row_extrapolation``) is
     #: off: better on our generator's scenes, worse on the external
     #: renderer's houses (journal, stage 3, 2026-12-06 session of 19:59).
@@ -34,7 +39,7 @@ class AdjustmentOptions:
             loss="cauchy",
             loss_scale_px=1.0,
             refine_extra_params=True,
-            principal_point_prior_sigma=0.01,
+            principal_point_prior_sigma=0.004,
         )
     )
     #: Bundle rounds after the first that drop the constraints whose residual

@@ -277,9 +277,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         default=bdefaults.principal_point_prior_sigma or 0.0,
         metavar="F",
         help="hold each refined principal point near the priors' with this "
-        "1-sigma, a fraction of the larger image side (an uncalibrated camera's "
-        "principal point lies within about 1 %% of the image size of its "
-        "centre); 0: free (default %(default)s)",
+        "1-sigma, a fraction of the larger image side (through a long lens the "
+        "block hardly tells a principal point's shift from a turn, so this "
+        "prior decides it; a lens known to have its principal point far off "
+        "the centre needs it in the priors or a larger sigma); 0: free "
+        "(default %(default)s)",
     )
     bundle.add_argument(
         "--bundle_vp_observations",
