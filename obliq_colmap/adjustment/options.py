@@ -26,11 +26,10 @@ class AdjustmentOptions:
     #: principal point is held near the priors' with 0.4 % of the larger image
     #: side (8 px at 2004 px): through a long lens a shift of the principal
     #: point is nearly a turn of the camera, so a head's images hardly
-    #: separate the two and the prior decides. At 1 % the heads' principal
-    #: points followed the weak vertical mode (pitch, height and focal traded)
-    #: 26-62 px from a truth within 10 px of the centre; held at the centre,
-    #: the wide lens of our `paper` scenes, whose data do separate them, lost
-    #: half its accuracy (journal, independent scenes, 2026-12-07 06:00).
+    #: separate the two and the prior decides; a looser prior lets the heads'
+    #: principal points follow the weak vertical mode (pitch, height and focal
+    #: traded), a held one costs wide lenses, whose data do separate them
+    #: (measured: journal, independent scenes, 2026-12-07 session of 06:00).
     #: The facade rows' line-fit weighting (``facade_row_extrapolation``) is
     #: off: better on our generator's scenes, worse on the external
     #: renderer's houses (journal, stage 3, 2026-12-06 session of 19:59).
