@@ -645,6 +645,7 @@ def test_block_state_after_a_bundle_keeps_its_ground_and_datum():
         ),
         (["--bundle_rotation_sigma", "0"], "--bundle_rotation_sigma must be > 0"),
         (["--bundle_position_sigma", "-1"], "--bundle_position_sigma must be > 0"),
+        (["--map_vertex_sigma", "0"], "--map_vertex_sigma must be > 0"),
     ],
 )
 def test_register_option_out_of_range_is_one_line(tmp_path, capsys, option, message):

@@ -81,9 +81,11 @@ class AdjustmentOptions:
     #: is degrees off (short walls of detached houses), every segment through
     #: it is turned alike, and that is what tilted such blocks.
     measured_vertical_directions: bool = True
-    #: The map's vertex noise (m, 1 sigma): with the facade lines
-    #: (``bundle.facade_lines``) it sets each line's prior angle about its
-    #: map edge, ``sqrt(2)`` times it over the edge's length.
+    #: The map's vertex noise (m, 1 sigma per horizontal axis): carried into
+    #: the bundle's precision as an error every row of a corner shares
+    #: (``BundleOptions.map_corner_sigma_m``), and with the facade lines
+    #: (``bundle.facade_lines``) each line's prior angle about its map edge,
+    #: ``sqrt(2)`` times it over the edge's length.
     map_vertex_sigma_m: float = 0.15
     #: With the facade lines: a track this far (m) or more above the ground is
     #: a level line (floors, eaves); nearer the ground, edges follow the

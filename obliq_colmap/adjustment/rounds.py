@@ -117,6 +117,10 @@ def bundle_stage(
         bundle_options = dataclasses.replace(
             options.bundle,
             corner_heights="fixed",
+            # The corners stay where the map has them; their error moves
+            # every row of a corner in every image together, which the
+            # precision carries (the solve is unchanged).
+            map_corner_sigma_m=options.map_vertex_sigma_m,
             horizontal_offset_sigma_m=options.track_offset_sigma_m,
             # On each segment's own line the two ends' rows also say its
             # direction, with less noise than the map's: weighted apart.

@@ -54,6 +54,7 @@ OPTION_OF_FIELD = {
     "position_prior_sigma_m": "--bundle_position_sigma",
     "principal_point_prior_sigma": "--bundle_principal_point_sigma",
     "loss_scale_px": "--loss_scale",
+    "map_vertex_sigma_m": "--map_vertex_sigma",
 }
 
 
@@ -284,6 +285,16 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "(default %(default)s)",
     )
     bundle.add_argument(
+        "--map_vertex_sigma",
+        type=float,
+        default=AdjustmentOptions().map_vertex_sigma_m,
+        metavar="M",
+        help="the cadastre's vertex noise (m, 1 sigma per axis): the bundle "
+        "keeps the map's corners where the map has them and carries this error, "
+        "shared by every view of a corner, into each image's predicted precision "
+        "and its warnings (default %(default)s)",
+    )
+    bundle.add_argument(
         "--bundle_vp_observations",
         type=bool01,
         default=int(bdefaults.vp_observations),
@@ -397,6 +408,7 @@ def run(args: argparse.Namespace) -> int:
                 ),
                 tie_points=bool(args.tie_points),
                 measured_vertical_directions=bool(args.bundle_measured_verticals),
+                map_vertex_sigma_m=args.map_vertex_sigma,
             ),
         )
     except ValueError as exc:  # an option out of its range

@@ -209,14 +209,19 @@ def warn_imprecise(
         )
     if weak:
         sd = [precision[i] for i in weak]
+        # the block's own level: many names in a block near the threshold
+        # say the block as a whole is that precise, not that they are worse
+        block = [v for i, v in precision.items() if i in state.poses]
         logger.warning(
             "%d of %d written images are determined worse than %g px (predicted"
-            " sd %.2f-%.2f px; they may be more than 2 px off): %s",
+            " sd %.2f-%.2f px, the block's median %.2f px; they may be more than"
+            " 2 px off): %s",
             len(weak),
             len(state.poses),
             max_sd_px,
             min(sd),
             max(sd),
+            float(np.nanmedian(block)),
             ", ".join(outcomes[i].name for i in weak),
         )
     return sorted(weak + undetermined)
