@@ -34,8 +34,10 @@ Run (from the repository root)::
 Figures (of the runs on its copies): docs/journal/stage3-bundle.md (issue 5,
 the calibrated and GNSS runs).
 
-Data: a synthetic scene (``obliq-colmap synth``); writes the copy to
-``--output_path``.
+Data: a synthetic scene (``obliq-colmap synth``) or an external scene
+(``../shared/data/external_oblique/S``: its ``scene.json`` has ``params``
+with the priors' ``datum_offset`` instead of ``options``); writes the copy
+to ``--output_path``.
 """
 
 from __future__ import annotations
@@ -76,6 +78,15 @@ def main(argv: list[str] | None = None) -> int:
     if (dst / "priors").exists():
         print(f"error: {dst / 'priors'} exists", file=sys.stderr)
         return 2
+    meta = json.loads((src / "scene.json").read_text())
+    datum_offset = _datum_offset(meta)
+    if datum_offset is None:
+        print(
+            f"error: {src / 'scene.json'}: no priors' datum offset (neither"
+            " options.prior_vertical_datum_offset_m nor params.datum_offset)",
+            file=sys.stderr,
+        )
+        return 2
     dst.mkdir(parents=True, exist_ok=True)
     for name in ("images", "gt", "cadastre.geojson", "gt_buildings.json"):
         if (src / name).exists() and not (dst / name).exists():
@@ -85,11 +96,12 @@ def main(argv: list[str] | None = None) -> int:
         i: dataclasses.replace(truth.cameras[i], camera_id=i) for i in priors.cameras
     }
     images = dict(priors.images)
-    meta = json.loads((src / "scene.json").read_text())
     if args.keep_cameras:
         cameras = priors.cameras
-    else:
+    elif "options" in meta:
         meta["options"]["prior_focal_percent"] = 0.0
+    else:
+        meta["params"]["prior_focal_err"] = 0.0
     if args.rotation_sigma_deg is not None:
         rng = np.random.default_rng(args.seed)
         for i, image in images.items():
@@ -101,7 +113,7 @@ def main(argv: list[str] | None = None) -> int:
             images[i] = dataclasses.replace(image, cam_from_world=pose)
     if args.position_sigma_m is not None:
         rng = np.random.default_rng([args.seed, 1])
-        datum = np.array([0.0, 0.0, meta["options"]["prior_vertical_datum_offset_m"]])
+        datum = np.array([0.0, 0.0, datum_offset])
         datum = datum + np.asarray(args.position_offset_m)
         for i, image in images.items():
             true = truth.image_by_name(image.name).cam_from_world.center
@@ -115,6 +127,14 @@ def main(argv: list[str] | None = None) -> int:
     kind = "prior" if args.keep_cameras else "calibrated"
     print(f"wrote {dst}: {len(cameras)} {kind} cameras")
     return 0
+
+
+def _datum_offset(meta: dict) -> float | None:
+    """The priors' vertical datum offset (m) of a scene.json: ours or the
+    external scenes' format; None where it has neither."""
+    if "options" in meta:
+        return meta["options"].get("prior_vertical_datum_offset_m")
+    return (meta.get("params") or {}).get("datum_offset")
 
 
 if __name__ == "__main__":
