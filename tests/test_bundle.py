@@ -68,12 +68,16 @@ def assert_jacobian(analytic, numeric, rtol=JACOBIAN_RTOL):
     np.testing.assert_allclose(analytic, numeric, rtol=0, atol=rtol * scale)
 
 
-def rotation_error_rad(Ra, Rb):
-    """Angle of Ra Rb^T from its skew part (accurate for tiny angles)."""
+def rotation_error_vector(Ra, Rb):
+    """(3,) rotation vector of Ra Rb^T from its skew part (rad; accurate for
+    tiny angles)."""
     D = Ra @ Rb.T
-    return float(
-        np.linalg.norm([D[2, 1] - D[1, 2], D[0, 2] - D[2, 0], D[1, 0] - D[0, 1]]) / 2
-    )
+    return np.array([D[2, 1] - D[1, 2], D[0, 2] - D[2, 0], D[1, 0] - D[0, 1]]) / 2
+
+
+def rotation_error_rad(Ra, Rb):
+    """Angle of Ra Rb^T (accurate for tiny angles)."""
+    return float(np.linalg.norm(rotation_error_vector(Ra, Rb)))
 
 
 # --------------------------------------------------------------------------
@@ -1717,8 +1721,7 @@ def test_the_maps_vertex_error_in_the_precision_of_fixed_corners():
         out, bare = solve_bundle(P, with_map), solve_bundle(P, fixed)
         for i in P.image_ids:
             C = out.pose_covariance[i][:3, :3]
-            D = out.poses[i].rotation @ syn.poses[i].rotation.T
-            e = np.array([D[2, 1] - D[1, 2], D[0, 2] - D[2, 0], D[1, 0] - D[0, 1]]) / 2
+            e = rotation_error_vector(out.poses[i].rotation, syn.poses[i].rotation)
             ratio.append(float(e @ np.linalg.solve(C, e)) / 3)
             wider.append(out.image_precision_px[i] > bare.image_precision_px[i])
     rms = float(np.sqrt(np.mean(ratio)))
