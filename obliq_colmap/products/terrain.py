@@ -11,8 +11,9 @@ that run along a wall's foot (a horizontal edge where the wall meets the
 ground, height ``h_j`` from the bundle, in the same datum as the eaves),
 sparse and hidden behind cars and trees. The grid's shape comes from the
 corners (a robust quadratic refined by the Gaussian-weighted mean of their
-residuals); its datum from the feet (the median of the tracks near it), so
-that eave heights above it are measured in one datum.
+residuals); its datum from the feet among the tracks near it (a mixture
+that tells the feet from the lines just above them, :func:`foot_offset`),
+so that eave heights above it are measured in one datum.
 
 Heights are in the result model's vertical datum (the priors', see
 ``georef.json``): ``z_abs = z_local + origin[2]``.
@@ -25,6 +26,7 @@ from dataclasses import dataclass
 
 import numpy as np
 from scipy.spatial import cKDTree
+from scipy.stats import norm
 
 __all__ = [
     "TerrainGrid",
@@ -32,6 +34,7 @@ __all__ = [
     "estimate_terrain",
     "robust_surface",
     "feet_datum",
+    "foot_offset",
 ]
 
 logger = logging.getLogger(__name__)
@@ -45,11 +48,15 @@ class TerrainOptions:
     cell_size_m: float = 5.0
     #: cells farther than this from every ground sample are NODATA (m).
     max_distance_m: float = 20.0
-    #: a facade track within this of the corners' surface is a wall's foot
-    #: (m), then within half of it of the surface moved onto the feet: the
+    #: the facade tracks within this of the corners' surface (m) are the
+    #: walls' feet and the lines just above them (:func:`foot_offset`): the
     #: corners' datum is a few tenths off, floors are >= 2.5 m up.
     foot_window_m: float = 1.5
-    #: feet needed to move the corners' surface into the tracks' datum.
+    #: the feet's sd about the corners' surface is searched among these (m):
+    #: the tracks' own noise (~0.05 m) up to the surface's local error.
+    foot_sd_m: tuple[float, ...] = (0.05, 0.08, 0.12, 0.17, 0.25, 0.35)
+    #: tracks within ``foot_window_m`` needed to move the corners' surface
+    #: into the tracks' datum.
     min_feet: int = 12
     #: Gaussian sigma of the corners' correction to their quadratic (m): the
     #: terrain of a town varies over hundreds of metres; 10 / 20 / 30 m gave
@@ -136,23 +143,78 @@ def _smoothed(
     return np.where(wsum > 0, wv / np.maximum(wsum, 1e-12), 0.0), wsum
 
 
+def _mixture_fit(
+    r: np.ndarray, mu: np.ndarray, window_m: float, sigmas_m, iterations: int
+) -> tuple[float, float]:
+    """(log-likelihood, offset) of :func:`foot_offset`'s mixture, best over
+    the offsets ``mu`` (M,) and the sds ``sigmas_m``."""
+    d = r[None, :] - mu[:, None]  # (M, N)
+    best = (-np.inf, 0.0)
+    for s in sigmas_m:
+        dens = np.stack(
+            [
+                norm.pdf(d, scale=s),
+                (norm.cdf(d / s) - norm.cdf((d - window_m) / s)) / window_m,
+                np.full_like(d, 0.5 / window_m),
+            ]
+        )  # (3, M, N)
+        w = np.repeat(np.array([[0.5], [0.4], [0.1]]), len(mu), axis=1)  # (3, M)
+        for _ in range(iterations):
+            like = np.einsum("km,kmn->mn", w, dens) + 1e-300
+            w = (w[:, :, None] * dens / like).mean(axis=2)
+        ll = np.log(np.einsum("km,kmn->mn", w, dens) + 1e-300).sum(axis=1)
+        k = int(np.argmax(ll))
+        if ll[k] > best[0]:
+            best = (float(ll[k]), float(mu[k]))
+    return best
+
+
+def foot_offset(
+    r: np.ndarray,
+    window_m: float,
+    sigmas_m: tuple[float, ...],
+    iterations: int = 30,
+    max_samples: int = 4000,
+) -> float:
+    """Where the wall feet lie among residuals ``r`` (N,) about a ground
+    surface, all within ``window_m`` of it: the maximum-likelihood offset of
+    a mixture of the feet (normal, sd one of ``sigmas_m``), the lines just
+    above a wall's foot (plinths, sills, fences, parked cars: uniform from
+    the feet up to ``window_m`` above them, blurred alike) and wrong tracks
+    (uniform over the window). The lines above make the window's median a
+    few tenths too high where the feet are few; nothing lies below a foot.
+
+    The offset is searched on a 5 cm grid, then on 1 cm about the best; at
+    each (offset, sd) the three weights by EM. More than ``max_samples``
+    residuals are thinned to as many of their quantiles (time and memory
+    grow with offsets x residuals).
+    """
+    if len(r) > max_samples:
+        r = np.sort(r)[np.linspace(0, len(r) - 1, max_samples).astype(int)]
+    coarse = np.arange(-window_m, window_m + 1e-9, 0.05)
+    _, m0 = _mixture_fit(r, coarse, window_m, sigmas_m, iterations)
+    fine = m0 + np.arange(-0.05, 0.05 + 1e-9, 0.01)
+    return _mixture_fit(r, fine, window_m, sigmas_m, iterations)[1]
+
+
 def feet_datum(
-    facade_xyz: np.ndarray, terrain, window_m: float, min_feet: int
+    facade_xyz: np.ndarray,
+    terrain,
+    window_m: float,
+    min_feet: int,
+    sigmas_m: tuple[float, ...] = TerrainOptions.foot_sd_m,
 ) -> tuple[float, int]:
     """The offset (m) that moves ``terrain`` onto the wall-foot tracks among
-    ``facade_xyz`` (F, 3): the median residual of the tracks within
-    ``window_m`` of it, then of those within ``window_m / 2`` of it moved;
-    0 with fewer than ``min_feet`` such tracks. Returns (offset, feet)."""
+    ``facade_xyz`` (F, 3): :func:`foot_offset` of the tracks within
+    ``window_m`` of it; 0 with fewer than ``min_feet`` such tracks. Returns
+    (offset, tracks in the window)."""
     if len(facade_xyz) == 0:
         return 0.0, 0
     r = facade_xyz[:, 2] - terrain(facade_xyz[:, :2])
-    offset, n = 0.0, 0
-    for w in (window_m, 0.5 * window_m):
-        feet = np.abs(r - offset) <= w
-        if feet.sum() < min_feet:
-            break
-        offset, n = float(np.median(r[feet])), int(feet.sum())
-    return offset, n
+    near = np.abs(r) <= window_m
+    if near.sum() < min_feet:
+        return 0.0, 0
+    return foot_offset(r[near], window_m, sigmas_m), int(near.sum())
 
 
 def estimate_terrain(
@@ -188,14 +250,14 @@ def estimate_terrain(
         return surface(q) + mean * wsum / (wsum + prior_weight)
 
     # The eaves are measured against this ground: it must be in the tracks'
-    # datum, which the feet give (measured: the corners sat 0.37 m above
-    # urban-101's feet, 0.03 m below them on houses-102).
+    # datum, which the feet give (the corners' datum sits a few tenths off
+    # it, either way).
     offset, n_feet = feet_datum(
-        facade_xyz, shape, options.foot_window_m, options.min_feet
+        facade_xyz, shape, options.foot_window_m, options.min_feet, options.foot_sd_m
     )
     logger.info(
         "terrain: %d corners (sd %.2f m about their quadratic), moved %+.2f m "
-        "onto %d wall-foot tracks",
+        "onto the wall feet among %d tracks near it",
         len(xy),
         sigma,
         offset,
