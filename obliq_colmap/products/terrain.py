@@ -158,6 +158,7 @@ def _mixture_fit(
                 np.full_like(d, 0.5 / window_m),
             ]
         )  # (3, M, N)
+        # the weights' start (feet, lines above, wrong): EM moves them
         w = np.repeat(np.array([[0.5], [0.4], [0.1]]), len(mu), axis=1)  # (3, M)
         for _ in range(iterations):
             like = np.einsum("km,kmn->mn", w, dens) + 1e-300
