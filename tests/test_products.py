@@ -19,6 +19,7 @@ from obliq_colmap.products.esri import ascii_grid_text, esri_wkt
 from obliq_colmap.products.terrain import (
     TerrainOptions,
     estimate_terrain,
+    foot_offset,
     terrain_grid,
 )
 
@@ -90,8 +91,6 @@ def test_the_feet_are_told_from_the_lines_just_above_them():
     some wrong tracks: the feet's offset comes back unbiased over twelve
     draws, each within a few of its standard errors. The window's median
     (the estimator before 2026-12-07) sits 0.08 m high on average here."""
-    from obliq_colmap.products.terrain import foot_offset
-
     errors = []
     for seed in range(12):
         rng = np.random.default_rng(seed)
