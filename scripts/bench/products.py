@@ -17,7 +17,9 @@ external one (``../shared/data/external_oblique/*``: ``gt_terrain.npz``,
   the grid has a value, and (b) every cell the grid gives; coverage of (a);
 * eave height above ground (``buildings.geojson``) against the truth, over
   the mapped buildings present in the scene with facade tracks: median and
-  p90 of the absolute error, and how many got a height;
+  p90 of the absolute error, and how many got a height; and the coverage:
+  of the mapped buildings present that the block sees (the footprint's
+  centre at its true eave in >= 3 true images), the share with a height;
 * discrepancies (``discrepancies.geojson``): positives = mapped buildings
   absent from the scene or shifted by > 0.5 m; precision and recall over the
   judged footprints, and recall over all positives with constrained points;
@@ -192,6 +194,29 @@ def score_missing(scene: Path, prod: Path) -> dict:
     return res
 
 
+def eave_coverage(c, gt: dict, feats: list, terrain, scene: Path) -> tuple[int, int]:
+    """(the mapped buildings present that the block sees: the footprint's
+    centre at its true eave in >= 3 true images, those of them with an eave
+    height in ``buildings.geojson``)."""
+    o = c.georef.origin
+    ids = [str(i) for i in c.cadastre.building_ids]
+    has = {
+        f["properties"]["id"]
+        for f in feats
+        if f["properties"]["eave_height"] is not None
+    }
+    rows = [
+        b for b, i in enumerate(ids) if i in gt and gt[i][0] and np.isfinite(gt[i][2])
+    ]
+    if not rows:
+        return 0, 0
+    xy = np.array([c.cadastre.polygons[b].centroid.coords[0] for b in rows]) + o[:2]
+    z = terrain(xy) + np.array([gt[ids[b]][2] for b in rows])
+    seen = seen_by(scene, np.column_stack([xy, z]))
+    got = [ids[b] in has for b in np.asarray(rows)[seen]]
+    return int(seen.sum()), int(sum(got))
+
+
 def score(model: Path, scene: Path, prod: Path) -> dict:
     terrain, gt = truth(scene)
     c = load_constraints(model, scene / "cadastre.geojson")
@@ -227,9 +252,12 @@ def score(model: Path, scene: Path, prod: Path) -> dict:
         if p["eave_height"] is not None:
             e.append(p["eave_height"] - g[2])
     e = np.abs(np.array(e))
+    n_block, n_block_height = eave_coverage(c, gt, feats, terrain, scene)
     res["eave_height"] = {
         "buildings_with_tracks": n_seen,
         "with_height": len(e),
+        "seen_by_the_block": n_block,
+        "coverage_of_seen": round(n_block_height / max(n_block, 1), 3),
         "median_abs_error_m": round(float(np.median(e)), 3) if len(e) else None,
         "p90_abs_error_m": round(float(np.percentile(e, 90)), 3) if len(e) else None,
     }
