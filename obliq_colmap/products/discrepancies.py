@@ -65,7 +65,8 @@ from obliq_colmap.products.roof import (
     empty_site,
     footprint_samples,
     height_profile,
-    roof_height,
+    roof_heights,
+    views_seeing,
 )
 from obliq_colmap.products.support import edge_support
 
@@ -273,18 +274,6 @@ def empty_sites(
     return out
 
 
-def views_seeing(views: list[RoofView], xyz: np.ndarray) -> np.ndarray:
-    """(V, B) bool: view v has point b (B, 3) in front and inside."""
-    out = np.zeros((len(views), len(xyz)), bool)
-    for i, v in enumerate(views):
-        Xc = v.pose.transform(xyz)
-        q = v.camera.img_from_cam(Xc)
-        h, w = v.gray.shape
-        inside = (q[:, 0] >= 0) & (q[:, 0] < w) & (q[:, 1] >= 0) & (q[:, 1] < h)
-        out[i] = (Xc[:, 2] > 0) & inside
-    return out
-
-
 def sweepable(polygons: list, options: DiscrepancyOptions) -> np.ndarray:
     """(B,) bool: the footprint holds about ``sweep_min_points`` interior
     points of the sweep's grid (its inset area over the grid cell)."""
@@ -313,31 +302,23 @@ def eaveless_tops(
     up = np.arange(
         options.sweep_min_m, options.sweep_max_m + 1e-9, options.sweep_step_m
     )
-    cen = np.array([p.centroid.coords[0] for p in polygons]).reshape(-1, 2)
-    ask = ~np.isfinite(eave_z) & np.isfinite(ground_z)
-    # only the views that see the footprint's centre take part (the sweep's
-    # cost is the projection of every height's points into every view)
-    sees = views_seeing(views, np.column_stack([cen, np.where(ask, ground_z, 0.0)]))
-    ask &= sees.sum(axis=0) >= options.stand_views
-    lo = options.stand_height_m + 0.5
     # a roof seen higher than this gives the default top anyway
     up = up[up <= options.default_height_m / options.eaveless_top_fraction]
-    for b in np.flatnonzero(ask):
-        xy = footprint_samples(
-            polygons[b],
-            options.sweep_grid_m,
-            options.sweep_inset_m,
-            options.top_sweep_points,
-        )
-        if len(xy) == 0:
-            continue
-        vb = [views[i] for i in np.flatnonzero(sees[:, b])]
-        ncc, n = height_profile(vb, xy, ground_z[b] + up)
-        h = roof_height(ncc, n, up, options.stand_height_m, options.stand_views)
-        if np.isfinite(h):
-            f = options.eaveless_top_fraction * h
-            top[b] = ground_z[b] + min(max(f, lo), options.default_height_m)
-    return top
+    h = roof_heights(
+        polygons,
+        ground_z,
+        ~np.isfinite(eave_z),
+        views,
+        up,
+        options.sweep_grid_m,
+        options.sweep_inset_m,
+        options.top_sweep_points,
+        options.stand_height_m,
+        options.stand_views,
+    )
+    lo = options.stand_height_m + 0.5
+    f = np.clip(options.eaveless_top_fraction * h, lo, options.default_height_m)
+    return np.where(np.isfinite(h), ground_z + f, top)
 
 
 def roof_views(block, image_path: Path, options: DiscrepancyOptions) -> list[RoofView]:

@@ -53,7 +53,7 @@ from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 from scipy.stats import binom
 
-from obliq_colmap.products.roof import RoofView
+from obliq_colmap.products.roof import RoofView, views_seeing
 
 __all__ = [
     "MissingOptions",
@@ -266,17 +266,6 @@ def _sweep_heights(lo: float, hi: float, step: float) -> np.ndarray:
     return np.arange(lo, hi + 1e-9, step)
 
 
-def _views_seeing(views: list[RoofView], xyz: np.ndarray) -> np.ndarray:
-    """(V,) bool: the view has the point in front and inside."""
-    out = np.zeros(len(views), bool)
-    for i, v in enumerate(views):
-        Xc = v.pose.transform(xyz[None])
-        q = v.camera.img_from_cam(Xc)
-        h, w = v.gray.shape
-        out[i] = bool(Xc[0, 2] > 0 and 0 <= q[0, 0] < w and 0 <= q[0, 1] < h)
-    return out
-
-
 def roof_reference(
     polygons: list,
     ground_z: np.ndarray,
@@ -302,7 +291,7 @@ def roof_reference(
         if len(cen) == 0:
             continue
         c = np.array(inner.centroid.coords[0])
-        sees = _views_seeing(views, np.r_[c, eave_z[b]])
+        sees = views_seeing(views, np.r_[c, eave_z[b]][None])[:, 0]
         if sees.sum() < options.min_views:
             continue
         z = _sweep_heights(ground_z[b] - 1.0, eave_z[b] + 8.0, options.sweep_step_m)
@@ -461,7 +450,7 @@ def _judge(groups, xyz, h, terrain, mapped, views, ncc_min, tol, options) -> lis
             continue
         hull = shapely.MultiPoint(pts[:, :2]).convex_hull
         centre = np.r_[np.asarray(hull.centroid.coords[0]), np.median(pts[:, 2])]
-        sees = _views_seeing(views, centre)
+        sees = views_seeing(views, np.asarray(centre)[None])[:, 0]
         props = {
             "score": 0.0,
             "reported": False,

@@ -27,7 +27,9 @@ __all__ = [
     "footprint_samples",
     "height_profile",
     "roof_height",
+    "roof_heights",
     "stands",
+    "views_seeing",
 ]
 
 
@@ -40,6 +42,18 @@ class RoofView:
     camera: Camera
     pose: Pose
     path: Path | None = None
+
+
+def views_seeing(views: list[RoofView], xyz: np.ndarray) -> np.ndarray:
+    """(V, N) bool: view v has point n of ``xyz`` (N, 3) in front and inside."""
+    out = np.zeros((len(views), len(xyz)), bool)
+    for i, v in enumerate(views):
+        Xc = v.pose.transform(xyz)
+        q = v.camera.img_from_cam(Xc)
+        h, w = v.gray.shape
+        inside = (q[:, 0] >= 0) & (q[:, 0] < w) & (q[:, 1] >= 0) & (q[:, 1] < h)
+        out[i] = (Xc[:, 2] > 0) & inside
+    return out
 
 
 def blurred(gray: np.ndarray, sigma_px: float) -> np.ndarray:
@@ -170,3 +184,38 @@ def roof_height(
     if not stands(profile, views, above_ground, min_height_m, min_views):
         return float("nan")
     return float(above_ground[int(np.nanargmax(profile))])
+
+
+def roof_heights(
+    polygons: list,
+    ground_z: np.ndarray,
+    ask: np.ndarray,
+    views: list[RoofView],
+    up: np.ndarray,
+    grid_m: float,
+    inset_m: float,
+    max_points: int,
+    min_height_m: float,
+    min_views: int,
+) -> np.ndarray:
+    """(B,) :func:`roof_height` of the footprints where ``ask`` (B,) bool,
+    a sweep of ``up`` (H,) heights above each one's ``ground_z`` (B,) over
+    at most ``max_points`` interior points (:func:`footprint_samples`); NaN
+    elsewhere, where fewer than ``min_views`` views see the footprint's
+    centre, or where nothing stands on it."""
+    out = np.full(len(polygons), np.nan)
+    ask = np.asarray(ask) & np.isfinite(ground_z)
+    if not ask.any():
+        return out
+    cen = np.array([p.centroid.coords[0] for p in polygons]).reshape(-1, 2)
+    # only the views that see the footprint's centre take part (the sweep's
+    # cost is the projection of every height's points into every view)
+    sees = views_seeing(views, np.column_stack([cen, np.where(ask, ground_z, 0.0)]))
+    for b in np.flatnonzero(ask & (sees.sum(axis=0) >= min_views)):
+        xy = footprint_samples(polygons[b], grid_m, inset_m, max_points)
+        if len(xy) == 0:
+            continue
+        vb = [views[i] for i in np.flatnonzero(sees[:, b])]
+        ncc, n = height_profile(vb, xy, ground_z[b] + up)
+        out[b] = roof_height(ncc, n, up, min_height_m, min_views)
+    return out

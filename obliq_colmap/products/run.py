@@ -6,7 +6,9 @@ vertical datum, i.e. the priors', as ``georef.json`` says):
 
 * ``terrain.asc`` + ``terrain.prj``: ESRI ASCII grid of the terrain height.
 * ``buildings.geojson``: one feature per map polygon with ``ground_height``,
-  ``eave_z`` (absolute) and ``eave_height`` (above the ground, m).
+  ``eave_z`` (absolute), ``eave_height`` (above the ground, m) and
+  ``eave_support`` (``walls``: shared by the walls; ``under_roof``: with the
+  images, from the tracks under the roof the views see; null).
 * ``lod1.city.json``: CityJSON 2.0, the footprints with an eave height
   extruded from the ground to the eave.
 * ``discrepancies.geojson`` (with ``image_path``): the footprints the images
@@ -35,6 +37,7 @@ from obliq_colmap.products.buildings import (
     BuildingHeights,
     HeightOptions,
     building_heights,
+    eaves_under_roof,
 )
 from obliq_colmap.products.cityjson import city_model
 from obliq_colmap.products.constraints import ModelConstraints, load_constraints
@@ -45,6 +48,7 @@ from obliq_colmap.products.discrepancies import (
 )
 from obliq_colmap.products.esri import ascii_grid_text, esri_wkt
 from obliq_colmap.products.missing import MissingOptions, find_missing
+from obliq_colmap.products.roof import RoofView, roof_heights
 from obliq_colmap.products.terrain import TerrainOptions, estimate_terrain, terrain_grid
 
 __all__ = ["ProductsOptions", "make_products"]
@@ -74,6 +78,9 @@ def _num(v: float, decimals: int = 3) -> float | None:
     return round(float(v), decimals) if np.isfinite(v) else None
 
 
+_SUPPORT = {0: None, 1: "under_roof", 2: "walls"}
+
+
 def buildings_geojson(c: ModelConstraints, h: BuildingHeights) -> dict:
     """The footprints (absolute) with their heights, one feature per polygon."""
     o = c.georef.origin
@@ -88,6 +95,7 @@ def buildings_geojson(c: ModelConstraints, h: BuildingHeights) -> dict:
             "eave_height": _num(h.eave_height[b]),
             "num_facade_tracks": int(h.num_tracks[b]),
             "eave_tracks": int(h.eave_tracks[b]),
+            "eave_support": _SUPPORT[int(h.eave_support[b])],
         }
         feats.append(
             {
@@ -108,12 +116,42 @@ def lod1_model(c: ModelConstraints, h: BuildingHeights) -> dict:
     polys = [shapely.affinity.translate(p, o[0], o[1]) for p in c.cadastre.polygons]
     ids = [f"{bid}-{b}" for b, bid in enumerate(c.cadastre.building_ids)]
     attrs = [
-        {"mapId": str(bid), "measuredHeight": _num(h.eave_height[b])}
+        {
+            "mapId": str(bid),
+            "measuredHeight": _num(h.eave_height[b]),
+            "eaveSupport": _SUPPORT[int(h.eave_support[b])],
+        }
         for b, bid in enumerate(c.cadastre.building_ids)
     ]
     return city_model(
         polys, ids, h.ground_z + o[2], h.eave_z + o[2], attrs, c.cadastre.crs
     )
+
+
+def with_eaves_under_roof(
+    c: ModelConstraints,
+    h: BuildingHeights,
+    views: list[RoofView],
+    options: ProductsOptions,
+) -> BuildingHeights:
+    """``h`` with the eaves of :func:`.buildings.eaves_under_roof`, the
+    roofs swept (:func:`.roof.roof_heights`) for the buildings with tracks
+    and no eave only."""
+    o, d = options.heights, options.discrepancies
+    up = np.arange(0.0, o.roof_sweep_max_m + 1e-9, o.roof_sweep_step_m)
+    roof = roof_heights(
+        c.cadastre.polygons,
+        h.ground_z,
+        (h.num_tracks > 0) & ~np.isfinite(h.eave_z),
+        views,
+        up,
+        d.sweep_grid_m,
+        d.sweep_inset_m,
+        d.top_sweep_points,
+        d.stand_height_m,
+        d.stand_views,
+    )
+    return eaves_under_roof(h, roof, c.facade_xyz, c.facade_building, c.facade_edge, o)
 
 
 def make_products(
@@ -165,6 +203,7 @@ def make_products(
             miss, miss_summary = find_missing(
                 c, terrain, h, views, options.missing, options.num_workers
             )
+        h = with_eaves_under_roof(c, h, views, options)
     summary = {
         "vertical_datum": "the result model's (georef.json): the priors' heights",
         "crs": c.cadastre.crs,
@@ -178,6 +217,7 @@ def make_products(
             "mapped": len(c.cadastre.polygons),
             "with_facade_tracks": int((h.num_tracks > 0).sum()),
             "with_eave_height": int(np.isfinite(h.eave_z).sum()),
+            "with_eave_under_roof": int((h.eave_support == 1).sum()),
         },
         "options": dataclasses.asdict(options),
     }

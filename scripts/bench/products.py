@@ -17,7 +17,8 @@ external one (``../shared/data/external_oblique/*``: ``gt_terrain.npz``,
   the grid has a value, and (b) every cell the grid gives; coverage of (a);
 * eave height above ground (``buildings.geojson``) against the truth, over
   the mapped buildings present in the scene with facade tracks: median and
-  p90 of the absolute error, and how many got a height; and the coverage:
+  p90 of the absolute error, and how many got a height (all, and by the
+  rule that gave it, ``eave_support``); and the coverage:
   of the mapped buildings present that the block sees (the footprint's
   centre at its true eave in >= 3 true images), the share with a height;
 * discrepancies (``discrepancies.geojson``): positives = mapped buildings
@@ -194,6 +195,14 @@ def score_missing(scene: Path, prod: Path) -> dict:
     return res
 
 
+def error_figures(e: np.ndarray) -> dict:
+    """Median and p90 of the absolute errors ``e`` (N,), None where N = 0."""
+    return {
+        "median_abs_error_m": round(float(np.median(e)), 3) if len(e) else None,
+        "p90_abs_error_m": round(float(np.percentile(e, 90)), 3) if len(e) else None,
+    }
+
+
 def eave_coverage(c, gt: dict, feats: list, terrain, scene: Path) -> tuple[int, int]:
     """(the mapped buildings present that the block sees: the footprint's
     centre at its true eave in >= 3 true images, those of them with an eave
@@ -242,7 +251,7 @@ def score(model: Path, scene: Path, prod: Path) -> dict:
         }
     }
     feats = json.loads((prod / "buildings.geojson").read_text())["features"]
-    e, n_seen = [], 0
+    e, support, n_seen = [], [], 0
     for f in feats:
         p = f["properties"]
         g = gt.get(p["id"])
@@ -251,15 +260,22 @@ def score(model: Path, scene: Path, prod: Path) -> dict:
         n_seen += 1
         if p["eave_height"] is not None:
             e.append(p["eave_height"] - g[2])
-    e = np.abs(np.array(e))
+            support.append(p.get("eave_support"))
+    e, support = np.abs(np.array(e)), np.array(support, dtype=object)
     n_block, n_block_height = eave_coverage(c, gt, feats, terrain, scene)
     res["eave_height"] = {
         "buildings_with_tracks": n_seen,
         "with_height": len(e),
         "seen_by_the_block": n_block,
         "coverage_of_seen": round(n_block_height / max(n_block, 1), 3),
-        "median_abs_error_m": round(float(np.median(e)), 3) if len(e) else None,
-        "p90_abs_error_m": round(float(np.percentile(e, 90)), 3) if len(e) else None,
+        **error_figures(e),
+        "by_support": {
+            str(k): {
+                "with_height": int((support == k).sum()),
+                **error_figures(e[support == k]),
+            }
+            for k in dict.fromkeys(support.tolist())
+        },
     }
     disc = prod / "discrepancies.geojson"
     if disc.is_file():
