@@ -187,6 +187,7 @@ def run_register(
         "max_end_offset_ratio": options.max_end_offset_ratio,
         "warn_predicted_sd_px": options.warn_predicted_sd_px,
         "max_prior_rejected_fraction": options.max_prior_rejected_fraction,
+        "facade_height_range_m": list(options.adjustment.facades.height_range_m),
     }
     report["num_points3D"] = len(points)
     return RunResult(block, georef, points, by_id, report, bundle_result, starts)

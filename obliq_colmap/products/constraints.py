@@ -11,6 +11,7 @@ boundary passes there (party walls belong to two buildings).
 
 from __future__ import annotations
 
+import json
 import logging
 from dataclasses import dataclass
 from pathlib import Path
@@ -46,6 +47,8 @@ class ModelConstraints:
     other_error : (T,) their reprojection errors (px).
     other_m_per_px : (T,) metres per pixel at each of them (depth in its
         first observation's image over that camera's focal length).
+    facade_top_m : how far above the ground ``register`` looked for facade
+        edges (its ``report.json``), None where the model does not say.
     """
 
     georef: Georef
@@ -58,6 +61,7 @@ class ModelConstraints:
     other_xyz: np.ndarray
     other_error: np.ndarray
     other_m_per_px: np.ndarray
+    facade_top_m: float | None = None
 
 
 def read_points(model_path: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -169,4 +173,15 @@ def load_constraints(
         other_xyz=xyz[~is_corner & ~on_edge],
         other_error=err[~is_corner & ~on_edge],
         other_m_per_px=m_per_px[~is_corner & ~on_edge],
+        facade_top_m=_facade_top(input_path),
     )
+
+
+def _facade_top(input_path: Path) -> float | None:
+    """The top of ``register``'s facade search (m above the ground) from
+    the model's ``report.json``; None where it is absent or does not say."""
+    try:
+        report = json.loads((input_path / "report.json").read_text())
+        return float(report["options"]["facade_height_range_m"][1])
+    except (OSError, ValueError, KeyError, TypeError, IndexError):
+        return None
