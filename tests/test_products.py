@@ -12,7 +12,12 @@ from shapely.geometry import Polygon
 from obliq_colmap.cli import main
 from obliq_colmap.colmap_io import Block, Georef, ImageRecord, Point3D, write_result
 from obliq_colmap.geometry import Camera, Pose
-from obliq_colmap.products.buildings import eave_cluster
+from obliq_colmap.products.buildings import (
+    HeightOptions,
+    eave_cluster,
+    eaves_with_roof,
+    half_widths,
+)
 from obliq_colmap.products.cityjson import city_model
 from obliq_colmap.products.discrepancies import DiscrepancyOptions, classify
 from obliq_colmap.products.esri import ascii_grid_text, esri_wkt
@@ -469,11 +474,6 @@ def test_a_house_with_one_track_at_its_eave_gets_it_under_its_roof():
     wall, and got no eave (5.6 % of the houses the block sees had one). One
     track on one wall may be a taller building's edge seen behind it; the
     roof the views agree on caps the eave, which removes those."""
-    from obliq_colmap.products.buildings import (
-        BuildingHeights,
-        HeightOptions,
-        eaves_under_roof,
-    )
     from obliq_colmap.products.roof import roof_heights
 
     o, d = HeightOptions(), DiscrepancyOptions()
@@ -501,22 +501,77 @@ def test_a_house_with_one_track_at_its_eave_gets_it_under_its_roof():
     xyz = np.array([[0, 0, 1.0], [0, 0, 5.8], [0, 0, 14.0], [0, 0, 9.0]])
     fb = np.array([[0, 0], [1, 0], [2, 0], [3, 1]])
     fe = np.array([0, 0, 1, 4])
-    h = BuildingHeights(
-        np.zeros(2),
-        np.array([np.nan, 9.0]),
-        np.array([3, 1]),
-        np.array([0, 4]),
-        np.array([0, 2]),
-    )
-    out = eaves_under_roof(h, roof, xyz, fb, fe, o)
+    h = _heights([np.nan, 9.0], [3, 1])
+    half = np.full(2, 6.0)
+    out = eaves_with_roof(h, roof, half, xyz, fb, fe, o)
     assert out.eave_z[0] == pytest.approx(5.8) and out.eave_z[1] == 9.0
     assert list(out.eave_support) == [1, 2]
     # without the cap the taller building's edge would have been taken
     # (the highest single track); no roof seen: no eave
     assert eave_cluster(xyz[:3, 2], 0.5, 1, 2.0, fe[:3], 1)[0] == 14.0
-    assert np.isnan(eaves_under_roof(h, np.full(2, np.nan), xyz, fb, fe, o).eave_z[0])
+    nan = np.full(2, np.nan)
+    assert np.isnan(eaves_with_roof(h, nan, half, xyz, fb, fe, o).eave_z[0])
+    # a roof 20 m up: the eave lies no lower below it than a roof over 12 m
+    # can rise (10.4 m at 60 deg); 5.8 is a floor's line, 14.0 the eave
+    high = eaves_with_roof(h, np.array([20.0, np.nan]), half, xyz, fb, fe, o)
+    assert high.eave_z[0] == pytest.approx(14.0)
+    low = eaves_with_roof(h, np.array([20.0, np.nan]), half, xyz[:2], fb[:2], fe[:2], o)
+    assert np.isnan(low.eave_z[0])
     # an empty site: nothing stands, no roof, no eave
     assert np.isnan(roof_of(_oblique_views(None))[0])
+
+
+def _heights(eave, tracks):
+    from obliq_colmap.products.buildings import BuildingHeights
+
+    eave = np.asarray(eave, float)
+    n = len(eave)
+    support = np.where(np.isfinite(eave), 2, 0)
+    return BuildingHeights(np.zeros(n), eave, np.asarray(tracks), np.zeros(n), support)
+
+
+def test_a_tower_read_at_its_podium_takes_its_roof():
+    """Our high-rise district: towers above the facade search's 60 m read at
+    the podium's line, which runs round more walls than the floor lines
+    above it (p90 69.6 m). Their roof, where the views agree, lies higher
+    above that line than any pitched roof over the footprint could rise,
+    and their floor lines rise to it (or to the top of the search)."""
+    o = HeightOptions()
+    # 0: a tower of 40 m, its podium's line at 4 m on two walls, floor lines
+    # above up to its rim; 1: a pitched house (the views agree between its
+    # eave and its ridge); 2: the views agree by chance far above a right
+    # eave, no line between; 3: the same with a taller neighbour's line seen
+    # behind one wall at 25 m; 4: a tower of 80 m, lines up to the search's
+    # top (60 m); 5: a house with stray tracks far up, one near the top of
+    # the search (our houses class: 7 m houses read at 97 and 113 m)
+    tracks = {
+        0: ([4.0, 4.1, 12.0, 24.0, 37.0, 37.1], [0, 1, 0, 0, 0, 1]),
+        1: ([4.0, 4.1], [0, 1]),
+        2: ([12.0, 12.1], [0, 1]),
+        3: ([12.0, 12.1, 25.0, 25.1], [0, 1, 0, 0]),
+        4: ([4.0, 4.1, 30.0, 57.0, 57.3], [0, 1, 0, 0, 1]),
+        5: ([6.4, 6.5, 28.1, 59.7], [0, 1, 0, 1]),
+    }
+    z = np.concatenate([t[0] for t in tracks.values()])
+    w = np.concatenate([t[1] for t in tracks.values()])
+    b = np.concatenate([[k] * len(t[0]) for k, t in tracks.items()])
+    xyz = np.column_stack([np.zeros((len(z), 2)), z])
+    fb = np.column_stack([np.arange(len(z)), b])
+    h = _heights([4.05, 4.05, 12.05, 12.05, 4.05, 6.45], [6, 2, 2, 4, 5, 4])
+    roof = np.array([40.0, 7.0, 90.0, 90.0, 80.0, 97.0])
+    half = np.array([10.0, 5.0, 8.0, 8.0, 10.0, 4.4])
+    out = eaves_with_roof(h, roof, half, xyz, fb, w, o)
+    assert list(out.eave_z) == [40.0, 4.05, 12.05, 12.05, 80.0, 6.45]
+    assert list(out.eave_support) == [3, 2, 2, 2, 3, 2]
+    # a search that looked up to 100 m would have seen the tall tower's
+    # upper floors: lines ending at 57 m are then no tower of 80 m
+    assert eaves_with_roof(h, roof, half, xyz, fb, w, o, 100.0).eave_z[4] == 4.05
+    # the same roof over a footprint wide enough for a pitched roof to rise
+    # that high: the line stays
+    wide = eaves_with_roof(h, roof, np.r_[25.0, half[1:]], xyz, fb, w, o)
+    assert wide.eave_z[0] == 4.05
+    rect = Polygon([(0, 0), (20, 0), (20, 8), (0, 8)])
+    assert half_widths([rect]) == pytest.approx([4.0])
 
 
 def test_a_low_building_without_an_eave_is_sampled_on_its_walls():

@@ -12,13 +12,19 @@
   highest (floor lines run round a building too, below its eave). Edges of
   a taller building seen behind show on the walls facing it only; in dense
   blocks they outnumber the eave's tracks there and lie far above it.
-* With the images (:func:`eaves_under_roof`): a building whose tracks give
-  no such height (a low house's walls yield one or two tracks) takes the
-  same rule over its tracks on any wall, one track enough, among those no
-  higher than its roof (the height at which the views agree on its
-  interior, :func:`.roof.roof_height`): an eave cannot lie above the roof,
-  and that cap is what removes the taller buildings' edges seen behind.
-  Its ``eave_support`` says so (1 instead of 2).
+* With the images (:func:`eaves_with_roof`), the roof tells two more cases
+  (the height at which the views agree on the footprint's interior,
+  :func:`.roof.roof_height`). A building whose tracks give no such height
+  (a low house's walls yield one or two tracks) takes the same rule over
+  its tracks on any wall, one track enough, among those no higher than its
+  roof: an eave cannot lie above the roof, and that cap is what removes the
+  taller buildings' edges seen behind; nor lower below it than a pitched
+  roof over the footprint could rise. A building whose roof lies higher
+  above its eave than that, with its walls' tracks up to its top storey
+  (or to the top of the facade search, 60 m above the ground), is a tower
+  read at its podium's line (which runs round the most walls): its eave is
+  its flat roof. ``eave_support`` says which rule gave the eave (2: the
+  walls, 1: under the roof, 3: the roof).
   Buildings without a height get none (NaN).
 """
 
@@ -27,6 +33,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+import shapely
 
 from obliq_colmap.cadastre import Cadastre
 
@@ -35,7 +42,8 @@ __all__ = [
     "HeightOptions",
     "building_heights",
     "eave_cluster",
-    "eaves_under_roof",
+    "eaves_with_roof",
+    "half_widths",
 ]
 
 
@@ -59,9 +67,19 @@ class HeightOptions:
     #: the sweep sees (m): a flat roof's parapet (up to ~1 m) rises above
     #: the roof surface the views agree on.
     roof_margin_m: float = 1.0
-    #: the roof sweep's heights above the ground (m): up to a tower's top.
-    roof_sweep_max_m: float = 80.0
-    roof_sweep_step_m: float = 0.25
+    #: the roof sweep's heights above the ground (m): up to a tower's top,
+    #: in steps of about a pixel of parallax at 45 deg and 0.15 m/px.
+    roof_sweep_max_m: float = 120.0
+    roof_sweep_step_m: float = 0.5
+    #: the steepest pitched roof: the views agree on it at most half the
+    #: footprint's short side times tan(this) above its eave.
+    max_roof_pitch_deg: float = 60.0
+    #: a storey (m): a tower's highest facade line lies within one of its
+    #: roof (the rim, the top floor), or of the top of the facade search.
+    storey_m: float = 4.0
+    #: the top of ``register``'s facade search above the ground (m) where
+    #: the model's report does not say (``register``'s default).
+    facade_top_m: float = 60.0
 
     def __post_init__(self) -> None:
         if self.cluster_tol_m <= 0 or self.min_tracks < 1 or self.min_height_m < 0:
@@ -158,39 +176,82 @@ def building_heights(
     return BuildingHeights(ground, eave, ntr, count, support)
 
 
-def eaves_under_roof(
+def eaves_with_roof(
     heights: BuildingHeights,
     roof_above_ground: np.ndarray,
+    half_width: np.ndarray,
     facade_xyz: np.ndarray,
     facade_building: np.ndarray,
     facade_edge: np.ndarray,
     options: HeightOptions,
+    facade_top_m: float | None = None,
 ) -> BuildingHeights:
-    """``heights`` with an eave for the buildings that had none, from their
-    tracks at most ``roof_margin_m`` above their roof (``roof_above_ground``
-    (B,), NaN where the sweep saw none), one track on one wall enough.
-    Arrays as in :func:`building_heights`."""
+    """``heights`` told by the roof the views agree on (``roof_above_ground``
+    (B,), NaN where the sweep saw none):
+
+    * a building without an eave takes one from its tracks at most
+      ``roof_margin_m`` above its roof and no lower below it than a pitched
+      roof over its footprint can rise (``half_width`` (B,), half its short
+      side, times tan ``max_roof_pitch_deg``), one track on one wall enough
+      (support 1): a lower line is a floor's, a shop front's;
+    * a building whose roof lies higher above its eave than that rise and
+      whose walls show at least ``min_tracks`` tracks above that eave within
+      ``storey_m`` below the roof or below ``facade_top_m`` (the top of the
+      facade search, m above the ground) is a tower read at a lower line (a
+      podium, a floor): its eave is its flat roof (support 3). A chance
+      agreement of the views high above a building has no facade lines up
+      there. The same where the eave found is the search's last storey: its
+      top cut the walls.
+
+    Other arrays as in :func:`building_heights`."""
     B = len(heights.eave_z)
+    g = heights.ground_z
     eave, count = heights.eave_z.copy(), heights.eave_tracks.copy()
+    support = np.where(np.isfinite(eave), 2, 0)
     ntr, tracks = _tracks_by_building(facade_xyz, facade_building, facade_edge, B)
-    ask = (ntr > 0) & ~np.isfinite(eave) & np.isfinite(roof_above_ground)
-    for b in np.flatnonzero(ask):
+    seen = (ntr > 0) & np.isfinite(roof_above_ground)
+    top = g + roof_above_ground + options.roof_margin_m
+    rise = half_width * np.tan(np.radians(options.max_roof_pitch_deg))
+    bottom = top - rise - 2 * options.roof_margin_m
+    for b in np.flatnonzero(seen & ~np.isfinite(eave)):
         z, walls = tracks(b)
-        top = heights.ground_z[b] + roof_above_ground[b] + options.roof_margin_m
-        under = z <= top
+        under = (z <= top[b]) & (z >= bottom[b])
         if under.any():
             eave[b], count[b] = eave_cluster(
                 z[under],
                 options.cluster_tol_m,
                 1,
-                heights.ground_z[b] + options.min_height_m,
+                g[b] + options.min_height_m,
                 walls[under],
                 1,
             )
-    support = np.where(
-        np.isfinite(heights.eave_z), 2, np.where(np.isfinite(eave), 1, 0)
-    )
-    return BuildingHeights(heights.ground_z, eave, ntr, count, support)
+            support[b] = int(np.isfinite(eave[b]))
+    searched = options.facade_top_m if facade_top_m is None else facade_top_m
+    high = seen & (g + roof_above_ground - eave > rise + options.roof_margin_m)
+    for b in np.flatnonzero(high & (support == 2)):
+        z, _ = tracks(b)
+        reach = g[b] + min(roof_above_ground[b], searched) - options.storey_m
+        # the line taken for the eave may be the search's last (its top cut
+        # the walls), or the tower's lines rise above it to its top storey
+        # (its rim seen twice: a stray track up there is no tower)
+        cut = eave[b] >= g[b] + searched - options.storey_m
+        up_there = (z > eave[b] + 2 * options.cluster_tol_m) & (z >= reach)
+        rises = (up_there & (z <= top[b])).sum() >= options.min_tracks
+        if cut or rises:
+            eave[b], count[b], support[b] = g[b] + roof_above_ground[b], 0, 3
+    return BuildingHeights(g, eave, ntr, count, support)
+
+
+def half_widths(polygons: list) -> np.ndarray:
+    """(B,) half the short side of each footprint's minimum rotated
+    rectangle (m): the run of a pitched roof from its eave to its ridge."""
+    rect = shapely.minimum_rotated_rectangle(np.asarray(polygons, dtype=object))
+    out = np.zeros(len(polygons))
+    for b, r in enumerate(rect):
+        xy = np.asarray(r.exterior.coords)[:3] if r.geom_type == "Polygon" else None
+        if xy is not None:
+            out[b] = 0.5 * min(np.hypot(*(xy[1] - xy[0])), np.hypot(*(xy[2] - xy[1])))
+    return out
 
 
 def _tracks_by_building(

@@ -208,9 +208,14 @@ def roof_heights(
     if not ask.any():
         return out
     cen = np.array([p.centroid.coords[0] for p in polygons]).reshape(-1, 2)
-    # only the views that see the footprint's centre take part (the sweep's
-    # cost is the projection of every height's points into every view)
-    sees = views_seeing(views, np.column_stack([cen, np.where(ask, ground_z, 0.0)]))
+    # only the views that see the footprint's centre at the bottom, the
+    # middle or the top of the sweep take part (the sweep's cost is the
+    # projection of every height's points into every view; a tower's roof
+    # is seen from views whose image ends before its foot)
+    sees = np.zeros((len(views), len(polygons)), bool)
+    for dz in (up[0], up[len(up) // 2], up[-1]):
+        z = np.where(ask, ground_z + dz, 0.0)
+        sees |= views_seeing(views, np.column_stack([cen, z]))
     for b in np.flatnonzero(ask & (sees.sum(axis=0) >= min_views)):
         xy = footprint_samples(polygons[b], grid_m, inset_m, max_points)
         if len(xy) == 0:

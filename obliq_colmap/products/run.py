@@ -7,8 +7,9 @@ vertical datum, i.e. the priors', as ``georef.json`` says):
 * ``terrain.asc`` + ``terrain.prj``: ESRI ASCII grid of the terrain height.
 * ``buildings.geojson``: one feature per map polygon with ``ground_height``,
   ``eave_z`` (absolute), ``eave_height`` (above the ground, m) and
-  ``eave_support`` (``walls``: shared by the walls; ``under_roof``: with the
-  images, from the tracks under the roof the views see; null).
+  ``eave_support`` (``walls``: shared by the walls; with the images,
+  ``under_roof``: from the tracks under the roof the views see, ``roof``: a
+  tower's flat roof; null).
 * ``lod1.city.json``: CityJSON 2.0, the footprints with an eave height
   extruded from the ground to the eave.
 * ``discrepancies.geojson`` (with ``image_path``): the footprints the images
@@ -37,7 +38,8 @@ from obliq_colmap.products.buildings import (
     BuildingHeights,
     HeightOptions,
     building_heights,
-    eaves_under_roof,
+    eaves_with_roof,
+    half_widths,
 )
 from obliq_colmap.products.cityjson import city_model
 from obliq_colmap.products.constraints import ModelConstraints, load_constraints
@@ -78,7 +80,7 @@ def _num(v: float, decimals: int = 3) -> float | None:
     return round(float(v), decimals) if np.isfinite(v) else None
 
 
-_SUPPORT = {0: None, 1: "under_roof", 2: "walls"}
+_SUPPORT = {0: None, 1: "under_roof", 2: "walls", 3: "roof"}
 
 
 def buildings_geojson(c: ModelConstraints, h: BuildingHeights) -> dict:
@@ -128,21 +130,21 @@ def lod1_model(c: ModelConstraints, h: BuildingHeights) -> dict:
     )
 
 
-def with_eaves_under_roof(
+def with_roof(
     c: ModelConstraints,
     h: BuildingHeights,
     views: list[RoofView],
     options: ProductsOptions,
 ) -> BuildingHeights:
-    """``h`` with the eaves of :func:`.buildings.eaves_under_roof`, the
-    roofs swept (:func:`.roof.roof_heights`) for the buildings with tracks
-    and no eave only."""
+    """``h`` told by the roofs the views see (:func:`.buildings.
+    eaves_with_roof`), swept (:func:`.roof.roof_heights`) on the buildings
+    with tracks."""
     o, d = options.heights, options.discrepancies
     up = np.arange(0.0, o.roof_sweep_max_m + 1e-9, o.roof_sweep_step_m)
     roof = roof_heights(
         c.cadastre.polygons,
         h.ground_z,
-        (h.num_tracks > 0) & ~np.isfinite(h.eave_z),
+        h.num_tracks > 0,
         views,
         up,
         d.sweep_grid_m,
@@ -151,7 +153,16 @@ def with_eaves_under_roof(
         d.stand_height_m,
         d.stand_views,
     )
-    return eaves_under_roof(h, roof, c.facade_xyz, c.facade_building, c.facade_edge, o)
+    return eaves_with_roof(
+        h,
+        roof,
+        half_widths(c.cadastre.polygons),
+        c.facade_xyz,
+        c.facade_building,
+        c.facade_edge,
+        o,
+        c.facade_top_m,
+    )
 
 
 def make_products(
@@ -203,7 +214,7 @@ def make_products(
             miss, miss_summary = find_missing(
                 c, terrain, h, views, options.missing, options.num_workers
             )
-        h = with_eaves_under_roof(c, h, views, options)
+        h = with_roof(c, h, views, options)
     summary = {
         "vertical_datum": "the result model's (georef.json): the priors' heights",
         "crs": c.cadastre.crs,
@@ -218,6 +229,7 @@ def make_products(
             "with_facade_tracks": int((h.num_tracks > 0).sum()),
             "with_eave_height": int(np.isfinite(h.eave_z).sum()),
             "with_eave_under_roof": int((h.eave_support == 1).sum()),
+            "with_eave_at_a_towers_roof": int((h.eave_support == 3).sum()),
         },
         "options": dataclasses.asdict(options),
     }
