@@ -343,6 +343,16 @@ def test_export_products_end_to_end(tmp_path):
     assert not bad.exists()
 
 
+def test_the_products_read_how_high_register_looked_for_facades(tmp_path):
+    from obliq_colmap.products.constraints import load_constraints
+
+    model, cadastre, _ = _tiny_model(tmp_path)
+    assert load_constraints(model, cadastre).facade_top_m is None
+    report = {"options": {"facade_height_range_m": [-20.0, 75.0]}}
+    (model / "report.json").write_text(json.dumps(report))
+    assert load_constraints(model, cadastre).facade_top_m == 75.0
+
+
 def _oblique_views(roof_height: float | None) -> list:
     """Four oblique pinhole views (one per heading) of a textured ground
     (z = 0) and a textured 12 x 12 m building at ``roof_height`` (None: an
