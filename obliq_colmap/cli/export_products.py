@@ -7,9 +7,10 @@ and map discrepancies from a registration.
                                  [--find_missing 1] [--min_building_area 40]
 
 OUT_MODEL is what ``register`` wrote (model, georef.json); MAP the map it was
-registered to. With ``--image_path`` the map discrepancies are searched too,
-and the buildings the images show where the map has none
-(``missing.geojson``).
+registered to. With ``--image_path`` the roofs the views agree on give
+eaves to the buildings whose walls gave none and to towers read at their
+podium, the map discrepancies are searched too, and the buildings the
+images show where the map has none (``missing.geojson``).
 """
 
 from __future__ import annotations
@@ -34,7 +35,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--output_path", required=True, help="products folder (new or empty)"
     )
     parser.add_argument(
-        "--image_path", help="the images: also search the map discrepancies"
+        "--image_path",
+        help="the images: eaves told by the roofs, and the map discrepancies",
     )
     parser.add_argument(
         "--cell_size",
