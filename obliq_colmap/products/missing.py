@@ -53,6 +53,7 @@ from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 from scipy.stats import binom
 
+from obliq_colmap.geometry import PIXEL_CENTER_OFFSET
 from obliq_colmap.products.roof import RoofView, views_seeing
 
 __all__ = [
@@ -194,10 +195,10 @@ def roof_cells(
         ).reshape(H, C, k)
         if not ok.any():
             continue
-        vals = cv2.remap(
+        vals = cv2.remap(  # COLMAP's pixel centres are at +0.5, OpenCV's at 0
             v.gray,
-            q[..., 0].astype(np.float32),
-            q[..., 1].astype(np.float32),
+            (q[..., 0] - PIXEL_CENTER_OFFSET).astype(np.float32),
+            (q[..., 1] - PIXEL_CENTER_OFFSET).astype(np.float32),
             cv2.INTER_LINEAR,
             cv2.BORDER_REPLICATE,
         ).reshape(H, C, k)

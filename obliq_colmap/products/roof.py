@@ -19,7 +19,7 @@ import cv2
 import numpy as np
 import shapely
 
-from obliq_colmap.geometry import Camera, Pose
+from obliq_colmap.geometry import PIXEL_CENTER_OFFSET, Camera, Pose
 
 __all__ = [
     "RoofView",
@@ -118,8 +118,9 @@ def height_profile(
         counts = ok.mean(axis=1) >= min_inside  # (H,)
         if not counts.any():
             continue
-        mx = q[..., 0].astype(np.float32)
-        my = q[..., 1].astype(np.float32)
+        # COLMAP's pixel centres are at +0.5, OpenCV's at the integers
+        mx = (q[..., 0] - PIXEL_CENTER_OFFSET).astype(np.float32)
+        my = (q[..., 1] - PIXEL_CENTER_OFFSET).astype(np.float32)
         vals = cv2.remap(v.gray, mx, my, cv2.INTER_LINEAR, cv2.BORDER_REPLICATE)
         cols.append(np.where(ok & counts[:, None], vals, np.nan))
         used.append(counts)
