@@ -4,7 +4,8 @@ discrepancies from one registration, written atomically into one folder.
 Files (absolute coordinates in the map's CRS; heights in the result model's
 vertical datum, i.e. the priors', as ``georef.json`` says):
 
-* ``terrain.asc`` + ``terrain.prj``: ESRI ASCII grid of the terrain height.
+* ``terrain.asc`` + ``terrain.prj``: ESRI ASCII grid of the terrain height
+  (with ``image_path``, shaped by the open ground the views agree on).
 * ``buildings.geojson``: one feature per map polygon with ``ground_height``,
   ``eave_z`` (absolute), ``eave_height`` (above the ground, m) and
   ``eave_support`` (``walls``: shared by the walls; with the images,
@@ -49,6 +50,7 @@ from obliq_colmap.products.discrepancies import (
     roof_views,
 )
 from obliq_colmap.products.esri import ascii_grid_text, esri_wkt
+from obliq_colmap.products.ground import GroundOptions, ground_samples
 from obliq_colmap.products.missing import MissingOptions, find_missing
 from obliq_colmap.products.roof import RoofView, roof_heights
 from obliq_colmap.products.terrain import TerrainOptions, estimate_terrain, terrain_grid
@@ -63,6 +65,7 @@ class ProductsOptions:
     """Options of :func:`make_products`."""
 
     terrain: TerrainOptions = field(default_factory=TerrainOptions)
+    ground: GroundOptions = field(default_factory=GroundOptions)
     heights: HeightOptions = field(default_factory=HeightOptions)
     discrepancies: DiscrepancyOptions = field(default_factory=DiscrepancyOptions)
     missing: MissingOptions = field(default_factory=MissingOptions)
@@ -165,6 +168,29 @@ def with_roof(
     )
 
 
+def measured_terrain(
+    c: ModelConstraints, views: list[RoofView] | None, options: ProductsOptions
+):
+    """(terrain, its NODATA samples, the number of ground points from the
+    images): from the map corners, then, with the images, from the open
+    ground the views agree on (:func:`.ground.ground_samples`) about it."""
+    terrain, samples = estimate_terrain(c.ground_xyz, c.facade_xyz, options.terrain)
+    if views is None or not options.ground.enabled:
+        return terrain, samples, 0
+    pts = ground_samples(
+        c.cadastre.polygons,
+        c.ground_xyz[:, :2],
+        terrain,
+        views,
+        options.terrain.max_distance_m,
+        options.ground,
+    )
+    terrain, samples = estimate_terrain(
+        c.ground_xyz, c.facade_xyz, options.terrain, pts
+    )
+    return terrain, samples, len(pts)
+
+
 def make_products(
     input_path: str | Path,
     cadastre_path: str | Path,
@@ -185,7 +211,11 @@ def make_products(
     out = AtomicFolder(output_path)  # checks the output folder first
     c = load_constraints(input_path, cadastre_path)
     o = c.georef.origin
-    terrain, samples = estimate_terrain(c.ground_xyz, c.facade_xyz, options.terrain)
+    block = views = None
+    if image_path is not None:
+        block = read_model(input_path)
+        views = roof_views(block, Path(image_path), options.discrepancies)
+    terrain, samples, n_ground = measured_terrain(c, views, options)
     grid = terrain_grid(terrain, samples, options.terrain)
     h = building_heights(
         c.cadastre,
@@ -197,9 +227,7 @@ def make_products(
     )
     wkt = esri_wkt(c.cadastre.crs)
     disc = miss = None
-    if image_path is not None:
-        block = read_model(input_path)
-        views = roof_views(block, Path(image_path), options.discrepancies)
+    if views is not None:
         disc = find_discrepancies(
             input_path,
             image_path,
@@ -223,6 +251,7 @@ def make_products(
             "cells": int(grid.Z.size),
             "cells_with_height": int(np.isfinite(grid.Z).sum()),
             "corner_samples": int(len(samples)),
+            "ground_points_from_images": n_ground,
         },
         "buildings": {
             "mapped": len(c.cadastre.polygons),

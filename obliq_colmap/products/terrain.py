@@ -39,6 +39,9 @@ __all__ = [
 
 logger = logging.getLogger(__name__)
 
+#: samples the quadratic surface needs (:func:`robust_surface`)
+_QUADRATIC = 12
+
 
 @dataclass
 class TerrainOptions:
@@ -110,7 +113,7 @@ def robust_surface(xy: np.ndarray, z: np.ndarray, sigmas: float = 2.5, rounds: i
     scale = max(float(np.ptp(xy)) if len(xy) else 1.0, 1.0)
     A = _design(xy, scale)
     # fewer points than monomials: a plane or a constant.
-    ncol = 6 if len(z) >= 12 else (3 if len(z) >= 3 else 1)
+    ncol = 6 if len(z) >= _QUADRATIC else (3 if len(z) >= 3 else 1)
     A = A[:, :ncol]
     keep = np.ones(len(z), bool)
     coef, sigma = np.zeros(ncol), 0.0
@@ -219,7 +222,10 @@ def feet_datum(
 
 
 def estimate_terrain(
-    ground_xyz: np.ndarray, facade_xyz: np.ndarray, options: TerrainOptions
+    ground_xyz: np.ndarray,
+    facade_xyz: np.ndarray,
+    options: TerrainOptions,
+    image_ground: np.ndarray | None = None,
 ):
     """The terrain as a function of (x, y), and the ground samples it used.
 
@@ -227,6 +233,10 @@ def estimate_terrain(
     ----------
     ground_xyz : (G, 3) map corners at their ground heights, local frame.
     facade_xyz : (F, 3) facade track points.
+    image_ground : (S, 3) ground points the views agree on
+        (:func:`.ground.ground_samples`), about twice as precise as the
+        corners: where there are enough for the surface, they give its
+        shape instead.
 
     Returns
     -------
@@ -236,12 +246,13 @@ def estimate_terrain(
     """
     if len(ground_xyz) == 0:
         raise ValueError("no ground corner to estimate the terrain from")
-    surface, sigma = robust_surface(
-        ground_xyz[:, :2], ground_xyz[:, 2], options.outlier_sigmas
-    )
-    r = ground_xyz[:, 2] - surface(ground_xyz[:, :2])
+    from_images = image_ground is not None and len(image_ground) >= _QUADRATIC
+    pts = image_ground if from_images else ground_xyz
+    surface, sigma = robust_surface(pts[:, :2], pts[:, 2], options.outlier_sigmas)
+    r = pts[:, 2] - surface(pts[:, :2])
     ok = np.abs(r) <= options.outlier_sigmas * sigma
-    xy, r = ground_xyz[ok, :2], r[ok]
+    xy, r = pts[ok, :2], r[ok]
+    mask_xy = ground_xyz[:, :2] if from_images else xy
     # With few corners nearby the correction shrinks towards the surface (one
     # pseudo-sample of weight 1 at residual 0).
     prior_weight = 1.0
@@ -257,9 +268,10 @@ def estimate_terrain(
         facade_xyz, shape, options.foot_window_m, options.min_feet, options.foot_sd_m
     )
     logger.info(
-        "terrain: %d corners (sd %.2f m about their quadratic), moved %+.2f m "
+        "terrain: %d %s (sd %.2f m about their quadratic), moved %+.2f m "
         "onto the wall feet among %d tracks near it",
         len(xy),
+        "ground points the views agree on" if from_images else "corners",
         sigma,
         offset,
         n_feet,
@@ -268,7 +280,7 @@ def estimate_terrain(
     def terrain(q: np.ndarray) -> np.ndarray:
         return shape(q) + offset
 
-    return terrain, xy
+    return terrain, mask_xy
 
 
 def terrain_grid(terrain, samples: np.ndarray, options: TerrainOptions) -> TerrainGrid:
