@@ -587,7 +587,7 @@ def test_a_tower_read_at_its_podium_takes_its_roof():
 def test_the_views_agree_on_the_open_ground_at_its_height():
     """The corners' ground heights are good to ~0.3 m each (urban-101's
     terrain RMSE 0.39 m); the views agree on a patch of open ground only at
-    its height, to about a tenth of a metre, whatever the corners said."""
+    its height, whatever the corners said."""
     from obliq_colmap.products.ground import GroundOptions, ground_samples
 
     o = GroundOptions(step_m=4.0)
@@ -600,11 +600,11 @@ def test_the_views_agree_on_the_open_ground_at_its_height():
     pts = ground_samples(
         [building], corners, corners_terrain, _oblique_views(10.0), 20.0, o
     )
-    # (a patch that the building hides from one of the four views is
-    # measured by three, with the wall's texture in the fourth)
+    # a few centimetres on this texture (its texels are 0.25 m), the peak
+    # refined between the sweep's 0.1 m steps
     assert len(pts) >= 10
-    assert np.median(np.abs(pts[:, 2])) < 0.1
-    assert np.abs(pts[:, 2]).max() < 0.5
+    assert np.median(np.abs(pts[:, 2])) < 0.03
+    assert np.abs(pts[:, 2]).max() < 0.1
     # none on the building or within the clearance of its walls
     assert np.all(np.abs(pts[:, :2]).max(axis=1) > 6.0 + o.clearance_m)
 

@@ -119,7 +119,9 @@ def ground_samples(
         inside = 0 < k < len(dz) - 1
         if not inside or ncc[k] < options.min_ncc or n[k] < options.min_views:
             continue
-        out.append((*cen[i], z0[i] + dz[k] + _vertex(ncc[k - 1 : k + 2]) * dz[1]))
+        out.append(
+            (*cen[i], z0[i] + dz[k] + _vertex(ncc[k - 1 : k + 2]) * options.step_z_m)
+        )
     return np.array(out).reshape(-1, 3)
 
 
