@@ -99,27 +99,38 @@ def _design(xy: np.ndarray, scale: float) -> np.ndarray:
     return np.column_stack([np.ones_like(x), x, y, x * x, x * y, y * y])
 
 
-def robust_surface(xy: np.ndarray, z: np.ndarray, sigmas: float = 2.5, rounds: int = 5):
+def robust_surface(
+    xy: np.ndarray,
+    z: np.ndarray,
+    sigmas: float = 2.5,
+    rounds: int = 5,
+    weights: np.ndarray | None = None,
+):
     """A quadratic surface z(x, y) fitted with iterative outlier rejection.
 
     Parameters
     ----------
-    xy : (N, 2); z : (N,).
+    xy : (N, 2); z : (N,); weights : (N,) inverse variances relative to a
+        unit-weight sample (None: all 1).
 
     Returns
     -------
-    A function (M, 2) -> (M,), and the robust sigma of the residuals (m).
+    A function (M, 2) -> (M,), and the robust sigma of the unit-weight
+    residuals (m).
     """
     scale = max(float(np.ptp(xy)) if len(xy) else 1.0, 1.0)
     A = _design(xy, scale)
     # fewer points than monomials: a plane or a constant.
     ncol = 6 if len(z) >= _QUADRATIC else (3 if len(z) >= 3 else 1)
     A = A[:, :ncol]
+    sw = np.ones(len(z)) if weights is None else np.sqrt(weights)
     keep = np.ones(len(z), bool)
     coef, sigma = np.zeros(ncol), 0.0
     for _ in range(rounds):
-        coef = np.linalg.lstsq(A[keep], z[keep], rcond=None)[0]
-        r = z - A @ coef
+        coef = np.linalg.lstsq(
+            A[keep] * sw[keep, None], z[keep] * sw[keep], rcond=None
+        )[0]
+        r = (z - A @ coef) * sw
         sigma = max(1.4826 * float(np.median(np.abs(r[keep]))), 0.05)
         keep = np.abs(r) <= sigmas * sigma
 
@@ -130,17 +141,23 @@ def robust_surface(xy: np.ndarray, z: np.ndarray, sigmas: float = 2.5, rounds: i
 
 
 def _smoothed(
-    samples: np.ndarray, values: np.ndarray, query: np.ndarray, sigma: float
+    samples: np.ndarray,
+    values: np.ndarray,
+    query: np.ndarray,
+    sigma: float,
+    weights: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Gaussian-weighted mean of ``values`` (N,) at samples (N, 2) for query
-    points (M, 2), truncated at 3 sigma: (M,) mean (0 without samples) and
-    (M,) weight sum."""
+    points (M, 2), truncated at 3 sigma, each sample also weighted by
+    ``weights`` (N,): (M,) mean (0 without samples) and (M,) weight sum."""
     if len(samples) == 0:
         return np.zeros(len(query)), np.zeros(len(query))
     D = cKDTree(query).sparse_distance_matrix(
         cKDTree(samples), 3.0 * sigma, output_type="coo_matrix"
     )
     w = np.exp(-0.5 * (D.data / sigma) ** 2)
+    if weights is not None:
+        w = w * weights[D.col]
     wsum = np.bincount(D.row, w, len(query))
     wv = np.bincount(D.row, w * values[D.col], len(query))
     return np.where(wsum > 0, wv / np.maximum(wsum, 1e-12), 0.0), wsum
@@ -221,6 +238,32 @@ def feet_datum(
     return foot_offset(r[near], window_m, sigmas_m), int(near.sum())
 
 
+def _mad(r: np.ndarray) -> float:
+    """Robust sd (m) of residuals ``r`` (N,), at least 1 cm."""
+    return max(1.4826 * float(np.median(np.abs(r - np.median(r)))), 0.01)
+
+
+def _shape(pts: np.ndarray, w: np.ndarray, options: TerrainOptions):
+    """(shape (M, 2) -> (M,), sigma, (N,) bool samples kept): the robust
+    quadratic through ``pts`` (N, 3) weighted by ``w`` (N,), refined by the
+    Gaussian-weighted mean of the kept samples' residuals."""
+    surface, sigma = robust_surface(
+        pts[:, :2], pts[:, 2], options.outlier_sigmas, weights=w
+    )
+    r = pts[:, 2] - surface(pts[:, :2])
+    used = np.abs(r) * np.sqrt(w) <= options.outlier_sigmas * sigma
+    xy, r, wk = pts[used, :2], r[used], w[used]
+    # With few samples nearby the correction shrinks towards the surface (one
+    # pseudo-sample of unit weight at residual 0).
+    prior_weight = 1.0
+
+    def shape(q: np.ndarray) -> np.ndarray:
+        mean, wsum = _smoothed(xy, r, q, options.smoothing_m, wk)
+        return surface(q) + mean * wsum / (wsum + prior_weight)
+
+    return shape, sigma, used
+
+
 def estimate_terrain(
     ground_xyz: np.ndarray,
     facade_xyz: np.ndarray,
@@ -234,9 +277,9 @@ def estimate_terrain(
     ground_xyz : (G, 3) map corners at their ground heights, local frame.
     facade_xyz : (F, 3) facade track points.
     image_ground : (S, 3) ground points the views agree on
-        (:func:`.ground.ground_samples`), about twice as precise as the
-        corners: where there are enough for the surface, they give its
-        shape instead.
+        (:func:`.ground.ground_samples`); with enough of them for the
+        surface, they join the corners, each kind weighted by its scatter
+        about their common shape.
 
     Returns
     -------
@@ -247,19 +290,21 @@ def estimate_terrain(
     if len(ground_xyz) == 0:
         raise ValueError("no ground corner to estimate the terrain from")
     from_images = image_ground is not None and len(image_ground) >= _QUADRATIC
-    pts = image_ground if from_images else ground_xyz
-    surface, sigma = robust_surface(pts[:, :2], pts[:, 2], options.outlier_sigmas)
-    r = pts[:, 2] - surface(pts[:, :2])
-    ok = np.abs(r) <= options.outlier_sigmas * sigma
-    xy, r = pts[ok, :2], r[ok]
+    pts = np.vstack([ground_xyz, image_ground]) if from_images else ground_xyz
+    kind = np.repeat([0, 1], [len(ground_xyz), len(pts) - len(ground_xyz)])
+    shape, sigma, used = _shape(pts, np.ones(len(pts)), options)
+    if from_images:
+        # each kind weighted by its own scatter about the common shape (the
+        # views' ground is the sharper on textured ground, not on all)
+        r = pts[:, 2] - shape(pts[:, :2])
+        sd = np.array([_mad(r[kind == k]) for k in (0, 1)])
+        shape, sigma, used = _shape(pts, (sd[0] / sd[kind]) ** 2, options)
+        logger.info(
+            "terrain: corners %.2f m, ground the views agree on %.2f m about it",
+            *sd,
+        )
+    xy = pts[used & (kind == 0), :2]
     mask_xy = ground_xyz[:, :2] if from_images else xy
-    # With few corners nearby the correction shrinks towards the surface (one
-    # pseudo-sample of weight 1 at residual 0).
-    prior_weight = 1.0
-
-    def shape(q: np.ndarray) -> np.ndarray:
-        mean, wsum = _smoothed(xy, r, q, options.smoothing_m)
-        return surface(q) + mean * wsum / (wsum + prior_weight)
 
     # The eaves are measured against this ground: it must be in the tracks'
     # datum, which the feet give (the corners' datum sits a few tenths off
@@ -268,10 +313,9 @@ def estimate_terrain(
         facade_xyz, shape, options.foot_window_m, options.min_feet, options.foot_sd_m
     )
     logger.info(
-        "terrain: %d %s (sd %.2f m about their quadratic), moved %+.2f m "
+        "terrain: %d samples (sd %.2f m about their quadratic), moved %+.2f m "
         "onto the wall feet among %d tracks near it",
-        len(xy),
-        "ground points the views agree on" if from_images else "corners",
+        int(used.sum()),
         sigma,
         offset,
         n_feet,
