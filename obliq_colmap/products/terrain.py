@@ -9,9 +9,11 @@ to ~0.3 m each, but a segment ends where the ground's contrast lets it, so
 their datum can sit a few tenths off the bundle's. And the facade tracks
 that run along a wall's foot (a horizontal edge where the wall meets the
 ground, height ``h_j`` from the bundle, in the same datum as the eaves),
-sparse and hidden behind cars and trees. The grid's shape comes from the
-corners (a robust quadratic refined by the Gaussian-weighted mean of their
-residuals); its datum from the feet among the tracks near it (a mixture
+sparse and hidden behind cars and trees. With the images, the open ground
+the views agree on joins the corners (:mod:`.ground`), each kind weighted
+by its own scatter. The grid's shape comes from these (a robust quadratic
+refined by the Gaussian-weighted mean of their residuals); its datum from
+the feet among the tracks near it (a mixture
 that tells the feet from the lines just above them, :func:`foot_offset`),
 so that eave heights above it are measured in one datum.
 
