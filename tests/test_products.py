@@ -497,11 +497,7 @@ def test_a_house_with_one_track_at_its_eave_gets_it_under_its_roof():
             np.array([True, False]),
             views,
             up,
-            d.sweep_grid_m,
-            d.sweep_inset_m,
-            d.top_sweep_points,
-            d.stand_height_m,
-            d.stand_views,
+            d,
         )
 
     roof = roof_of(_oblique_views(6.0))

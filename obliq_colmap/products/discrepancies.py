@@ -310,11 +310,7 @@ def eaveless_tops(
         ~np.isfinite(eave_z),
         views,
         up,
-        options.sweep_grid_m,
-        options.sweep_inset_m,
-        options.top_sweep_points,
-        options.stand_height_m,
-        options.stand_views,
+        options,
     )
     lo = options.stand_height_m + 0.5
     f = np.clip(options.eaveless_top_fraction * h, lo, options.default_height_m)

@@ -20,6 +20,7 @@ import numpy as np
 import shapely
 
 from obliq_colmap.geometry import PIXEL_CENTER_OFFSET, Camera, Pose
+from obliq_colmap.products.discrepancy_options import DiscrepancyOptions
 
 __all__ = [
     "RoofView",
@@ -193,17 +194,14 @@ def roof_heights(
     ask: np.ndarray,
     views: list[RoofView],
     up: np.ndarray,
-    grid_m: float,
-    inset_m: float,
-    max_points: int,
-    min_height_m: float,
-    min_views: int,
+    options: DiscrepancyOptions,
 ) -> np.ndarray:
     """(B,) :func:`roof_height` of the footprints where ``ask`` (B,) bool,
     a sweep of ``up`` (H,) heights above each one's ``ground_z`` (B,) over
-    at most ``max_points`` interior points (:func:`footprint_samples`); NaN
-    elsewhere, where fewer than ``min_views`` views see the footprint's
-    centre, or where nothing stands on it."""
+    at most ``top_sweep_points`` interior points (:func:`footprint_samples`
+    with ``sweep_grid_m``, ``sweep_inset_m``); NaN elsewhere, where fewer
+    than ``stand_views`` views see the footprint's centre, or where nothing
+    stands on it (``stand_height_m``)."""
     out = np.full(len(polygons), np.nan)
     ask = np.asarray(ask) & np.isfinite(ground_z)
     if not ask.any():
@@ -217,11 +215,14 @@ def roof_heights(
     for dz in (up[0], up[len(up) // 2], up[-1]):
         z = np.where(ask, ground_z + dz, 0.0)
         sees |= views_seeing(views, np.column_stack([cen, z]))
-    for b in np.flatnonzero(ask & (sees.sum(axis=0) >= min_views)):
-        xy = footprint_samples(polygons[b], grid_m, inset_m, max_points)
+    o = options
+    for b in np.flatnonzero(ask & (sees.sum(axis=0) >= o.stand_views)):
+        xy = footprint_samples(
+            polygons[b], o.sweep_grid_m, o.sweep_inset_m, o.top_sweep_points
+        )
         if len(xy) == 0:
             continue
         vb = [views[i] for i in np.flatnonzero(sees[:, b])]
         ncc, n = height_profile(vb, xy, ground_z[b] + up)
-        out[b] = roof_height(ncc, n, up, min_height_m, min_views)
+        out[b] = roof_height(ncc, n, up, o.stand_height_m, o.stand_views)
     return out

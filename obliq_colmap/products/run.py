@@ -150,11 +150,7 @@ def with_roof(
         h.num_tracks > 0,
         views,
         up,
-        d.sweep_grid_m,
-        d.sweep_inset_m,
-        d.top_sweep_points,
-        d.stand_height_m,
-        d.stand_views,
+        d,
     )
     return eaves_with_roof(
         h,
