@@ -584,3 +584,14 @@ def point_line_distance(points: np.ndarray, lines: np.ndarray) -> np.ndarray:
     return (
         points[..., 0] * lines[..., 0] + points[..., 1] * lines[..., 1] + lines[..., 2]
     )
+
+
+def parabola_peak(x: np.ndarray, y: np.ndarray) -> float:
+    """Abscissa of the vertex of the parabola through three equally spaced
+    (x, y) (3,), within [x[0], x[2]]; x[1] when it is not concave (or a
+    value is NaN)."""
+    h = x[1] - x[0]
+    curv = y[0] - 2.0 * y[1] + y[2]
+    if not curv < 0:
+        return float(x[1])
+    return float(np.clip(x[1] + 0.5 * h * (y[0] - y[2]) / curv, x[0], x[2]))

@@ -249,7 +249,8 @@ def test_cli_keeps_calibrated_focal_lengths(tmp_path):
     assert report["options"]["refine_focal_length"] is False
     assert report["options"]["bundle_rotation_sigma_deg"] is None
     assert report["options"]["bundle_position_sigma_m"] is None
-    assert report["options"]["facade_height_range_m"] == [-20.0, 60.0]
+    band = list(AdjustmentOptions().facades.height_range_m)
+    assert report["options"]["facade_height_range_m"] == band
     priors, model = read_model(SAMPLE / "priors"), read_model(out)
     assert len(model.images) == len(priors.images)
     for image in model.images.values():

@@ -21,6 +21,7 @@ import numpy as np
 import shapely
 from scipy.spatial import cKDTree
 
+from obliq_colmap.geometry import parabola_peak
 from obliq_colmap.products.roof import RoofView, height_profile, views_seeing
 
 __all__ = ["GroundOptions", "ground_samples"]
@@ -119,16 +120,6 @@ def ground_samples(
         inside = 0 < k < len(dz) - 1
         if not inside or ncc[k] < options.min_ncc or n[k] < options.min_views:
             continue
-        out.append(
-            (*cen[i], z0[i] + dz[k] + _vertex(ncc[k - 1 : k + 2]) * options.step_z_m)
-        )
+        near = slice(k - 1, k + 2)
+        out.append((*cen[i], z0[i] + parabola_peak(dz[near], ncc[near])))
     return np.array(out).reshape(-1, 3)
-
-
-def _vertex(y: np.ndarray) -> float:
-    """Offset in steps (-0.5..0.5) of the parabola's vertex through three
-    values around a maximum (0 where they are not concave)."""
-    den = y[0] - 2 * y[1] + y[2]
-    if not np.all(np.isfinite(y)) or den >= 0:
-        return 0.0
-    return float(np.clip(0.5 * (y[0] - y[2]) / den, -0.5, 0.5))

@@ -8,7 +8,7 @@ from collections.abc import Callable
 
 import numpy as np
 
-from obliq_colmap.geometry import Camera
+from obliq_colmap.geometry import Camera, parabola_peak
 from obliq_colmap.registration.options import RegistrationOptions, RegistrationResult
 from obliq_colmap.registration.reassociate import reassociate
 
@@ -40,16 +40,6 @@ def focal_profile(
     )
 
 
-def _parabola_peak(x: np.ndarray, y: np.ndarray) -> float:
-    """Abscissa of the vertex of the parabola through three equally spaced
-    (x, y) (3,), within [x[0], x[2]]; x[1] when it is not concave."""
-    h = x[1] - x[0]
-    curv = y[0] - 2.0 * y[1] + y[2]
-    if not curv < 0:
-        return float(x[1])
-    return float(np.clip(x[1] + 0.5 * h * (y[0] - y[2]) / curv, x[0], x[2]))
-
-
 def consensus_peak(
     profile: Callable[[np.ndarray], np.ndarray], sigma: float, max_steps: int = 2
 ) -> float:
@@ -75,6 +65,6 @@ def consensus_peak(
         order = np.argsort(grid)
         grid, score = grid[order], score[order]
     i = int(np.clip(np.argmax(score), 1, len(grid) - 2))
-    fine = _parabola_peak(grid[i - 1 : i + 2], score[i - 1 : i + 2])
+    fine = parabola_peak(grid[i - 1 : i + 2], score[i - 1 : i + 2])
     fine = fine + sigma / 3.0 * np.array([-1.0, 0.0, 1.0])
-    return _parabola_peak(fine, profile(fine))
+    return parabola_peak(fine, profile(fine))
