@@ -605,6 +605,40 @@ def test_the_views_agree_on_the_open_ground_at_its_height():
     assert np.all(np.abs(pts[:, :2]).max(axis=1) > 6.0 + o.clearance_m)
 
 
+def test_the_patches_swept_together_read_what_each_alone_reads():
+    """The ground sweep reads thousands of 3 x 3 m patches; per view it
+    projects only each patch's centre and derivatives (an affine image of
+    the patch) and reads all its patches at once. At an aerial range
+    (850 m, f = 4,400 px, SIMPLE_RADIAL) that is what the exact per-patch
+    sweep reads, over chunks and views that see some patches only."""
+    from obliq_colmap.products.ground import patch_profiles
+    from obliq_colmap.products.roof import RoofView, blurred, height_profile
+
+    rng = np.random.default_rng(7)
+    w, h = 2004, 1336
+    cam = Camera("SIMPLE_RADIAL", w, h, [4400.0, w / 2 + 7, h / 2 - 5, -0.05])
+    views = []
+    for heading in (0.0, 90.0, 180.0, 270.0, 10.0):
+        a = np.radians(heading)
+        look = np.array([np.sin(a), np.cos(a), -1.0]) / np.sqrt(2)
+        right = np.cross(look, [0.0, 0.0, 1.0])
+        right /= np.linalg.norm(right)
+        R = np.stack([right, np.cross(look, right), look])
+        gray = blurred(rng.uniform(0, 255, (h, w)).astype(np.uint8), 1.5)
+        views.append(RoofView(gray, cam, Pose.from_center(R, -850.0 * look)))
+    u = np.arange(-1.5, 1.5 + 1e-9, 0.25)
+    offsets = np.stack(np.meshgrid(u, u), axis=-1).reshape(-1, 2)
+    centres = rng.uniform(-60, 60, (7, 2))
+    z = rng.uniform(-1, 1, (7, 1)) + np.arange(-1.0, 1.0 + 1e-9, 0.1)
+    sees = rng.uniform(size=(len(views), len(centres))) < 0.8
+    ncc, n = patch_profiles(views, sees, centres, offsets, z, chunk=3)
+    for i in range(len(centres)):
+        vi = [views[j] for j in np.flatnonzero(sees[:, i])]
+        exact, n_exact = height_profile(vi, centres[i] + offsets, z[i])
+        assert list(n[i]) == list(n_exact)
+        assert np.allclose(ncc[i], exact, atol=0.01, equal_nan=True)
+
+
 def test_the_terrain_takes_its_shape_from_the_ground_the_views_see():
     rng = np.random.default_rng(5)
     plane = np.array([0.02, -0.01])

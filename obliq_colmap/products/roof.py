@@ -24,12 +24,15 @@ from obliq_colmap.products.discrepancy_options import DiscrepancyOptions
 
 __all__ = [
     "RoofView",
+    "agreement",
     "empty_site",
     "footprint_samples",
     "height_profile",
     "roof_height",
     "roof_heights",
+    "stacked_agreement",
     "stands",
+    "view_samples",
     "views_seeing",
 ]
 
@@ -104,41 +107,74 @@ def height_profile(
     X = np.empty((H, P, 3))
     X[..., :2] = xy[None]
     X[..., 2] = z[:, None]
-    cols, used = [], []
+    samples = []
     for v in views:
         Xc = v.pose.transform(X.reshape(-1, 3))
         q = v.camera.img_from_cam(Xc).reshape(H, P, 2)
-        h, w = v.gray.shape
-        ok = (
-            (Xc[:, 2].reshape(H, P) > 0)
-            & (q[..., 0] >= 0)
-            & (q[..., 0] <= w - 1)
-            & (q[..., 1] >= 0)
-            & (q[..., 1] <= h - 1)
-        )
-        counts = ok.mean(axis=1) >= min_inside  # (H,)
-        if not counts.any():
-            continue
-        # COLMAP's pixel centres are at +0.5, OpenCV's at the integers
-        mx = (q[..., 0] - PIXEL_CENTER_OFFSET).astype(np.float32)
-        my = (q[..., 1] - PIXEL_CENTER_OFFSET).astype(np.float32)
-        vals = cv2.remap(v.gray, mx, my, cv2.INTER_LINEAR, cv2.BORDER_REPLICATE)
-        cols.append(np.where(ok & counts[:, None], vals, np.nan))
-        used.append(counts)
-    if len(cols) < 2:
-        return np.full(H, np.nan), np.zeros(H, int)
-    A = np.stack(cols)  # (V, H, P), NaN where a view does not count
-    n = np.stack(used).sum(axis=0)  # (H,)
+        samples.append(view_samples(v, q, Xc[:, 2].reshape(H, P) > 0, min_inside))
+    return agreement(samples, H)
+
+
+def view_samples(
+    view: RoofView, q: np.ndarray, front: np.ndarray, min_inside: float
+) -> tuple[np.ndarray, np.ndarray] | None:
+    """One view's intensities at pixels ``q`` (..., H, P, 2) (COLMAP's
+    convention) of points in front of it where ``front`` (..., H, P):
+    ((..., H, P) values, NaN where the view does not count; (..., H) bool,
+    the heights at which at least ``min_inside`` of the points fall inside
+    the image); None where it counts at no height."""
+    h, w = view.gray.shape
+    ok = (
+        front
+        & (q[..., 0] >= 0)
+        & (q[..., 0] <= w - 1)
+        & (q[..., 1] >= 0)
+        & (q[..., 1] <= h - 1)
+    )
+    counts = ok.mean(axis=-1) >= min_inside  # (..., H)
+    if not counts.any():
+        return None
+    # COLMAP's pixel centres are at +0.5, OpenCV's at the integers; remap
+    # takes 2-D maps
+    P = q.shape[-2]
+    mx = (q[..., 0] - PIXEL_CENTER_OFFSET).astype(np.float32).reshape(-1, P)
+    my = (q[..., 1] - PIXEL_CENTER_OFFSET).astype(np.float32).reshape(-1, P)
+    vals = cv2.remap(view.gray, mx, my, cv2.INTER_LINEAR, cv2.BORDER_REPLICATE)
+    vals = vals.reshape(q.shape[:-1])
+    return np.where(ok & counts[..., None], vals, np.nan), counts
+
+
+def agreement(
+    samples: list[tuple[np.ndarray, np.ndarray] | None], n_heights: int
+) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`height_profile`'s (ncc (H,), views (H,)) from each view's
+    :func:`view_samples` at ``n_heights`` (H) heights."""
+    kept = [s for s in samples if s is not None]
+    if len(kept) < 2:
+        return np.full(n_heights, np.nan), np.zeros(n_heights, int)
+    return stacked_agreement(
+        np.stack([s[0] for s in kept]), np.stack([s[1] for s in kept])
+    )
+
+
+def stacked_agreement(A: np.ndarray, used: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(ncc (..., H), views (..., H)) of the views' values ``A`` (..., V,
+    H, P) (NaN where a view does not count) that count where ``used``
+    (..., V, H): the mean NCC over ordered pairs of views."""
+    n = used.sum(axis=-2)  # (..., H)
     # each view's intensities normalised (exposure and shading differ)
     valid = ~np.isnan(A)
     A = np.where(valid, A, 0.0)
-    A -= A.sum(axis=2, keepdims=True) / np.maximum(valid.sum(axis=2, keepdims=True), 1)
-    A = np.where(valid, A, 0.0)
-    A /= np.linalg.norm(A, axis=2, keepdims=True) + 1e-9
-    s = A.sum(axis=0)  # (H, P)
-    # sum over ordered pairs of <a_u, a_v> = |sum a|^2 - sum |a|^2
-    pairs = np.maximum(n * (n - 1), 1)
-    ncc = ((s**2).sum(axis=1) - (A**2).sum(axis=(0, 2))) / pairs
+    count = np.maximum(valid.sum(axis=-1, keepdims=True), 1)
+    A -= A.sum(axis=-1, keepdims=True) / count
+    A *= valid
+    norm = np.sqrt(np.einsum("...p,...p->...", A, A))[..., None]
+    A /= norm + 1e-9
+    s = A.sum(axis=-3)  # (..., H, P)
+    # sum over ordered pairs of <a_u, a_v> = |sum a|^2 - sum |a|^2, each
+    # |a|^2 being 1 (0 for a view without contrast there)
+    self_dot = ((norm / (norm + 1e-9)) ** 2).sum(axis=(-3, -1))
+    ncc = (np.einsum("...p,...p->...", s, s) - self_dot) / np.maximum(n * (n - 1), 1)
     return np.where(n >= 2, ncc, np.nan), n
 
 
