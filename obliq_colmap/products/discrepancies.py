@@ -27,7 +27,8 @@ an eave too small for the height sweep (a shed) is not judged.
   and an "eave" on its walls (in dense blocks, the edges of the buildings
   behind) do not count against the ground.
 * A building whose best support comes with a shift longer than
-  ``min_shift_m`` (measured below the grid's step, :func:`refined_shift`),
+  ``min_shift_m`` (fitted from the grid's best to its corners' vertical
+  segments below a pixel, :func:`fitted_shifts`),
   beats the unshifted support by ``min_gain`` of itself, whose support is
   below ``shifted_ratio`` times the median unshifted and above it shifted,
   and that chance does not explain (:func:`chance_peaks`: the corner views
@@ -68,7 +69,7 @@ from obliq_colmap.products.roof import (
     roof_heights,
     views_seeing,
 )
-from obliq_colmap.products.support import edge_support
+from obliq_colmap.products.support import edge_offsets, edge_support
 
 __all__ = ["DiscrepancyOptions", "classify", "find_discrepancies", "shift_grid"]
 
@@ -115,6 +116,15 @@ class AcrossEvidence:
         np.add.at(self.seen0, b, across & seen[:, :1])
 
 
+def support_share(
+    support: np.ndarray, views: np.ndarray, options: DiscrepancyOptions
+) -> tuple[np.ndarray, np.ndarray]:
+    """((B, S) share of each building's sampled corner views supported under
+    each shift, (B,) its best shift's index)."""
+    frac = support / np.maximum(views * options.num_samples, 1)[:, None]
+    return frac, frac.argmax(axis=1)
+
+
 def refined_shift(
     frac: np.ndarray, shifts: np.ndarray, best_i: np.ndarray, step: float
 ) -> np.ndarray:
@@ -133,6 +143,43 @@ def refined_shift(
     w = np.where(near, frac - w.min(axis=1, keepdims=True), 0.0)
     tot = w.sum(axis=1, keepdims=True)
     return np.where(tot > 0, (w @ shifts) / np.maximum(tot, 1e-12), shifts[best_i])
+
+
+def fitted_shifts(
+    building: np.ndarray,
+    offset: np.ndarray,
+    jac: np.ndarray,
+    start: np.ndarray,
+    options: DiscrepancyOptions,
+    iterations: int = 5,
+) -> tuple[np.ndarray, np.ndarray]:
+    """(B, 2) shifts fitted to the corner views' edges, and (B,) how many
+    corner views found an edge.
+
+    Each corner view's edge lies ``offset`` (V,) px across the corner's
+    image line at the shift ``start`` (B, 2) of its ``building`` (V,), and
+    the line moves ``jac`` (V, 2) px across per metre of shift
+    (:func:`.support.edge_offsets`; NaN offset: no edge). Per building the
+    correction that moves the lines onto the edges, robustly (Huber at
+    ``fit_huber_px``), held towards zero by a prior of one grid step: where
+    the views move the corners across in one direction only, the other
+    component stays the grid's.
+    """
+    B = len(start)
+    ok = np.isfinite(offset)
+    b, o, J = building[ok], offset[ok], jac[ok]
+    ridge = (options.fit_huber_px / options.shift_step_m) ** 2 * np.eye(2)
+    delta = np.zeros((B, 2))
+    JJ = J[:, :, None] * J[:, None, :]  # (V, 2, 2)
+    for _ in range(iterations):
+        r = o - np.einsum("vj,vj->v", J, delta[b])
+        w = np.minimum(1.0, options.fit_huber_px / np.maximum(np.abs(r), 1e-9))
+        N = np.zeros((B, 2, 2))
+        g = np.zeros((B, 2))
+        np.add.at(N, b, w[:, None, None] * JJ)
+        np.add.at(g, b, (w * o)[:, None] * J)
+        delta = np.linalg.solve(N + ridge, g[..., None])[..., 0]
+    return start + delta, np.bincount(b, minlength=B)
 
 
 def chance_peaks(
@@ -162,6 +209,7 @@ def classify(
     options: DiscrepancyOptions,
     seen: np.ndarray | None = None,
     across: AcrossEvidence | None = None,
+    fitted: np.ndarray | None = None,
 ) -> dict[str, np.ndarray]:
     """Per building: best shift, supports, score and verdict.
 
@@ -175,6 +223,9 @@ def classify(
     across : the support over the views in which each shift moves the
         corners across their verticals (:class:`AcrossEvidence`): "not seen
         in place" is judged there. None: over all views.
+    fitted : (B, 2) the best shift fitted to the edges below the grid's
+        step (:func:`fitted_shifts`; NaN where none); None or NaN: the
+        grid's best refined by its neighbours (:func:`refined_shift`).
 
     Returns
     -------
@@ -182,13 +233,14 @@ def classify(
     ("", "absent", "shifted"), score in [0, 1].
     """
     judged = views >= options.min_views
-    frac = support / np.maximum(views * options.num_samples, 1)[:, None]
-    best_i = frac.argmax(axis=1)
+    frac, best_i = support_share(support, views, options)
     best = frac[np.arange(len(frac)), best_i]
     s0 = frac[:, 0]
     ref = float(np.median(best[judged])) if judged.any() else 0.0
     absent = judged & (best < options.absent_ratio * ref) & ~has_eave
     shift = refined_shift(frac, shifts, best_i, options.shift_step_m)
+    if fitted is not None:
+        shift = np.where(np.isfinite(fitted), fitted, shift)
     gain = (best - s0) / np.maximum(best, 1e-9)
     # "not seen in place" and the gain judged in the views in which the best
     # shift moves the corners across their verticals: in the others the
@@ -335,6 +387,47 @@ def roof_views(block, image_path: Path, options: DiscrepancyOptions) -> list[Roo
     return views
 
 
+def _fit_to_edges(
+    results: list,
+    tasks: list[dict],
+    cad,
+    common: dict,
+    support: np.ndarray,
+    views: np.ndarray,
+    options: DiscrepancyOptions,
+) -> np.ndarray:
+    """(B, 2) :func:`fitted_shifts` of the judged buildings from their
+    grid's best shift, over every image's corner views (``results`` of
+    :func:`.support.edge_support`, one per task); NaN where no corner view
+    found an edge."""
+    start = common["shifts"][support_share(support, views, options)[1]]
+    judged = views >= options.min_views
+    z0, z1 = common["corner_z0"], common["corner_z1"]
+    parts = []
+    for (k, _, _, segments), task in zip(results, tasks, strict=True):
+        b = cad.corner_building[k]
+        use = judged[b] & np.isfinite(z0[k]) & np.isfinite(z1[k])
+        if not use.any() or len(segments) == 0:
+            continue
+        k, b = k[use], b[use]
+        xy = cad.corner_xy[k] + start[b]
+        off, jac = edge_offsets(
+            task["camera"],
+            task["pose"],
+            segments,
+            np.column_stack([xy, z0[k]]),
+            np.column_stack([xy, z1[k]]),
+            options.fit_window_px,
+        )
+        parts.append((b, off, jac))
+    out = np.full(start.shape, np.nan)
+    if not parts:
+        return out
+    b, off, jac = (np.concatenate(x) for x in zip(*parts, strict=True))
+    fit, n = fitted_shifts(b, off, jac, start, options)
+    return np.where((n > 0)[:, None], fit, out)
+
+
 def find_discrepancies(
     input_path,
     image_path,
@@ -387,7 +480,7 @@ def find_discrepancies(
     support, views = np.zeros((B, S)), np.zeros(B)
     views_seen = np.zeros((B, S))
     ac = AcrossEvidence.zeros(B, S)
-    for k, sup, across in results:
+    for k, sup, across, _ in results:
         b = cad.corner_building[k]
         np.add.at(support, b, sup)
         np.add.at(views, b, 1.0)
@@ -399,6 +492,9 @@ def find_discrepancies(
     views = np.where(
         np.isfinite(heights.eave_z) | sweepable(cad.polygons, options), views, 0.0
     )
+    fitted = None
+    if options.fit_shift:
+        fitted = _fit_to_edges(results, tasks, cad, common, support, views, options)
     v = classify(
         support,
         views,
@@ -407,6 +503,7 @@ def find_discrepancies(
         options,
         views_seen,
         ac if options.judge_across else None,
+        fitted,
     )
     # absent: corners seen clearly nowhere, and the views agree on the ground
     judged = v["judged"]

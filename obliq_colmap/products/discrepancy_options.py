@@ -48,6 +48,15 @@ class DiscrepancyOptions:
     #: shifts searched: +-max_shift_m in steps of shift_step_m.
     max_shift_m: float = 2.0
     shift_step_m: float = 0.25
+    #: the best shift of the grid fitted to the corners' edges below a pixel
+    #: (:func:`.support.edge_offsets`): in each corner view the vertical
+    #: segment within ``fit_window_px`` across the corner's image line (the
+    #: grid's best is within a step, ~1.7 px, of the edges it saw within
+    #: ``support_px``), a robust fit (Huber at ``fit_huber_px``) per
+    #: building. False: the grid's best refined by its neighbours' support.
+    fit_shift: bool = True
+    fit_window_px: float = 3.0
+    fit_huber_px: float = 1.0
     #: a shift shorter than this is no discrepancy (m).
     min_shift_m: float = 0.5
     #: relative gain of the best shift over none to call a building shifted
@@ -95,5 +104,7 @@ class DiscrepancyOptions:
     empty_views: int = 4
 
     def __post_init__(self) -> None:
+        if min(self.fit_window_px, self.fit_huber_px) <= 0:
+            raise ValueError("fit_window_px, fit_huber_px > 0")
         if self.num_samples < 1 or self.shift_step_m <= 0 or self.max_shift_m < 0:
             raise ValueError("num_samples >= 1, shift_step_m > 0, max_shift_m >= 0")
