@@ -639,6 +639,20 @@ def test_the_patches_swept_together_read_what_each_alone_reads():
         assert np.allclose(ncc[i], exact, atol=0.01, equal_nan=True)
 
 
+def test_a_large_roof_is_read_in_chunks_of_the_remap():
+    """cv2.remap refuses maps of 32,767 rows or more: the cells of a roof of
+    70 x 70 m swept over 60 heights are 130,000 rows of samples."""
+    from obliq_colmap.products.roof import sample_image
+
+    rng = np.random.default_rng(2)
+    gray = rng.uniform(0, 255, (100, 120)).astype(np.float32)
+    q = rng.integers(0, 100, (70000, 3, 2)).astype(float) + 0.5  # pixel centres
+    vals = sample_image(gray, q)
+    assert vals.shape == (70000, 3)
+    rows, cols = q[..., 1].astype(int), q[..., 0].astype(int)
+    assert np.allclose(vals, gray[rows, cols])
+
+
 def test_the_terrain_takes_its_shape_from_the_ground_the_views_see():
     rng = np.random.default_rng(5)
     plane = np.array([0.02, -0.01])

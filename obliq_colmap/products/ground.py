@@ -24,6 +24,7 @@ from scipy.spatial import cKDTree
 from obliq_colmap.geometry import parabola_peak
 from obliq_colmap.products.roof import (
     RoofView,
+    patch_pixels,
     stacked_agreement,
     view_samples,
     views_seeing,
@@ -102,13 +103,8 @@ def patch_profiles(
     once: patch n is the points ``centres[n]`` + ``offsets`` (P, 2) at the
     heights ``z[n]`` (N, H), read in the views where ``sees`` (V, N).
 
-    A patch of a few metres seen from hundreds of metres projects as an
-    affine image of itself (the perspective's and the lens's second-order
-    terms move its corners by a few hundredths of a pixel): per view,
-    patch and height only the centre and its derivatives (central
-    differences, 5 points) go through the camera model, and each view reads
-    all its patches in one ``remap``: the camera model applied to every
-    point of every patch was the sweep's cost.
+    Each view reads the patches of a chunk it sees in one ``remap``, at
+    pixels projected affinely (:func:`.roof.patch_pixels`).
 
     Returns
     -------
@@ -117,9 +113,6 @@ def patch_profiles(
     """
     N, H, P = len(centres), z.shape[1], len(offsets)
     ncc, nviews = np.full((N, H), np.nan), np.zeros((N, H), int)
-    d = max(float(np.abs(offsets).max()), 1e-3)
-    steps = np.array([[0, 0], [d, 0], [-d, 0], [0, d], [0, -d]], float)
-    offsets32 = offsets.astype(np.float32)
     for start in range(0, N, chunk):
         idx = np.arange(start, min(N, start + chunk))
         S = sees[:, idx]  # (V, B)
@@ -131,22 +124,8 @@ def patch_profiles(
         used = np.zeros((len(idx), n_slots, H), bool)
         for v in np.flatnonzero(S.any(axis=1)):
             b = np.flatnonzero(S[v])
-            X = np.empty((len(b), H, 5, 3))
-            X[..., :2] = centres[idx[b], None, None] + steps
-            X[..., 2] = z[idx[b], :, None]
-            Xc = views[v].pose.transform(X.reshape(-1, 3))
-            q5 = views[v].camera.img_from_cam(Xc).reshape(len(b), H, 5, 2)
-            J = np.stack(
-                [q5[..., 1, :] - q5[..., 2, :], q5[..., 3, :] - q5[..., 4, :]], -1
-            )
-            J /= 2 * d  # (B, H, 2 pixel axes, 2 ground axes)
-            # float32: a few 1e-4 px at 2,000 px, half the memory traffic
-            q = q5[..., None, 0, :].astype(np.float32) + offsets32 @ np.swapaxes(
-                J, -1, -2
-            ).astype(np.float32)  # (B, H, P, 2)
-            front = np.broadcast_to(
-                (Xc[:, 2].reshape(len(b), H, 5)[..., :1] > 0), (len(b), H, P)
-            )
+            q, front = patch_pixels(views[v], centres[idx[b]], offsets, z[idx[b]])
+            front = np.broadcast_to(front[..., None], q.shape[:-1])
             read = view_samples(views[v], q, front, min_inside)
             if read is not None:
                 A[b, slot[v, b]], used[b, slot[v, b]] = read

@@ -53,8 +53,12 @@ from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 from scipy.stats import binom
 
-from obliq_colmap.geometry import PIXEL_CENTER_OFFSET
-from obliq_colmap.products.roof import RoofView, views_seeing
+from obliq_colmap.products.roof import (
+    RoofView,
+    patch_pixels,
+    sample_image,
+    views_seeing,
+)
 
 __all__ = [
     "MissingOptions",
@@ -151,7 +155,8 @@ def elevated_clusters(
 
 
 def cell_grid(patch, options: MissingOptions) -> tuple[np.ndarray, np.ndarray]:
-    """Cell centres (C, 2) inside ``patch`` and their samples (C, k, 2)."""
+    """Cell centres (C, 2) inside ``patch`` and each cell's samples about
+    its centre (k, 2)."""
     x0, y0, x1, y1 = patch.bounds
     c = options.cell_m
     gx, gy = np.meshgrid(np.arange(x0 + c / 2, x1, c), np.arange(y0 + c / 2, y1, c))
@@ -159,50 +164,42 @@ def cell_grid(patch, options: MissingOptions) -> tuple[np.ndarray, np.ndarray]:
     cen = cen[shapely.contains_xy(patch, cen[:, 0], cen[:, 1])]
     m = options.cell_samples
     t = ((np.arange(m) + 0.5) / m - 0.5) * c
-    off = np.stack(np.meshgrid(t, t), -1).reshape(-1, 2)
-    return cen, cen[:, None, :] + off[None]
+    return cen, np.stack(np.meshgrid(t, t), -1).reshape(-1, 2)
 
 
 def roof_cells(
-    views: list[RoofView], samples: np.ndarray, z: np.ndarray, min_views: int
+    views: list[RoofView],
+    centres: np.ndarray,
+    offsets: np.ndarray,
+    z: np.ndarray,
+    min_views: int,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Per cell, the swept height at which the views agree best and that
     agreement (mean NCC over pairs of views of the cell's samples).
 
-    samples : (C, k, 2); z : (H,) heights (model frame).
+    centres : (C, 2) cells, their samples at ``offsets`` (k, 2) about each
+    (:func:`cell_grid`); z : (H,) heights (model frame).
 
     Returns best_z (C,) (NaN where no height has ``min_views`` views) and
     peak (C,) NCC.
     """
-    import cv2
-
-    C, k = samples.shape[:2]
-    H = len(z)
-    X = np.empty((H, C * k, 3))
-    X[..., :2] = samples.reshape(-1, 2)[None]
-    X[..., 2] = z[:, None]
+    C, H = len(centres), len(z)
     cols = []
     for v in views:
-        Xc = v.pose.transform(X.reshape(-1, 3))
-        q = v.camera.img_from_cam(Xc).reshape(H, C * k, 2)
+        q, front = patch_pixels(v, centres, offsets, np.broadcast_to(z, (C, H)))
         h, w = v.gray.shape
         ok = (
-            (Xc[:, 2].reshape(H, C * k) > 0)
+            front[..., None]
             & (q[..., 0] >= 0)
             & (q[..., 0] <= w - 1)
             & (q[..., 1] >= 0)
             & (q[..., 1] <= h - 1)
-        ).reshape(H, C, k)
+        )  # (C, H, k)
         if not ok.any():
             continue
-        vals = cv2.remap(  # COLMAP's pixel centres are at +0.5, OpenCV's at 0
-            v.gray,
-            (q[..., 0] - PIXEL_CENTER_OFFSET).astype(np.float32),
-            (q[..., 1] - PIXEL_CENTER_OFFSET).astype(np.float32),
-            cv2.INTER_LINEAR,
-            cv2.BORDER_REPLICATE,
-        ).reshape(H, C, k)
-        cols.append(np.where(ok.all(axis=2, keepdims=True), vals, np.nan))
+        vals = sample_image(v.gray, q)  # (C, H, k)
+        vals = np.where(ok.all(axis=2, keepdims=True), vals, np.nan)
+        cols.append(vals.transpose(1, 0, 2))  # (H, C, k)
     if len(cols) < 2:
         return np.full(C, np.nan), np.zeros(C)
     A = np.stack(cols).astype(np.float64)  # (V, H, C, k)
@@ -288,7 +285,7 @@ def roof_reference(
         inner = polygons[b].buffer(-1.0)
         if inner.is_empty:
             continue
-        cen, samples = cell_grid(inner, options)
+        cen, offsets = cell_grid(inner, options)
         if len(cen) == 0:
             continue
         c = np.array(inner.centroid.coords[0])
@@ -297,7 +294,7 @@ def roof_reference(
             continue
         z = _sweep_heights(ground_z[b] - 1.0, eave_z[b] + 8.0, options.sweep_step_m)
         best, peak = roof_cells(
-            [views[i] for i in np.flatnonzero(sees)], samples, z, options.min_views
+            [views[i] for i in np.flatnonzero(sees)], cen, offsets, z, options.min_views
         )
         peaks.append((cen, best, peak))
     return peaks
@@ -422,13 +419,13 @@ def _cells_polygon(cen: np.ndarray, cell: float):
 
 def _roof_region(patch, terrain, views, sees, top, ncc_min, tol, options):
     """Sweep the patch's cells; the roof plane's cells (a dict of arrays)."""
-    cen, samples = cell_grid(patch, options)
+    cen, offsets = cell_grid(patch, options)
     if len(cen) < 3:
         return None
     gz = terrain(cen)
     z = _sweep_heights(float(gz.min()) - 1.0, top + 4.0, options.sweep_step_m)
     best, peak = roof_cells(
-        [views[i] for i in np.flatnonzero(sees)], samples, z, options.min_views
+        [views[i] for i in np.flatnonzero(sees)], cen, offsets, z, options.min_views
     )
     agree = np.isfinite(best) & (peak >= ncc_min)
     up = agree & (best - gz >= options.min_height_m)
