@@ -113,6 +113,10 @@ def patch_profiles(
     """
     N, H, P = len(centres), z.shape[1], len(offsets)
     ncc, nviews = np.full((N, H), np.nan), np.zeros((N, H), int)
+    # the chunk's values (patches x views x heights x points, float32) held
+    # to ~64 MB where many views see a patch (a long block, a dense flight)
+    most = int(sees.sum(axis=0).max()) if sees.size else 0
+    chunk = int(np.clip(64e6 / (4 * max(most, 1) * H * P), 1, chunk))
     for start in range(0, N, chunk):
         idx = np.arange(start, min(N, start + chunk))
         S = sees[:, idx]  # (V, B)

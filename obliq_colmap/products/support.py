@@ -102,20 +102,22 @@ def edge_offsets(
     length = np.linalg.norm(d, axis=1)
     d /= length[:, None] + 1e-12
     n = np.column_stack([-d[:, 1], d[:, 0]])  # across, (K, 2)
-    rel = segments[None] - a[:, None, None, :]  # (K, N, 2 ends, 2)
-    across = np.einsum("knej,kj->kne", rel, n)
-    along = np.einsum("knej,kj->kne", rel, d)
-    mine = (
-        (np.abs(across) <= window_px).all(axis=2)
-        & (along.max(axis=2) >= 0)
-        & (along.min(axis=2) <= length[:, None])
-    )
-    off = np.where(mine, across.mean(axis=2), np.inf)  # (K, N)
     offset = np.full(len(a), np.nan)
-    if off.shape[1]:
-        j = np.abs(off).argmin(axis=1)
-        best = off[np.arange(len(a)), j]
-        offset = np.where(np.isfinite(best), best, np.nan)
+    # corners x segments x ends in chunks: a 4,000 px image holds thousands
+    # of segments
+    for k in range(0, len(a) if len(segments) else 0, 256):
+        c = slice(k, k + 256)
+        rel = segments[None] - a[c, None, None, :]  # (k, N, 2 ends, 2)
+        across = np.einsum("knej,kj->kne", rel, n[c])
+        along = np.einsum("knej,kj->kne", rel, d[c])
+        mine = (
+            (np.abs(across) <= window_px).all(axis=2)
+            & (along.max(axis=2) >= 0)
+            & (along.min(axis=2) <= length[c, None])
+        )
+        off = np.where(mine, across.mean(axis=2), np.inf)  # (k, N)
+        best = off[np.arange(len(off)), np.abs(off).argmin(axis=1)]
+        offset[c] = np.where(np.isfinite(best), best, np.nan)
     mid = 0.5 * (bottom + top)
     q0 = camera.img_from_cam(pose.transform(mid))
     jac = np.empty((len(a), 2))
