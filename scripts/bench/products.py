@@ -43,6 +43,9 @@ import time
 from pathlib import Path
 
 import numpy as np
+import shapely
+import shapely.affinity
+import shapely.geometry
 from scipy.spatial import cKDTree
 
 from obliq_colmap.products.constraints import load_constraints
@@ -96,6 +99,35 @@ def truth(scene: Path):
         if x["in_map"]
     }
     return terrain, b
+
+
+def split_eaves(scene: Path) -> dict:
+    """{map id: [(footprint, eave height above its ground), ...]} for the map
+    ids the external scenes give to more than one building (a house and its
+    garage mapped as one multipolygon, split into parts by the cadastre's
+    reader): each part is scored against the building it covers, not
+    against whichever of them :func:`truth` kept for the id."""
+    import shapely
+
+    path = scene / "gt_buildings.json"
+    if not path.is_file():
+        return {}
+    out: dict = {}
+    for x in json.loads(path.read_text())["buildings"]:
+        if x["state"] == "mapped":
+            base = min(min(r) for r in x["base_z"])
+            poly = shapely.Polygon(x["footprint"][0], x["footprint"][1:])
+            out.setdefault(x["map_id"], []).append((poly, x["eave_z"] - base))
+    return {k: v for k, v in out.items() if len(v) > 1}
+
+
+def part_eave(split: dict, map_id: str, polygon, default: float) -> float:
+    """The true eave height of the map part ``polygon`` (absolute): that of
+    the building of ``map_id`` it overlaps most (:func:`split_eaves`)."""
+    if map_id not in split:
+        return default
+    areas = [polygon.intersection(p).area for p, _ in split[map_id]]
+    return split[map_id][int(np.argmax(areas))][1]
 
 
 def missing_truth(scene: Path):
@@ -219,8 +251,15 @@ def eave_coverage(c, gt: dict, feats: list, terrain, scene: Path) -> tuple[int, 
     ]
     if not rows:
         return 0, 0
-    xy = np.array([c.cadastre.polygons[b].centroid.coords[0] for b in rows]) + o[:2]
-    z = terrain(xy) + np.array([gt[ids[b]][2] for b in rows])
+    split = split_eaves(scene)
+    parts = [shapely.affinity.translate(c.cadastre.polygons[b], *o[:2]) for b in rows]
+    xy = np.array([p.centroid.coords[0] for p in parts])
+    z = terrain(xy) + np.array(
+        [
+            part_eave(split, ids[b], p, gt[ids[b]][2])
+            for b, p in zip(rows, parts, strict=True)
+        ]
+    )
     seen = seen_by(scene, np.column_stack([xy, z]))
     got = [ids[b] in has for b in np.asarray(rows)[seen]]
     return int(seen.sum()), int(sum(got))
@@ -251,6 +290,7 @@ def score(model: Path, scene: Path, prod: Path) -> dict:
         }
     }
     feats = json.loads((prod / "buildings.geojson").read_text())["features"]
+    split = split_eaves(scene)
     e, support, n_seen = [], [], 0
     for f in feats:
         p = f["properties"]
@@ -259,7 +299,10 @@ def score(model: Path, scene: Path, prod: Path) -> dict:
             continue
         n_seen += 1
         if p["eave_height"] is not None:
-            e.append(p["eave_height"] - g[2])
+            true = part_eave(
+                split, p["id"], shapely.geometry.shape(f["geometry"]), g[2]
+            )
+            e.append(p["eave_height"] - true)
             support.append(p.get("eave_support"))
     e, support = np.abs(np.array(e)), np.array(support, dtype=object)
     n_block, n_block_height = eave_coverage(c, gt, feats, terrain, scene)
