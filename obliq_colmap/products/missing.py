@@ -56,7 +56,8 @@ from scipy.stats import binom
 from obliq_colmap.products.roof import (
     RoofView,
     patch_pixels,
-    sample_image,
+    stacked_agreement,
+    view_samples,
     views_seeing,
 )
 
@@ -184,37 +185,23 @@ def roof_cells(
     peak (C,) NCC.
     """
     C, H = len(centres), len(z)
-    cols = []
+    z = np.broadcast_to(z, (C, H))
+    read = []
     for v in views:
-        q, front = patch_pixels(v, centres, offsets, np.broadcast_to(z, (C, H)))
-        h, w = v.gray.shape
-        ok = (
-            front[..., None]
-            & (q[..., 0] >= 0)
-            & (q[..., 0] <= w - 1)
-            & (q[..., 1] >= 0)
-            & (q[..., 1] <= h - 1)
-        )  # (C, H, k)
-        if not ok.any():
-            continue
-        vals = sample_image(v.gray, q)  # (C, H, k)
-        vals = np.where(ok.all(axis=2, keepdims=True), vals, np.nan)
-        cols.append(vals.transpose(1, 0, 2))  # (H, C, k)
-    if len(cols) < 2:
+        q, front = patch_pixels(v, centres, offsets, z)
+        # a view counts for a cell at a height where all its samples are inside
+        r = view_samples(v, q, np.broadcast_to(front[..., None], q.shape[:-1]), 1.0)
+        if r is not None:
+            read.append(r)
+    if len(read) < 2:
         return np.full(C, np.nan), np.zeros(C)
-    A = np.stack(cols).astype(np.float64)  # (V, H, C, k)
-    valid = ~np.isnan(A[..., 0])  # (V, H, C)
-    A = np.nan_to_num(A)
-    A -= A.mean(axis=3, keepdims=True)
-    A /= np.linalg.norm(A, axis=3, keepdims=True) + 1e-6
-    A *= valid[..., None]
-    n = valid.sum(axis=0)  # (H, C)
-    s = A.sum(axis=0)  # (H, C, k)
-    ncc = ((s**2).sum(axis=2) - (A**2).sum(axis=(0, 3))) / np.maximum(n * (n - 1), 1)
+    ncc, n = stacked_agreement(
+        np.stack([r[0] for r in read], axis=1), np.stack([r[1] for r in read], axis=1)
+    )  # (C, H)
     ncc = np.where(n >= min_views, ncc, -np.inf)
-    i = ncc.argmax(axis=0)
-    peak = ncc[i, np.arange(C)]
-    best = np.where(np.isfinite(peak), z[i], np.nan)
+    i = ncc.argmax(axis=1)
+    peak = ncc[np.arange(C), i]
+    best = np.where(np.isfinite(peak), z[0, i], np.nan)
     return best, np.where(np.isfinite(peak), peak, np.nan)
 
 
