@@ -101,33 +101,44 @@ def truth(scene: Path):
     return terrain, b
 
 
-def split_eaves(scene: Path) -> dict:
-    """{map id: [(footprint, eave height above its ground), ...]} for the map
-    ids the external scenes give to more than one building (a house and its
-    garage mapped as one multipolygon, split into parts by the cadastre's
-    reader): each part is scored against the building it covers, not
-    against whichever of them :func:`truth` kept for the id."""
+def split_truth(scene: Path) -> dict:
+    """{map id: [(footprint, present, shift_m, eave height above its ground),
+    ...]} for the map ids the external scenes give to more than one
+    footprint (a house and its garage mapped as one multipolygon, or a
+    standing building and a demolished one, split into parts by the
+    cadastre's reader; shift and eave are 0 and NaN for a demolished one):
+    each part is scored against the footprint it covers
+    (:func:`part_truth`), not against whichever of them :func:`truth` kept
+    for the id."""
     import shapely
 
     path = scene / "gt_buildings.json"
     if not path.is_file():
         return {}
+    gb = json.loads(path.read_text())
     out: dict = {}
-    for x in json.loads(path.read_text())["buildings"]:
+    for x in gb["buildings"]:
         if x["state"] == "mapped":
             base = min(min(r) for r in x["base_z"])
             poly = shapely.Polygon(x["footprint"][0], x["footprint"][1:])
-            out.setdefault(x["map_id"], []).append((poly, x["eave_z"] - base))
+            shift = float(np.hypot(*x["map_shift"]))
+            out.setdefault(x["map_id"], []).append(
+                (poly, True, shift, x["eave_z"] - base)
+            )
+    for x in gb["map_only"]:
+        poly = shapely.Polygon(x["footprint"][0], x["footprint"][1:])
+        out.setdefault(x["map_id"], []).append((poly, False, 0.0, np.nan))
     return {k: v for k, v in out.items() if len(v) > 1}
 
 
-def part_eave(split: dict, map_id: str, polygon, default: float) -> float:
-    """The true eave height of the map part ``polygon`` (absolute): that of
-    the building of ``map_id`` it overlaps most (:func:`split_eaves`)."""
+def part_truth(split: dict, map_id: str, polygon, default: tuple) -> tuple:
+    """(present, shift_m, eave height) of the map part ``polygon``
+    (absolute): those of the footprint of ``map_id`` it overlaps most
+    (:func:`split_truth`); ``default`` for an id of one footprint."""
     if map_id not in split:
         return default
-    areas = [polygon.intersection(p).area for p, _ in split[map_id]]
-    return split[map_id][int(np.argmax(areas))][1]
+    areas = [polygon.intersection(p).area for p, *_ in split[map_id]]
+    return split[map_id][int(np.argmax(areas))][1:]
 
 
 def missing_truth(scene: Path):
@@ -246,20 +257,21 @@ def eave_coverage(c, gt: dict, feats: list, terrain, scene: Path) -> tuple[int, 
         for f in feats
         if f["properties"]["eave_height"] is not None
     }
-    rows = [
-        b for b, i in enumerate(ids) if i in gt and gt[i][0] and np.isfinite(gt[i][2])
-    ]
+    split = split_truth(scene)
+    rows, parts, eave = [], [], []
+    for b, i in enumerate(ids):
+        if i not in gt:
+            continue
+        part = shapely.affinity.translate(c.cadastre.polygons[b], *o[:2])
+        present, _, h = part_truth(split, i, part, gt[i])
+        if present and np.isfinite(h):
+            rows.append(b)
+            parts.append(part)
+            eave.append(h)
     if not rows:
         return 0, 0
-    split = split_eaves(scene)
-    parts = [shapely.affinity.translate(c.cadastre.polygons[b], *o[:2]) for b in rows]
     xy = np.array([p.centroid.coords[0] for p in parts])
-    z = terrain(xy) + np.array(
-        [
-            part_eave(split, ids[b], p, gt[ids[b]][2])
-            for b, p in zip(rows, parts, strict=True)
-        ]
-    )
+    z = terrain(xy) + np.array(eave)
     seen = seen_by(scene, np.column_stack([xy, z]))
     got = [ids[b] in has for b in np.asarray(rows)[seen]]
     return int(seen.sum()), int(sum(got))
@@ -290,19 +302,18 @@ def score(model: Path, scene: Path, prod: Path) -> dict:
         }
     }
     feats = json.loads((prod / "buildings.geojson").read_text())["features"]
-    split = split_eaves(scene)
+    split = split_truth(scene)
     e, support, n_seen = [], [], 0
     for f in feats:
         p = f["properties"]
         g = gt.get(p["id"])
+        if g is not None:
+            g = part_truth(split, p["id"], shapely.geometry.shape(f["geometry"]), g)
         if g is None or not g[0] or p["num_facade_tracks"] == 0:
             continue
         n_seen += 1
         if p["eave_height"] is not None:
-            true = part_eave(
-                split, p["id"], shapely.geometry.shape(f["geometry"]), g[2]
-            )
-            e.append(p["eave_height"] - true)
+            e.append(p["eave_height"] - g[2])
             support.append(p.get("eave_support"))
     e, support = np.abs(np.array(e)), np.array(support, dtype=object)
     n_block, n_block_height = eave_coverage(c, gt, feats, terrain, scene)
@@ -323,24 +334,34 @@ def score(model: Path, scene: Path, prod: Path) -> dict:
     disc = prod / "discrepancies.geojson"
     if disc.is_file():
         fs = json.loads(disc.read_text())["features"]
-        judged = {f["properties"]["id"]: f["properties"]["flagged"] for f in fs}
+        # per judged part: a positive when the footprint it covers is gone
+        # or shifted by > 0.5 m (:func:`part_truth`)
+        flags, part_pos = [], []
+        for f in fs:
+            p = f["properties"]
+            g = gt.get(p["id"])
+            if g is not None:
+                g = part_truth(split, p["id"], shapely.geometry.shape(f["geometry"]), g)
+            flags.append(p["flagged"])
+            part_pos.append(g is not None and (not g[0] or g[1] > 0.5))
+        flags, part_pos = np.array(flags, bool), np.array(part_pos, bool)
+        # an id is a positive when any of its footprints is
         pos = {k for k, g in gt.items() if not g[0] or g[1] > 0.5}
+        pos |= {k for k, v in split.items() if any(not t[1] or t[2] > 0.5 for t in v)}
         seen_ids = {
             str(c.cadastre.building_ids[b])
             for b in c.cadastre.corner_building[c.corner_index]
         }
         seen_ids |= {str(c.cadastre.building_ids[b]) for b in c.facade_building[:, 1]}
-        flagged = {k for k, v in judged.items() if v}
-        jp = pos & set(judged)
-        tp = len(flagged & pos)
+        tp = int((flags & part_pos).sum())
         res["discrepancies"] = {
-            "judged": len(judged),
-            "flagged": len(flagged),
-            "positives_judged": len(jp),
+            "judged": len(fs),
+            "flagged": int(flags.sum()),
+            "positives_judged": int(part_pos.sum()),
             "positives_seen": len(pos & seen_ids),
             "true_positives": tp,
-            "precision": round(tp / max(len(flagged), 1), 3),
-            "recall_judged": round(tp / max(len(jp), 1), 3),
+            "precision": round(tp / max(int(flags.sum()), 1), 3),
+            "recall_judged": round(tp / max(int(part_pos.sum()), 1), 3),
             "recall_seen": round(tp / max(len(pos & seen_ids), 1), 3),
         }
     if (prod / "missing.geojson").is_file():
