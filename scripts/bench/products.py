@@ -130,14 +130,20 @@ def split_truth(scene: Path) -> dict:
     return {k: v for k, v in out.items() if len(v) > 1}
 
 
-def part_truth(split: dict, map_id: str, polygon, default: tuple) -> tuple:
+def part_truth(gt: dict, split: dict, map_id: str, polygon) -> tuple | None:
     """(present, shift_m, eave height) of the map part ``polygon``
-    (absolute): those of the footprint of ``map_id`` it overlaps most
-    (:func:`split_truth`); ``default`` for an id of one footprint."""
+    (absolute) of ``map_id``: those of the footprint of the id it overlaps
+    most (:func:`split_truth`), or the id's in ``gt`` (:func:`truth`) where
+    it names one footprint; None for an id the truth does not know."""
     if map_id not in split:
-        return default
+        return gt.get(map_id)
     areas = [polygon.intersection(p).area for p, *_ in split[map_id]]
     return split[map_id][int(np.argmax(areas))][1:]
+
+
+def positive(present: bool, shift_m: float, *_) -> bool:
+    """A discrepancy to find: demolished, or shifted by more than 0.5 m."""
+    return not present or shift_m > 0.5
 
 
 def missing_truth(scene: Path):
@@ -245,7 +251,9 @@ def error_figures(e: np.ndarray) -> dict:
     }
 
 
-def eave_coverage(c, gt: dict, feats: list, terrain, scene: Path) -> tuple[int, int]:
+def eave_coverage(
+    c, gt: dict, split: dict, feats: list, terrain, scene: Path
+) -> tuple[int, int]:
     """(the mapped buildings present that the block sees: the footprint's
     centre at its true eave in >= 3 true images, those of them with an eave
     height in ``buildings.geojson``)."""
@@ -256,17 +264,14 @@ def eave_coverage(c, gt: dict, feats: list, terrain, scene: Path) -> tuple[int, 
         for f in feats
         if f["properties"]["eave_height"] is not None
     }
-    split = split_truth(scene)
     rows, parts, eave = [], [], []
     for b, i in enumerate(ids):
-        if i not in gt:
-            continue
         part = shapely.affinity.translate(c.cadastre.polygons[b], *o[:2])
-        present, _, h = part_truth(split, i, part, gt[i])
-        if present and np.isfinite(h):
+        g = part_truth(gt, split, i, part)
+        if g is not None and g[0] and np.isfinite(g[2]):
             rows.append(b)
             parts.append(part)
-            eave.append(h)
+            eave.append(g[2])
     if not rows:
         return 0, 0
     xy = np.array([p.centroid.coords[0] for p in parts])
@@ -305,9 +310,7 @@ def score(model: Path, scene: Path, prod: Path) -> dict:
     e, support, n_seen = [], [], 0
     for f in feats:
         p = f["properties"]
-        g = gt.get(p["id"])
-        if g is not None:
-            g = part_truth(split, p["id"], shapely.geometry.shape(f["geometry"]), g)
+        g = part_truth(gt, split, p["id"], shapely.geometry.shape(f["geometry"]))
         if g is None or not g[0] or p["num_facade_tracks"] == 0:
             continue
         n_seen += 1
@@ -315,7 +318,7 @@ def score(model: Path, scene: Path, prod: Path) -> dict:
             e.append(p["eave_height"] - g[2])
             support.append(p.get("eave_support"))
     e, support = np.abs(np.array(e)), np.array(support, dtype=object)
-    n_block, n_block_height = eave_coverage(c, gt, feats, terrain, scene)
+    n_block, n_block_height = eave_coverage(c, gt, split, feats, terrain, scene)
     res["eave_height"] = {
         "buildings_with_tracks": n_seen,
         "with_height": len(e),
@@ -335,18 +338,18 @@ def score(model: Path, scene: Path, prod: Path) -> dict:
         fs = json.loads(disc.read_text())["features"]
         # per judged part: a positive when the footprint it covers is gone
         # or shifted by > 0.5 m (:func:`part_truth`)
-        flags, part_pos = [], []
-        for f in fs:
-            p = f["properties"]
-            g = gt.get(p["id"])
-            if g is not None:
-                g = part_truth(split, p["id"], shapely.geometry.shape(f["geometry"]), g)
-            flags.append(p["flagged"])
-            part_pos.append(g is not None and (not g[0] or g[1] > 0.5))
-        flags, part_pos = np.array(flags, bool), np.array(part_pos, bool)
-        # an id is a positive when any of its footprints is
-        pos = {k for k, g in gt.items() if not g[0] or g[1] > 0.5}
-        pos |= {k for k, v in split.items() if any(not t[1] or t[2] > 0.5 for t in v)}
+        flags = np.array([f["properties"]["flagged"] for f in fs], bool)
+        truths = [
+            part_truth(
+                gt, split, f["properties"]["id"], shapely.geometry.shape(f["geometry"])
+            )
+            for f in fs
+        ]
+        part_pos = np.array([t is not None and positive(*t) for t in truths], bool)
+        # an id is a positive when any of its footprints is (the "seen"
+        # recall counts ids; the external maps' split ids have one judged part)
+        pos = {k for k, g in gt.items() if positive(*g)}
+        pos |= {k for k, v in split.items() if any(positive(*t[1:]) for t in v)}
         seen_ids = {
             str(c.cadastre.building_ids[b])
             for b in c.cadastre.corner_building[c.corner_index]
