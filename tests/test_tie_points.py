@@ -295,6 +295,15 @@ def test_ratio_best_is_the_ratio_test_on_the_two_largest_per_row_and_column():
     np.testing.assert_array_equal(S, kept)  # the masking is undone
 
 
+def test_first_argmax_down_is_numpys_argmax_down_the_columns_ties_included():
+    from obliq_colmap.adjustment.tie_matching import _first_argmax_down
+
+    rng = np.random.default_rng(8)
+    S = rng.integers(0, 4, (50, 70)).astype(np.float32)  # many tied maxima
+    S[:, 5] = 2.0  # a column that is one tie
+    np.testing.assert_array_equal(_first_argmax_down(S), np.argmax(S, axis=0))
+
+
 def test_keypoints_scaled_back_per_axis():
     # 2004 x 1336 down-sampled to 1000 x 667: x and y scale differ (0.499 and
     # 0.49925); one scale for both put the bottom rows 0.7 px off.
