@@ -1,6 +1,8 @@
 """Tie points on a scene with known poses: counts per image, time, and the
 triangulated points' reprojection error (the truth's poses, so the error is
-the features' own noise).
+the features' own noise). Our generator's scenes and the external ones
+(``../shared/data/external_oblique/S``: the ground is their true ground
+corners' median height).
 
     python scripts/bench/tie_points.py --scene_path data_samples/oblique_small
 """
@@ -19,14 +21,24 @@ import pycolmap
 from obliq_colmap.adjustment.ties import TiePointOptions, tie_points
 
 
+def _ground_height(scene_path: Path) -> float:
+    """The scene's ground height in the frame of its ``gt`` model."""
+    scene = json.loads((scene_path / "scene.json").read_text())
+    if "origin" in scene:  # our generator's
+        return float(scene["origin"][2])
+    gt = json.loads((scene_path / "gt_buildings.json").read_text())
+    xyz = np.asarray(gt["corners"], float)
+    ground = np.asarray(gt["corner_info"])[:, 1] == 0
+    return float(np.median(xyz[ground, 2]))
+
+
 def main() -> int:
     ap = argparse.ArgumentParser()
     ap.add_argument("--scene_path", type=Path, required=True)
     ap.add_argument("--max_image_size", type=int, default=1000)
     args = ap.parse_args()
     rec = pycolmap.Reconstruction(args.scene_path / "gt")
-    scene = json.loads((args.scene_path / "scene.json").read_text())
-    ground_z = float(scene["origin"][2])
+    ground_z = _ground_height(args.scene_path)
     images = sorted(rec.images.values(), key=lambda im: im.name)
     gray = [
         cv2.imread(str(args.scene_path / "images" / im.name), cv2.IMREAD_GRAYSCALE)
