@@ -40,8 +40,10 @@ class Group:
     wss: float
     #: Its rows (observations), prior rows on its own unknowns included.
     rows: int
-    #: The unknowns only it observes (tie points, facade heights).
-    private: int = 0
+    #: What the unknowns only it observes (tie points, facade heights and
+    #: offsets) take of its rows: their number where its rows determine
+    #: them, less where a prior does (``covariance.private_share``).
+    private: float = 0.0
     #: (n, n) what errors its rows share add between the cofactors
     #: (``covariance.corner_offset_meat``: the map corners' own error), in
     #: the stated units, not scaled by the group's factor; None: none.

@@ -2,7 +2,8 @@
 predicted deviation in pixels.
 
 :func:`eliminate_heights` eliminates the heights (and fitted anchor
-offsets), :func:`gauge_cofactor` inverts the gauge-constrained reduced
+offsets), :func:`private_share` says how much of a group's rows they take,
+:func:`gauge_cofactor` inverts the gauge-constrained reduced
 system, :func:`corner_offset_meat` carries the map corners' shared error
 into it; :func:`image_jacobians` and :func:`image_precision` propagate it
 to the projections of each image's constrained points. The solver calls
@@ -12,6 +13,8 @@ can wrap them.
 
 from __future__ import annotations
 
+from typing import NamedTuple
+
 import numpy as np
 import scipy.sparse as sp
 
@@ -19,6 +22,44 @@ from ..geometry import skew
 from . import residuals as res
 from .linear import kkt_inverse
 from .setup import Setup, State
+
+
+class _HeightBlocks(NamedTuple):
+    """Each height's 2 x 2 block ``[[a, b], [b, c]]`` of ``J^T W J`` over
+    (height, anchor offset) with the priors, over the rows ``mask``."""
+
+    mask: np.ndarray  # (N,) rows with a height
+    hid: np.ndarray  # (N_h,) their height
+    jh: np.ndarray  # (N_h,) d r / d height
+    jd: np.ndarray  # (N_h,) d r / d offset
+    a: np.ndarray  # (n_heights,) with the height prior
+    b: np.ndarray  # (n_heights,)
+    c: np.ndarray  # (n_heights,) with the offset prior (1 without an offset)
+    a_rows: np.ndarray  # (n_heights,) ``a`` from the rows alone
+    c_rows: np.ndarray  # (n_heights,) ``c`` from the rows alone
+    ok: np.ndarray  # (n_heights,) invertible
+
+
+def _height_blocks(
+    S: Setup, Jc, Jh, w, height_prior: np.ndarray, offset_w: float
+) -> _HeightBlocks | None:
+    """The heights' blocks (:class:`_HeightBlocks`); None without heights. A
+    height without an offset direction gets ``c = 1``, a placeholder that
+    couples nothing."""
+    nh, m = S.n_heights, S.has_h
+    if not (nh and m.any()):
+        return None
+    hid, wm, jh = S.hidx[m], w[m], Jh[m]
+    # d r / d offset = d r / d (x, y) . dir = -(d r / d centre_xy) . dir
+    jd = -np.einsum("ij,ij->i", Jc[m, 3:5], S.offset_dir[m])
+    has_d = np.bincount(hid, np.any(S.offset_dir[m] != 0, axis=1), nh) > 0
+    a0 = np.bincount(hid, wm * jh * jh, nh)
+    b = np.bincount(hid, wm * jh * jd, nh)
+    c0 = np.bincount(hid, wm * jd * jd, nh)
+    a = a0 + height_prior
+    c = c0 + np.where(has_d, offset_w, 1.0)
+    ok = a * c - b * b > 0  # a height without information couples nothing
+    return _HeightBlocks(m, hid, jh, jd, a, b, c, a0, c0, ok)
 
 
 def eliminate_heights(
@@ -38,21 +79,24 @@ def eliminate_heights(
     """
     n, nh, L = S.n_red, S.n_heights, S.L
     A_red = H_cc.copy()
-    m = S.has_h
-    if nh and m.any():
-        hid, wm, jh = S.hidx[m], w[m], Jh[m]
-        # d r / d offset = d r / d (x, y) . dir = -(d r / d centre_xy) . dir
-        jd = -np.einsum("ij,ij->i", Jc[m, 3:5], S.offset_dir[m])
-        has_d = np.bincount(hid, np.any(S.offset_dir[m] != 0, axis=1), nh) > 0
-        a = np.bincount(hid, wm * jh * jh, nh) + height_prior
-        b = np.bincount(hid, wm * jh * jd, nh)
-        c = np.bincount(hid, wm * jd * jd, nh) + np.where(has_d, offset_w, 1.0)
-        det = a * c - b * b
-        ok = det > 0  # a height without information couples nothing
+    hb = _height_blocks(S, Jc, Jh, w, height_prior, offset_w)
+    if hb is not None:
+        m, hid, jh, jd, a, b, c, ok = (
+            hb.mask,
+            hb.hid,
+            hb.jh,
+            hb.jd,
+            hb.a,
+            hb.b,
+            hb.c,
+            hb.ok,
+        )
+        wm = w[m]
+        det = np.where(ok, a * c - b * b, 1.0)
         # Cholesky factor of each block's inverse [[c, -b], [-b, a]] / det,
         # so that E^T inv E = G G^T with one sparse G: two columns per height.
-        l11 = np.sqrt(np.where(ok, c / np.where(ok, det, 1.0), 0.0))
-        l21 = np.where(ok, -b / np.where(ok, det, 1.0), 0.0) / np.where(ok, l11, 1.0)
+        l11 = np.sqrt(np.where(ok, c / det, 0.0))
+        l21 = np.where(ok, -b / det, 0.0) / np.where(ok, l11, 1.0)
         l22 = np.sqrt(np.where(ok, 1.0 / np.where(ok, c, 1.0), 0.0))
         vals = np.concatenate(
             [
@@ -65,6 +109,35 @@ def eliminate_heights(
         G = sp.csr_matrix((vals, (rows, cols)), (n + 1, 2 * nh))
         A_red -= (G @ G.T).toarray()[:n, :n]
     return A_red
+
+
+def private_share(
+    S: Setup, Jc, Jh, w, height_prior: np.ndarray, offset_w: float
+) -> float:
+    """The share of the redundancy that the heights and anchor offsets take
+    from the rows weighted by ``w`` (and from the height prior's rows, which
+    the solver counts among them; the offset prior's it does not):
+    ``sum tr(M^-1 B)`` over the heights' 2 x 2 blocks, ``M`` with the
+    priors, ``B`` without the offset prior.
+
+    Two unknowns per track counted whole take two rows from a track that
+    the outlier rounds left with one observation; such a track takes one
+    (its height or offset is then held by the prior). Counted whole, a group
+    of mostly two-view tracks gets a redundancy near or below zero and a
+    variance component of tens, or none at all. Exact for the rows' own
+    unknowns; the camera block's share is ``tr(Q N_g)``
+    (:meth:`~.components.Group.redundancy`), which leaves out a term of the
+    order of the offset prior's pull.
+    """
+    hb = _height_blocks(S, Jc, Jh, w, height_prior, offset_w)
+    if hb is None:
+        return 0.0
+    a, b, c, ok = hb.a, hb.b, hb.c, hb.ok
+    counted = hb.a_rows + height_prior  # the height prior's rows count
+    det = np.where(ok, a * c - b * b, 1.0)
+    # tr([[a, b], [b, c]]^-1 [[counted, b], [b, c_rows]])
+    share = np.where(ok, (c * counted + a * hb.c_rows - 2.0 * b * b) / det, 0.0)
+    return float(share.sum())
 
 
 def corner_offset_meat(

@@ -541,8 +541,7 @@ def _observation_groups(
         normal = covariance.eliminate_heights(
             S, camera_block.to_dense(H)[:n, :n], Jc, Jh, wm, with_prior, offset_w
         )
-        offsets = heights & np.any(S.offset_dir != 0, axis=1)
-        private = len(np.unique(S.hidx[heights])) + len(np.unique(S.hidx[offsets]))
+        private = covariance.private_share(S, Jc, Jh, wm, with_prior, offset_w)
         wss, rows = float(np.sum(wm * r * r)), int(m.sum())
         shared = None
         if name == "map corners" and opts.map_corner_sigma_m is not None:
