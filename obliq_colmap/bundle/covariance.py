@@ -81,18 +81,9 @@ def eliminate_heights(
     A_red = H_cc.copy()
     hb = _height_blocks(S, Jc, Jh, w, height_prior, offset_w)
     if hb is not None:
-        m, hid, jh, jd, a, b, c, ok = (
-            hb.mask,
-            hb.hid,
-            hb.jh,
-            hb.jd,
-            hb.a,
-            hb.b,
-            hb.c,
-            hb.ok,
-        )
+        m, hid, jh, jd, b, c, ok = hb.mask, hb.hid, hb.jh, hb.jd, hb.b, hb.c, hb.ok
         wm = w[m]
-        det = np.where(ok, a * c - b * b, 1.0)
+        det = np.where(ok, hb.a * c - b * b, 1.0)
         # Cholesky factor of each block's inverse [[c, -b], [-b, a]] / det,
         # so that E^T inv E = G G^T with one sparse G: two columns per height.
         l11 = np.sqrt(np.where(ok, c / det, 0.0))
