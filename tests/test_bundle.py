@@ -21,6 +21,7 @@ from obliq_colmap.bundle.coupling import Coupling
 from obliq_colmap.bundle.covariance import (
     eliminate_heights,
     gauge_cofactor,
+    private_refit,
     private_share,
 )
 from obliq_colmap.bundle.priors import (
@@ -1021,26 +1022,59 @@ def test_image_precision_can_be_turned_off(noisy, options):
 
 def test_fitted_anchor_offsets_count_as_unknowns_in_the_variance_factor(noisy):
     """The solve is the same with or without offset directions (anchors stay
-    fixed); the variance factor's redundancy loses up to one per facade
-    height whose anchor offset was fitted (a two-view track has none left;
-    an offset along its own wall is held by its prior alone and takes
-    nothing)."""
+    fixed where they are); the facade rows' redundancy loses up to one per
+    facade height whose anchor offset is counted (an offset along its own
+    wall is held by its prior alone and takes nothing), and their variance
+    component is still the injected noise: the squares are taken at the
+    optimum of the offsets it counts, not where the solve held them (there a
+    two-view track keeps a residual and has no redundancy left)."""
     P0 = noisy.problem
     opts = BundleOptions(loss="none", corner_heights="fixed")
-    normal = np.tile([1.0, 0.0], (len(P0.horizontal_image), 1))
+    rng = np.random.default_rng(1)
+    ang = rng.uniform(0, 2 * np.pi, len(P0.facade_heights))
+    normal = np.column_stack([np.cos(ang), np.sin(ang)])[P0.horizontal_height]
     P = dataclasses.replace(P0, horizontal_offset_normal=normal)
     free, fitted = solve_bundle(P0, opts), solve_bundle(P, opts)
     np.testing.assert_array_equal(
         free.horizontal_residuals_px, fitted.horizontal_residuals_px
     )
-    S = Setup(P0, opts)
-    redundancy = len(P0.vertical_image) + len(P0.horizontal_image) + len(S.A)
-    redundancy -= S.n_red + S.n_heights
     n_offsets = len(np.unique(P0.horizontal_height))
     assert Setup(P, opts).n_offsets == n_offsets
-    # the same weighted squares over each solve's redundancy
-    fitted_redundancy = free.variance_factor * redundancy / fitted.variance_factor
-    assert redundancy - n_offsets - 1e-6 <= fitted_redundancy < redundancy - 1.0
+    f_free, red_free = free.variance_components["facade rows"]
+    f_fitted, red_fitted = fitted.variance_components["facade rows"]
+    assert red_free - n_offsets <= red_fitted < red_free - 0.5 * n_offsets
+    # 0.5 px of noise against a stated 1 px: a factor of 0.25, whose sd is
+    # 0.25 sqrt(2 / redundancy) (0.011 here); at the held offsets it reads
+    # 0.39
+    for factor, redundancy in ((f_free, red_free), (f_fitted, red_fitted)):
+        assert abs(factor - 0.25) < 4 * 0.25 * np.sqrt(2 / redundancy)
+
+
+def test_refitting_the_heights_and_offsets_takes_what_a_dense_solve_takes():
+    """``private_refit``: the drop of the weighted squares when each height
+    and anchor offset is fitted to the rows with the cameras held, against
+    the dense least-squares fit over all of them (the height priors' rows
+    with a residual of their own, the offsets' with none)."""
+    P = _tracks_with_offsets(seed=3)
+    opts = BundleOptions(corner_height_prior_m=3.0)
+    S = Setup(P, opts)
+    st = State.start(P, S)
+    r, Jc, Jh = evaluate(S, st, jac=True)
+    rng = np.random.default_rng(7)
+    w = rng.uniform(0.5, 1.0, len(r))
+    J = len(P.facade_heights)
+    height_prior = np.r_[np.zeros(J), np.full(len(P.corner_xy), 1 / 3.0**2)]
+    prior_residual = np.r_[np.zeros(J), rng.normal(0.0, 2.0, len(P.corner_xy))]
+    offset_w = 1 / 100.0**2
+    ours = private_refit(S, Jc, Jh, r, w, height_prior, prior_residual, offset_w)
+
+    A, _ = _dense_normal(S, P, opts, st, r, Jc, Jh, w, height_prior, offset_w)
+    Ap = A[:, S.n_red :]  # heights, then offsets
+    prior = np.r_[height_prior, np.full(J, offset_w)]
+    g = Ap.T @ (w * r) + prior * np.r_[prior_residual, np.zeros(J)]
+    dense = float(g @ np.linalg.solve(Ap.T @ (w[:, None] * Ap) + np.diag(prior), g))
+    assert dense > 0.05 * float(np.sum(w * r * r))  # the fit takes a real share
+    np.testing.assert_allclose(ours, dense, rtol=1e-3)
 
 
 def _dense_normal(S, P, opts, st, r, Jc, Jh, w, height_prior, offset_w):

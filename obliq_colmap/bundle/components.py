@@ -36,7 +36,8 @@ class Group:
     #: (n, n) its normal matrix on the camera block (``J^T W J`` with its
     #: robust weights; its own unknowns eliminated).
     normal: np.ndarray
-    #: ``r^T W r`` with the robust weights.
+    #: ``r^T W r`` with the robust weights, at the optimum of the unknowns
+    #: ``private`` counts (``covariance.private_refit``).
     wss: float
     #: Its rows (observations), prior rows on its own unknowns included.
     rows: int

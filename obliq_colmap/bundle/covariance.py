@@ -2,7 +2,8 @@
 predicted deviation in pixels.
 
 :func:`eliminate_heights` eliminates the heights (and fitted anchor
-offsets), :func:`private_share` says how much of a group's rows they take,
+offsets), :func:`private_share` says how much of a group's rows they take
+and :func:`private_refit` what fitting them takes of its squares,
 :func:`gauge_cofactor` inverts the gauge-constrained reduced
 system, :func:`corner_offset_meat` carries the map corners' shared error
 into it; :func:`image_jacobians` and :func:`image_precision` propagate it
@@ -129,6 +130,47 @@ def private_share(
     # tr([[a, b], [b, c]]^-1 [[counted, b], [b, c_rows]])
     share = np.where(ok, (c * counted + a * hb.c_rows - 2.0 * b * b) / det, 0.0)
     return float(share.sum())
+
+
+def private_refit(
+    S: Setup,
+    Jc,
+    Jh,
+    r: np.ndarray,
+    w,
+    height_prior: np.ndarray,
+    prior_residual: np.ndarray,
+    offset_w: float,
+) -> float:
+    """How much the weighted squares of the rows ``w`` weights (and of the
+    height prior's rows) drop when each height and its anchor offset are
+    fitted to them with the cameras held: ``sum g^T M^-1 g`` over the
+    heights' 2 x 2 blocks, ``g`` the gradient of the half cost by (height,
+    offset), ``M`` with the priors (one Gauss-Newton step, exact for the
+    linearised rows).
+
+    The solve holds each anchor offset where the tracks' last
+    re-triangulation put it, while the redundancy (:func:`private_share`)
+    counts it as an unknown the rows determine: a two-view track the views
+    separate height and offset on keeps a residual in the solve and takes
+    both of its rows from the redundancy. Its squares over that redundancy
+    are counted twice; the variance component wants the squares at the
+    optimum of the unknowns it counts.
+
+    r : (N,) residuals; ``prior_residual`` (n_heights,) each height less
+    its prior's mean (zero without a prior).
+    """
+    hb = _height_blocks(S, Jc, Jh, w, height_prior, offset_w)
+    if hb is None:
+        return 0.0
+    m, hid, nh = hb.mask, hb.hid, S.n_heights
+    wr = w[m] * r[m]
+    gh = np.bincount(hid, wr * hb.jh, nh) + height_prior * prior_residual
+    gd = np.bincount(hid, wr * hb.jd, nh)
+    a, b, c, ok = hb.a, hb.b, hb.c, hb.ok
+    det = np.where(ok, a * c - b * b, 1.0)
+    drop = np.where(ok, (c * gh * gh - 2.0 * b * gh * gd + a * gd * gd) / det, 0.0)
+    return float(drop.sum())
 
 
 def corner_offset_meat(

@@ -546,9 +546,13 @@ def _observation_groups(
         shared = None
         if name == "map corners" and opts.map_corner_sigma_m is not None:
             shared = covariance.corner_offset_meat(S, Jc, wm, opts.map_corner_sigma_m)
+        dh = np.where(prior_mask, st.heights - heights0, 0.0) if prior_w else 0.0
         if heights.any() and prior_w:  # the corner heights' prior rows
-            dh = (st.heights - heights0)[prior_mask]
-            wss, rows = wss + prior_w * float(dh @ dh), rows + int(prior_mask.sum())
+            wss += prior_w * float(np.sum(dh * dh))
+            rows += int(prior_mask.sum())
+        # the squares at the optimum of the heights and offsets counted in
+        # ``private`` (the solve holds the offsets)
+        wss -= covariance.private_refit(S, Jc, Jh, r, wm, with_prior, dh, offset_w)
         groups.append(Group(name, normal, wss, rows, private, shared))
     for p in pose_priors:
         normal = _dense_terms(S, lambda H, p=p: p.add_to(H, np.zeros(n + 1), st))
