@@ -2,7 +2,8 @@
 (:func:`obliq_colmap.adjustment.bundle_stage`), the check of the pose priors
 (:func:`check_pose_priors`), the failed and weak images registered again
 against the solved block (:func:`reregister_failed`) and the bundle solved
-again with them (undone when it spoils the block), then the leave-outs (and,
+again with them (undone when it spoils the block, unless the images that two
+registrations confirm outvote what it rejects), then the leave-outs (and,
 on request, the images left out as wrong registered once more against the
 block solved without them).
 """
@@ -72,8 +73,12 @@ def block_stage(
     first bundle's block is kept and the images registered again get their
     earlier outcome back (a failed one stays out; measured: `hard` s2 /
     seed 0, a wrong re-registration 24 px off pulled two images 17-21 px
-    off); then the images the last bundle disagrees with or determines too
-    poorly are left out (:func:`leave_out_rejected`). ``pool_args``:
+    off). Images registered again that a second registration confirms (the
+    first bundle's pose within ``reregistration_agreement_px``, or their tie
+    points) and that outnumber the images rejected keep the new block, with
+    the others dropped and the bundle solved once more where needed
+    (:func:`_confirmed`); then the images the last bundle disagrees with or
+    determines too poorly are left out (:func:`leave_out_rejected`). ``pool_args``:
     (workers, initializer arguments) of the re-registration's process pool.
     Outcomes are updated in place. Returns the block, the last bundle's
     result (None when it was skipped or failed), its facade stage and the
@@ -106,9 +111,10 @@ def block_stage(
             options.progress,
             options.dask_scheduler,
         ) as pool:
-            state, reregistered = reregister_failed(
+            joined, reregistered = reregister_failed(
                 pool, tasks, outcomes, state, options, ties
             )
+        state = joined
         timings["reregistration"] = time.perf_counter() - t0
         if reregistered:
             state, bundle_result, stage3, verdicts = _solve_again(
@@ -122,15 +128,46 @@ def block_stage(
             # / seed 2: 34 / 36 at 0.64 px against 32 / 36 at 1.11 px); the
             # height verdict is treated alike.
             spoiled = sorted(set(again) - set(rejected) - new)
-            # Images placed by their tie points AND registered to the map are
-            # confirmed twice: where they outnumber the images the second
-            # bundle now rejects, those were the wrong ones (a no_vp image
-            # written on a weak pose), and the second block stands.
-            confirmed = all(by_id[i].placed_by_ties for i in new)
-            if spoiled and confirmed and len(spoiled) < len(new):
+            # Images placed by their tie points AND registered to the map, or
+            # registered again where the first bundle had them, are confirmed
+            # twice: where they outnumber the images the bundle now rejects,
+            # those were the wrong ones (a no_vp image written on a weak
+            # pose; a head the new images pull to its right place), and the
+            # new block stands. The others may be what spoiled it (`hard` s2:
+            # an image re-registered 24 px off): without them, once more.
+            confirmed = _confirmed(first[0], state, by_id, new, options)
+            if spoiled and confirmed != new and len(confirmed) > len(spoiled):
+                dropped = new - confirmed
+                logger.info(
+                    "the bundle with the images registered again rejects %s:"
+                    " solved once more without those not confirmed (%s)",
+                    ", ".join(by_id[i].name for i in spoiled),
+                    ", ".join(by_id[i].name for i in sorted(dropped)),
+                )
+                third = _solve_with_confirmed(
+                    inputs,
+                    by_id,
+                    first[0],
+                    joined,
+                    saved,
+                    dropped,
+                    confirmed,
+                    options,
+                    timings,
+                    ties,
+                )
+                spoiled_now = sorted(set(third[3][0]) - set(rejected) - confirmed)
+                if len(spoiled_now) < len(confirmed):
+                    state, bundle_result, stage3, verdicts = third
+                    again, imprecise_again, misplaced_again = verdicts
+                    _note_unconfirmed(by_id, dropped, spoiled)
+                    reregistered = [by_id[i].name for i in sorted(confirmed)]
+                    new, spoiled = confirmed, spoiled_now
+            if spoiled and confirmed == new and len(spoiled) < len(new):
                 logger.warning(
-                    "the bundle with the images placed by their tie points"
-                    " rejects %s, accepted before: they are left out",
+                    "the bundle with the images registered again and confirmed"
+                    " (%s) rejects %s, accepted before: they are left out",
+                    ", ".join(by_id[i].name for i in sorted(new)),
                     ", ".join(by_id[i].name for i in spoiled),
                 )
                 rejected, imprecise = again, imprecise_again
@@ -432,6 +469,114 @@ def _solve_again(
     )
     timings["bundle"] += before
     return state, result, stage3, block_verdicts(stage3, options)
+
+
+def footprint_shift_px(before: BlockState, after: BlockState, image_id: int) -> float:
+    """Mean displacement (px) of an image's ground footprint from its pose
+    and camera in ``before`` to those in ``after``: a 5 x 5 grid of its
+    pixels cast onto its ground plane in ``before``, projected in ``after``."""
+    cam0, cam1 = before.cameras[image_id], after.cameras[image_id]
+    u, v = np.meshgrid(np.linspace(0.1, 0.9, 5), np.linspace(0.1, 0.9, 5))
+    px = np.column_stack([u.ravel() * cam0.width, v.ravel() * cam0.height])
+    pose = before.poses[image_id]
+    rays = np.column_stack([cam0.cam_from_img(px), np.ones(len(px))])
+    d = rays @ pose.rotation  # world directions (R^T ray)
+    c = pose.center
+    a, b, z0 = before.planes[image_id]  # z = a x + b y + z0
+    t = (a * c[0] + b * c[1] + z0 - c[2]) / (d[:, 2] - a * d[:, 0] - b * d[:, 1])
+    X = c + t[:, None] * d
+    q = cam1.img_from_cam(after.poses[image_id].transform(X))
+    return float(np.mean(np.linalg.norm(q - px, axis=1)))
+
+
+def _confirmed(
+    first: BlockState,
+    second: BlockState,
+    by_id: dict[int, ImageOutcome],
+    new: set[int],
+    options: PipelineOptions,
+) -> set[int]:
+    """The images registered again (``new``) that two registrations place:
+    the bundle solved again within ``options.reregistration_agreement_px``
+    of where the first had them or, for an image the first did not have,
+    its tie points as well as the map."""
+    shift = {
+        i: footprint_shift_px(first, second, i)
+        for i in new
+        if i in first.poses and i in second.poses
+    }
+    logger.info(
+        "images registered again, shift from the first bundle's pose: %s",
+        ", ".join(
+            f"{by_id[i].name} {shift[i]:.1f} px" if i in shift else by_id[i].name
+            for i in sorted(new)
+        ),
+    )
+    # A tie placement is a second registration only of an image the first
+    # bundle did not have: one it had and now sits far from was started
+    # from its ties and moved (our high-rise s3: W_20, S_22 16-19 px off).
+    limit = options.reregistration_agreement_px
+    return {
+        i
+        for i in new
+        if shift.get(i, math.inf) <= limit
+        or (by_id[i].placed_by_ties and i not in shift)
+    }
+
+
+def _note_unconfirmed(
+    by_id: dict[int, ImageOutcome], dropped: set[int], spoiled: Sequence[int]
+) -> None:
+    """Say on each image registered again but not kept why: unconfirmed,
+    and the bundle with it rejected images the first accepted."""
+    names = ", ".join(by_id[j].name for j in spoiled)
+    for i in sorted(dropped):
+        o = by_id[i]
+        o.message = (
+            "registered against the solved block, but neither its tie points"
+            " nor its first pose confirm it and the bundle with it disagreed"
+            f" with {names}: "
+            + (
+                "its first pose is kept and may be more than 2 px off"
+                if o.registered
+                else "left out"
+            )
+        )
+        logger.warning("%s: %s", o.name, o.message)
+
+
+def _solve_with_confirmed(
+    inputs: Inputs,
+    by_id: dict[int, ImageOutcome],
+    first: BlockState,
+    joined: BlockState,
+    saved: dict[int, ImageOutcome],
+    dropped: set[int],
+    confirmed: set[int],
+    options: PipelineOptions,
+    timings: dict[str, float],
+    ties: TiePoints | None,
+) -> tuple[BlockState, BundleResult | None, Stage3, Verdicts]:
+    """The bundle solved once more on ``joined`` (the first block with every
+    image registered again) with only the ``confirmed`` of those; the
+    ``dropped`` ones back to their earlier outcome (from ``saved``) and,
+    where the first block had them, its pose."""
+    poses, cameras = dict(joined.poses), dict(joined.cameras)
+    planes = dict(joined.planes)
+    for i in dropped:
+        _restore(by_id[i], saved[i])
+        for part, earlier in (
+            (poses, first.poses),
+            (cameras, first.cameras),
+            (planes, first.planes),
+        ):
+            part.pop(i, None)
+            if i in earlier:
+                part[i] = earlier[i]
+    solved = joined.solved | (frozenset(dropped) & first.solved)
+    state = BlockState(poses, cameras, planes, joined.shared, solved)
+    names = [by_id[i].name for i in sorted(confirmed)]
+    return _solve_again(inputs, by_id, state, options, timings, ties, names)
 
 
 def _leave_out(

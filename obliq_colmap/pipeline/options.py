@@ -70,6 +70,14 @@ class PipelineOptions:
     #: block's ground, the head's significant systematic prior offset), and
     #: the bundle is solved again with those that succeed.
     reregister_failed: bool = True
+    #: An image registered again that lands within this many pixels (the
+    #: mean displacement of its ground footprint) of where the first bundle
+    #: had it is confirmed twice, like one its tie points placed: when the
+    #: bundle solved again then rejects images the first accepted, those
+    #: were the wrong ones. Two poses each within the 2 px of a registered
+    #: image lie within 4 px of each other. When only some images registered
+    #: again are confirmed, the bundle is solved once more with those alone.
+    reregistration_agreement_px: float = 4.0
     #: ... and so is every other image that its tie points place in the
     #: solved block, from that placement (stage 2's inlier corners were
     #: chosen from the priors' pose and lens; the solved block starts each
