@@ -1055,13 +1055,7 @@ def test_refitting_the_heights_and_offsets_takes_what_a_dense_solve_takes():
     and anchor offset is fitted to the rows with the cameras held, against
     the dense least-squares fit over all of them (the height priors' rows
     with a residual of their own, the offsets' with none)."""
-    P = _tracks_with_offsets(seed=3)
-    opts = BundleOptions(corner_height_prior_m=3.0)
-    S = Setup(P, opts)
-    st = State.start(P, S)
-    r, Jc, Jh = evaluate(S, st, jac=True)
-    rng = np.random.default_rng(7)
-    w = rng.uniform(0.5, 1.0, len(r))
+    P, opts, S, st, r, Jc, Jh, w, rng = _tracks_at_start(weight_seed=7)
     J = len(P.facade_heights)
     height_prior = np.r_[np.zeros(J), np.full(len(P.corner_xy), 1 / 3.0**2)]
     prior_residual = np.r_[np.zeros(J), rng.normal(0.0, 2.0, len(P.corner_xy))]
@@ -1124,6 +1118,21 @@ def _tracks_with_offsets(seed: int):
     return dataclasses.replace(P0, horizontal_offset_normal=normal)
 
 
+def _tracks_at_start(weight_seed: int):
+    """:func:`_tracks_with_offsets` (seed 3) at its start: the problem, the
+    options (corner heights free with a 3 m prior), the setup, the state,
+    the residuals and Jacobians, random row weights in [0.5, 1) and the
+    generator that drew them."""
+    P = _tracks_with_offsets(seed=3)
+    opts = BundleOptions(corner_height_prior_m=3.0)
+    S = Setup(P, opts)
+    st = State.start(P, S)
+    r, Jc, Jh = evaluate(S, st, jac=True)
+    rng = np.random.default_rng(weight_seed)
+    w = rng.uniform(0.5, 1.0, len(r))
+    return P, opts, S, st, r, Jc, Jh, w, rng
+
+
 def test_a_groups_redundancy_is_what_its_own_unknowns_leave_of_its_rows():
     """The facade rows' share of the redundancy (Foerstner's, the sum of
     ``1 - h_ii`` over its rows from the full hat matrix) against the
@@ -1132,13 +1141,7 @@ def test_a_groups_redundancy_is_what_its_own_unknowns_leave_of_its_rows():
     for one row: the offset's prior holds one of them) and offsets near
     their own wall's direction (held by the prior too). Counting two
     unknowns per track takes a row too many for each."""
-    P = _tracks_with_offsets(seed=3)
-    opts = BundleOptions(corner_height_prior_m=3.0)
-    S = Setup(P, opts)
-    st = State.start(P, S)
-    r, Jc, Jh = evaluate(S, st, jac=True)
-    rng = np.random.default_rng(5)
-    w = rng.uniform(0.5, 1.0, len(r))
+    P, opts, S, st, r, Jc, Jh, w, rng = _tracks_at_start(weight_seed=5)
     facade = S.kind == 1
     # six tracks keep only their first observation
     tracks = np.unique(S.hidx[facade])

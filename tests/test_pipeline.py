@@ -1124,23 +1124,8 @@ def test_images_placed_by_tie_points_outvote_an_image_the_bundle_now_rejects(
         )
         o.status, o.message = "failed", "simulated"
 
-    def reregister(pool, tasks, outcomes, state, options, ties=None):
-        poses, cameras, planes = (
-            dict(state.poses),
-            dict(state.cameras),
-            {**state.planes},
-        )
-        for o in back:
-            pl.set_registration(o, good[o.image_id])
-            o.reregistered = o.placed_by_ties = True
-            poses[o.image_id] = o.registration.cam_from_world
-            cameras[o.image_id] = o.camera
-            planes[o.image_id] = o.registration.height_plane.copy()
-        state = pl.BlockState(poses, cameras, planes, True, state.solved)
-        return state, [o.name for o in back]
-
     ids = iter([[], [y.image_id]])
-    monkeypatch.setattr(block, "reregister_failed", reregister)
+    monkeypatch.setattr(block, "reregister_failed", _reregistered_as(back, good, True))
     monkeypatch.setattr(verdicts, "rejected_images", lambda stage3, m: next(ids))
     state, result, _, again = pl.block_stage(
         inputs, tasks, outcomes, options, {}, (1, ())
