@@ -117,91 +117,22 @@ def block_stage(
         state = joined
         timings["reregistration"] = time.perf_counter() - t0
         if reregistered:
-            state, bundle_result, stage3, verdicts = _solve_again(
-                inputs, by_id, state, options, timings, ties, reregistered
-            )
-            again, imprecise_again, misplaced_again = verdicts
-            new = {o.image_id for o in outcomes if o.name in reregistered}
-            # Spoiled: rejected now, accepted before. Not the precision
-            # verdict: an image it flags is left out of the second block,
-            # which measured better than going back to the first (`hard` s2
-            # / seed 2: 34 / 36 at 0.64 px against 32 / 36 at 1.11 px); the
-            # height verdict is treated alike.
-            spoiled = sorted(set(again) - set(rejected) - new)
-            # Images placed by their tie points AND registered to the map, or
-            # registered again where the first bundle had them, are confirmed
-            # twice: where they outnumber the images the bundle now rejects,
-            # those were the wrong ones (a no_vp image written on a weak
-            # pose; a head the new images pull to its right place), and the
-            # new block stands. The others may be what spoiled it (`hard` s2:
-            # an image re-registered 24 px off): without them, once more.
-            confirmed = _confirmed(first[0], state, by_id, new, options)
-            if spoiled and confirmed != new and len(confirmed) > len(spoiled):
-                dropped = new - confirmed
-                logger.info(
-                    "the bundle with the images registered again rejects %s:"
-                    " solved once more without those not confirmed (%s)",
-                    ", ".join(by_id[i].name for i in spoiled),
-                    ", ".join(by_id[i].name for i in sorted(dropped)),
-                )
-                third = _solve_with_confirmed(
+            state, bundle_result, stage3, verdicts, reregistered = (
+                _settle_second_bundle(
                     inputs,
                     by_id,
-                    first[0],
+                    outcomes,
+                    first,
                     joined,
+                    reregistered,
                     saved,
-                    dropped,
-                    confirmed,
+                    (rejected, imprecise, misplaced),
                     options,
                     timings,
                     ties,
                 )
-                spoiled_now = sorted(set(third[3][0]) - set(rejected) - confirmed)
-                if len(spoiled_now) < len(confirmed):
-                    state, bundle_result, stage3, verdicts = third
-                    again, imprecise_again, misplaced_again = verdicts
-                    _note_unconfirmed(by_id, dropped, spoiled)
-                    reregistered = [by_id[i].name for i in sorted(confirmed)]
-                    new, spoiled = confirmed, spoiled_now
-            if spoiled and confirmed == new and len(spoiled) < len(new):
-                logger.warning(
-                    "the bundle with the images registered again and confirmed"
-                    " (%s) rejects %s, accepted before: they are left out",
-                    ", ".join(by_id[i].name for i in sorted(new)),
-                    ", ".join(by_id[i].name for i in spoiled),
-                )
-                rejected, imprecise = again, imprecise_again
-                misplaced = misplaced_again
-            elif spoiled:
-                # The second bundle disagrees with images the first accepted:
-                # the images registered again pulled the block off (a wrong
-                # pose with enough inliers). Back to the first bundle.
-                names = ", ".join(by_id[i].name for i in spoiled)
-                for i in new:
-                    o = by_id[i]
-                    _restore(o, saved[i])
-                    o.message = (
-                        "registered against the solved block, but the bundle"
-                        f" with it disagreed with {names}: left out"
-                    )
-                    if o.registered:
-                        # Two registrations of a weak image that the block
-                        # cannot both hold: the first may be the wrong one
-                        # (high-rise seed 1: N_20 kept 4.9 px off, its
-                        # predicted sd below 1 px).
-                        o.message = (
-                            "written with a warning: registered against the"
-                            " solved block, the bundle with that pose disagreed"
-                            f" with {names}; its first pose"
-                            f" ({o.registration.num_inliers} inlier corners) is"
-                            " kept and may be more than 2 px off"
-                        )
-                    logger.warning("%s: %s", o.name, o.message)
-                state, bundle_result, stage3 = first
-                reregistered = []
-            else:
-                rejected, imprecise = again, imprecise_again
-                misplaced = misplaced_again
+            )
+            rejected, imprecise, misplaced = verdicts
     held = set(state.poses)
     state = _leave_out(state, stage3, by_id, rejected, imprecise, misplaced)
     wrong = {i for i in [*rejected, *misplaced] if i in held - set(state.poses)}
@@ -225,6 +156,115 @@ def block_stage(
     warn_imprecise(state, stage3, by_id, options.warn_predicted_sd_px)
     warn_vp_disagreement(state, stage3, by_id)
     return state, bundle_result, stage3, reregistered
+
+
+def _settle_second_bundle(
+    inputs: Inputs,
+    by_id: dict[int, ImageOutcome],
+    outcomes: list[ImageOutcome],
+    first: tuple[BlockState, BundleResult | None, Stage3],
+    joined: BlockState,
+    reregistered: list[str],
+    saved: dict[int, ImageOutcome],
+    verdicts: Verdicts,
+    options: PipelineOptions,
+    timings: dict[str, float],
+    ties: TiePoints | None,
+) -> tuple[BlockState, BundleResult | None, Stage3, Verdicts, list[str]]:
+    """The bundle solved again on ``joined``, the first block (``first``:
+    state, result, stage 3) with the images ``reregistered`` (names); kept,
+    kept with only the confirmed of them (:func:`_confirmed`), or undone
+    for the first block with their earlier outcomes back (``saved``), as
+    :func:`block_stage` says. ``verdicts``: the first bundle's. Returns the
+    block, its bundle result, stage 3, verdicts and the names of the images
+    registered again that it keeps."""
+    rejected, imprecise, misplaced = verdicts
+    state, bundle_result, stage3, verdicts = _solve_again(
+        inputs, by_id, joined, options, timings, ties, reregistered
+    )
+    again, imprecise_again, misplaced_again = verdicts
+    new = {o.image_id for o in outcomes if o.name in reregistered}
+    # Spoiled: rejected now, accepted before. Not the precision
+    # verdict: an image it flags is left out of the second block,
+    # which measured better than going back to the first (`hard` s2
+    # / seed 2: 34 / 36 at 0.64 px against 32 / 36 at 1.11 px); the
+    # height verdict is treated alike.
+    spoiled = sorted(set(again) - set(rejected) - new)
+    # Images placed by their tie points AND registered to the map, or
+    # registered again where the first bundle had them, are confirmed
+    # twice: where they outnumber the images the bundle now rejects,
+    # those were the wrong ones (a no_vp image written on a weak
+    # pose; a head the new images pull to its right place), and the
+    # new block stands. The others may be what spoiled it (`hard` s2:
+    # an image re-registered 24 px off): without them, once more.
+    confirmed = _confirmed(first[0], state, by_id, new, options)
+    if spoiled and confirmed != new and len(confirmed) > len(spoiled):
+        dropped = new - confirmed
+        logger.info(
+            "the bundle with the images registered again rejects %s:"
+            " solved once more without those not confirmed (%s)",
+            ", ".join(by_id[i].name for i in spoiled),
+            ", ".join(by_id[i].name for i in sorted(dropped)),
+        )
+        third = _solve_with_confirmed(
+            inputs,
+            by_id,
+            first[0],
+            joined,
+            saved,
+            dropped,
+            confirmed,
+            options,
+            timings,
+            ties,
+        )
+        spoiled_now = sorted(set(third[3][0]) - set(rejected) - confirmed)
+        if len(spoiled_now) < len(confirmed):
+            state, bundle_result, stage3, verdicts = third
+            again, imprecise_again, misplaced_again = verdicts
+            _note_unconfirmed(by_id, dropped, spoiled)
+            reregistered = [by_id[i].name for i in sorted(confirmed)]
+            new, spoiled = confirmed, spoiled_now
+    if spoiled and confirmed == new and len(spoiled) < len(new):
+        logger.warning(
+            "the bundle with the images registered again and confirmed"
+            " (%s) rejects %s, accepted before: they are left out",
+            ", ".join(by_id[i].name for i in sorted(new)),
+            ", ".join(by_id[i].name for i in spoiled),
+        )
+        rejected, imprecise = again, imprecise_again
+        misplaced = misplaced_again
+    elif spoiled:
+        # The second bundle disagrees with images the first accepted:
+        # the images registered again pulled the block off (a wrong
+        # pose with enough inliers). Back to the first bundle.
+        names = ", ".join(by_id[i].name for i in spoiled)
+        for i in new:
+            o = by_id[i]
+            _restore(o, saved[i])
+            o.message = (
+                "registered against the solved block, but the bundle"
+                f" with it disagreed with {names}: left out"
+            )
+            if o.registered:
+                # Two registrations of a weak image that the block
+                # cannot both hold: the first may be the wrong one
+                # (high-rise seed 1: N_20 kept 4.9 px off, its
+                # predicted sd below 1 px).
+                o.message = (
+                    "written with a warning: registered against the"
+                    " solved block, the bundle with that pose disagreed"
+                    f" with {names}; its first pose"
+                    f" ({o.registration.num_inliers} inlier corners) is"
+                    " kept and may be more than 2 px off"
+                )
+            logger.warning("%s: %s", o.name, o.message)
+        state, bundle_result, stage3 = first
+        reregistered = []
+    else:
+        rejected, imprecise = again, imprecise_again
+        misplaced = misplaced_again
+    return state, bundle_result, stage3, (rejected, imprecise, misplaced), reregistered
 
 
 def check_pose_priors(
