@@ -1091,6 +1091,29 @@ def test_a_footprint_shift_is_what_the_camera_moved_over_the_ground():
     assert footprint_shift_px(a, c, 1) == pytest.approx(0.01 * r.mean())
 
 
+def test_an_image_moved_from_the_pose_that_confirmed_it_is_astray():
+    """``_astray``: of the given images, those the new block places more
+    than ``reregistration_agreement_px`` from where the first had them, with
+    their shift; images either block lacks are not judged."""
+    from obliq_colmap.geometry import Camera, Pose
+    from obliq_colmap.pipeline.block import _astray
+
+    cam = Camera("SIMPLE_PINHOLE", 2000, 1000, np.array([1500.0, 1000.0, 500.0]))
+    down = np.diag([1.0, -1.0, -1.0])
+    at = {k: Pose.from_center(down, np.array([100.0 * k, 0.0, 300.0])) for k in (1, 2)}
+    cams, ground = {1: cam, 2: cam}, {1: np.zeros(3), 2: np.zeros(3)}
+    first = _block_of(at, cams, ground)
+    # image 2 moved 1 m across its view: 5 px
+    moved = {1: at[1], 2: Pose.from_center(down, np.array([201.0, 0.0, 300.0]))}
+    second = _block_of(moved, cams, ground)
+    options = PipelineOptions()  # 4 px
+    assert _astray(first, second, {1, 2}, options) == {2: pytest.approx(5.0)}
+    assert _astray(first, second, {1}, options) == {}
+    assert _astray(first, _block_of({1: at[1]}, cams, ground), {2}, options) == {}
+    wider = PipelineOptions(reregistration_agreement_px=6.0)
+    assert _astray(first, second, {1, 2}, wider) == {}
+
+
 def _block_of(poses, cameras, planes):
     from obliq_colmap import pipeline as pl
 

@@ -219,10 +219,15 @@ def _settle_second_bundle(
             ties,
         )
         spoiled_now = sorted(set(third[3][0]) - set(rejected) - confirmed)
-        if len(spoiled_now) < len(confirmed):
+        # solved without the others, a confirmed image can leave the pose
+        # that confirmed it: then neither of its registrations holds
+        astray = _astray(first[0], third[0], confirmed, options)
+        if len(spoiled_now) + len(astray) < len(confirmed):
             state, bundle_result, stage3, verdicts = third
             again, imprecise_again, misplaced_again = verdicts
             _note_unconfirmed(by_id, dropped, spoiled)
+            state = _without_astray(state, by_id, astray)
+            confirmed = confirmed - set(astray)
             reregistered = [by_id[i].name for i in sorted(confirmed)]
             new, spoiled = confirmed, spoiled_now
     if spoiled and confirmed == new and len(spoiled) < len(new):
@@ -562,6 +567,44 @@ def _confirmed(
         if shift.get(i, math.inf) <= limit
         or (by_id[i].placed_by_ties and i not in shift)
     }
+
+
+def _astray(
+    first: BlockState, block: BlockState, images: set[int], options: PipelineOptions
+) -> dict[int, float]:
+    """The ``images`` that ``block`` places more than
+    ``options.reregistration_agreement_px`` from where ``first`` had them,
+    with their footprint shift (px)."""
+    shifts = {
+        i: footprint_shift_px(first, block, i)
+        for i in images
+        if i in first.poses and i in block.poses
+    }
+    return {i: v for i, v in shifts.items() if v > options.reregistration_agreement_px}
+
+
+def _without_astray(
+    state: BlockState, by_id: dict[int, ImageOutcome], astray: dict[int, float]
+) -> BlockState:
+    """The block without the ``astray`` images (:func:`_astray`), each named
+    with its shift."""
+    for i, shift in astray.items():
+        o = by_id[i]
+        o.status = "failed"
+        o.message = (
+            "left out: registered against the solved block where the first"
+            f" bundle had it, but the bundle solved again moved it {shift:.1f}"
+            " px from there (neither pose holds)"
+        )
+        logger.warning("%s: %s", o.name, o.message)
+    keep = set(state.poses) - set(astray)
+    return dataclasses.replace(
+        state,
+        poses={i: p for i, p in state.poses.items() if i in keep},
+        cameras={i: c for i, c in state.cameras.items() if i in keep},
+        planes={i: p for i, p in state.planes.items() if i in keep},
+        solved=state.solved & keep,
+    )
 
 
 def _note_unconfirmed(
