@@ -18,7 +18,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -142,6 +142,17 @@ class BlockState:
             poses={o.image_id: o.registration.cam_from_world for o in registered},
             cameras={o.image_id: o.camera for o in registered},
             planes={o.image_id: o.registration.height_plane.copy() for o in registered},
+        )
+
+    def without(self, image_ids: Iterable[int]) -> BlockState:
+        """The block without the images ``image_ids``."""
+        keep = set(self.poses) - set(image_ids)
+        return BlockState(
+            poses={i: p for i, p in self.poses.items() if i in keep},
+            cameras={i: c for i, c in self.cameras.items() if i in keep},
+            planes={i: p for i, p in self.planes.items() if i in keep},
+            shared=self.shared,
+            solved=self.solved & keep,
         )
 
     def ground(self, image_id: int) -> Callable[[np.ndarray], np.ndarray]:

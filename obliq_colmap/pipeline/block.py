@@ -597,14 +597,7 @@ def _without_astray(
             " px from there (neither pose holds)"
         )
         logger.warning("%s: %s", o.name, o.message)
-    keep = set(state.poses) - set(astray)
-    return dataclasses.replace(
-        state,
-        poses={i: p for i, p in state.poses.items() if i in keep},
-        cameras={i: c for i, c in state.cameras.items() if i in keep},
-        planes={i: p for i, p in state.planes.items() if i in keep},
-        solved=state.solved & keep,
-    )
+    return state.without(astray)
 
 
 def _note_unconfirmed(

@@ -10,7 +10,6 @@ registered without a vertical vanishing point of their own
 
 from __future__ import annotations
 
-import dataclasses
 import logging
 import math
 from collections.abc import Sequence
@@ -147,14 +146,7 @@ def leave_out_rejected(
         o.status = "failed"
         o.message = "left out: " + "; ".join(reasons)
         logger.warning("%s: %s", o.name, o.message)
-    keep = set(state.poses) - set(out)
-    return dataclasses.replace(
-        state,
-        poses={i: p for i, p in state.poses.items() if i in keep},
-        cameras={i: c for i, c in state.cameras.items() if i in keep},
-        planes={i: p for i, p in state.planes.items() if i in keep},
-        solved=state.solved & keep,
-    )
+    return state.without(out)
 
 
 def _add_note(outcome: ImageOutcome, note: str) -> None:
